@@ -1,0 +1,219 @@
+"""The self-calibrating bundle model of the field method: residuals and analytic Jacobian.
+
+Unknowns (the layout of the parameter vector ``x``)::
+
+    x = [ interior (the estimated subset of PARAM_NAMES)      n_int
+          exterior: per image  w (3, rotation increment) C (3, m)   6 n_images
+          targets: per adjusted target  X (3, m)               3 n_targets ]
+
+The rotation of image i is ``R_i = exp([w_i]x) R0_i`` with a reference ``R0_i`` held by the
+model (the increments stay small; :meth:`BundleModel.rebase` folds them in). Targets come
+last so that the least-squares engine can eliminate them (3x3 blocks, Schur complement).
+
+Residuals (weighted, dimensionless):
+
+- image point k of image i and target t, in **image space** (CONTRACT section 4):
+  ``r_k = (uv_measured - uv(x)) / sigma_px`` where ``uv(x)`` is the pixel at which the
+  adjusted target lands through the adjusted camera: ``Xc = R_i (X_t - C_i)``,
+  ``q = -f (Xc, Yc)/Zc``, ``x' = distort(q)``, ``uv = pixel(x')``. The printed objective of
+  the field paper (eq. 10-11, corrected-plane residuals) is not scale invariant (METHODS
+  part A); this one is.
+- surveyed coordinate of target t (when targets are adjusted): ``(X_t - X_surveyed)/sigma``.
+
+Jacobian of ``x' = distort(q)``: with ``g(x'; p) = correct(x')``, the predicted point solves
+``g(x'; p) = q``, so ``dx' = G^-1 (dq - dg/dp dp)`` with ``G = dg/dx'``
+(:func:`fieldcal.camera.correct_jacobian`). Then ``dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]``,
+``dXc/dw = -[Xc]x J_l(w)``, ``dXc/dC = -R``, ``dXc/dX = R``, ``dq/df = q/f``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import INDEX, Camera, correct_jacobian, distort
+from .fielddata import FieldData
+from .rotations import R_from_rotvec, left_jacobian_so3, skew
+
+__all__ = ["BundleModel", "ObservationJacobian"]
+
+
+@dataclass
+class ObservationJacobian:
+    """Per-observation derivative blocks of the weighted image residuals (rows u, v).
+
+    ``d_int`` (m, 2, n_int), ``d_ext`` (m, 2, 6), ``d_tgt`` (m, 2, 3); columns of image
+    ``image[k]`` and target ``target[k]``.
+    """
+
+    d_int: np.ndarray
+    d_ext: np.ndarray
+    d_tgt: np.ndarray
+
+
+class BundleModel:
+    """Residuals and Jacobian of the field adjustment for one set of active observations.
+
+    Parameters
+    ----------
+    data : FieldData
+        Targets, images, observations.
+    params0 : (13,) ndarray
+        Camera parameters; the ones not in ``estimate`` stay at these values.
+    estimate : sequence of str
+        Names (PARAM_NAMES) of the interior parameters to estimate.
+    R0 : (n_images, 3, 3) ndarray
+        Reference rotations (world to camera).
+    targets_adjusted : bool
+        Whether target coordinates are unknowns (weighted by their survey sigma) or fixed.
+    obs_active : (m,) bool, optional
+        Image observations in use (others are ignored, e.g. rejected blunders).
+    survey_active : (n_targets,) bool, optional
+        Survey observations in use (a rejected survey leaves the target to the images).
+    """
+
+    def __init__(self, data: FieldData, params0, estimate, R0, *, targets_adjusted=True,
+                 obs_active=None, survey_active=None):
+        self.data = data
+        self.params0 = np.asarray(params0, dtype=float).copy()
+        self.estimate = tuple(estimate)
+        self.int_index = np.array([INDEX[n] for n in self.estimate], dtype=np.int64)
+        self.R0 = np.array(R0, dtype=float)
+        self.targets_adjusted = bool(targets_adjusted)
+        m = len(data.obs)
+        self.obs_active = np.ones(m, bool) if obs_active is None else np.asarray(obs_active, bool)
+        n_t = len(data.targets)
+        self.survey_active = (np.ones(n_t, bool) if survey_active is None
+                              else np.asarray(survey_active, bool))
+        self.n_images = len(data.images)
+        self.n_targets = n_t
+        self.n_int = len(self.estimate)
+        self.n_reduced = self.n_int + 6 * self.n_images
+        self.n_params = self.n_reduced + (3 * n_t if self.targets_adjusted else 0)
+        k = np.flatnonzero(self.obs_active)
+        self.k = k
+        self.img = data.obs.image[k]
+        self.tgt = data.obs.target[k]
+        self.uv = data.obs.uv_px[k]
+        self.sigma_px = data.obs.sigma_px[k]
+        self.survey_k = np.flatnonzero(self.survey_active) if self.targets_adjusted else np.zeros(0, int)
+        self.sigma_m = data.targets.sigma_mm / 1000.0
+        self.n_rows_image = 2 * len(k)
+        self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
+
+    # ------------------------------------------------------------------ packing
+    def pack(self, params, center_m, targets_m=None):
+        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3)."""
+        parts = [np.asarray(params, float)[self.int_index], np.zeros((self.n_images, 6))]
+        parts[1][:, 3:] = center_m
+        x = [parts[0], parts[1].ravel()]
+        if self.targets_adjusted:
+            x.append(np.asarray(targets_m, float).ravel())
+        return np.concatenate(x)
+
+    def unpack(self, x):
+        """``(params (13,), R_world_to_camera (n_images,3,3), center_m (n_images,3), targets_m (n,3))``."""
+        x = np.asarray(x, float)
+        params = self.params0.copy()
+        params[self.int_index] = x[: self.n_int]
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        R = R_from_rotvec(ext[:, :3]) @ self.R0
+        C = ext[:, 3:].copy()
+        X = (x[self.n_reduced:].reshape(-1, 3) if self.targets_adjusted
+             else self.data.targets.xyz_m.copy())
+        return params, R, C, X
+
+    def rebase(self, x):
+        """Fold the rotation increments of ``x`` into ``R0`` and return the equivalent ``x``."""
+        x = np.array(x, float)
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        self.R0 = R_from_rotvec(ext[:, :3]) @ self.R0
+        ext[:, :3] = 0.0
+        x[self.n_int:self.n_reduced] = ext.ravel()
+        return x
+
+    def camera(self, x) -> Camera:
+        return Camera(self.data.sensor, self.unpack(x)[0])
+
+    # ------------------------------------------------------------------ model
+    def predict(self, x):
+        """Predicted pixels (m_active, 2) of the active image observations (NaN if behind)."""
+        return self._predict(x, jacobian=False)[0]
+
+    def _predict(self, x, jacobian):
+        params, _, C, X = self.unpack(x)
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        R = R_from_rotvec(ext[:, :3]) @ self.R0
+        Ri = R[self.img]
+        d = X[self.tgt] - C[self.img]
+        Xc = np.einsum("kab,kb->ka", Ri, d)
+        z = Xc[:, 2]
+        f = params[INDEX["f_mm"]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zs = np.where(z < 0, z, np.nan)
+            q = -f * Xc[:, :2] / zs[:, None]
+        xy = distort(q, params, check=False)
+        s = self.data.sensor
+        uv = s.mm_to_pixel(xy)
+        if not jacobian:
+            return uv, None
+        _, G, Q = correct_jacobian(xy, params)
+        det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] * G[:, 1, 0]
+        Ginv = np.empty_like(G)
+        Ginv[:, 0, 0], Ginv[:, 1, 1] = G[:, 1, 1] / det, G[:, 0, 0] / det
+        Ginv[:, 0, 1], Ginv[:, 1, 0] = -G[:, 0, 1] / det, -G[:, 1, 0] / det
+        # d(uv)/d(x') = diag(1/d, -1/d); residual r = (uv_meas - uv)/sigma -> factor -1/sigma
+        dpx = np.array([1.0, -1.0]) / s.pixel_mm
+        A = -(dpx[None, :, None] * Ginv) / self.sigma_px[:, None, None]  # dr/dq at fixed p
+        # interior: dx'/dp = G^-1 (dq/dp - Q); dq/df = q/f
+        dq_dp = -Q[:, :, self.int_index]
+        if "f_mm" in self.estimate:
+            dq_dp[:, :, self.estimate.index("f_mm")] += q / f
+        d_int = A @ dq_dp
+        # exterior and target via Xc
+        zi = 1.0 / zs
+        dq_dXc = np.zeros((len(z), 2, 3))
+        dq_dXc[:, 0, 0] = -f * zi
+        dq_dXc[:, 1, 1] = -f * zi
+        dq_dXc[:, :, 2] = f * Xc[:, :2] * (zi**2)[:, None]
+        B = A @ dq_dXc  # (m, 2, 3)
+        Jl = left_jacobian_so3(ext[:, :3])[self.img]
+        dXc_dw = -skew(Xc) @ Jl
+        d_ext = np.concatenate([B @ dXc_dw, -(B @ Ri)], axis=2)
+        d_tgt = B @ Ri
+        return uv, ObservationJacobian(d_int, d_ext, d_tgt)
+
+    def residuals_and_blocks(self, x, jacobian=True):
+        """Weighted residuals (n_rows,) and the derivative blocks.
+
+        Returns
+        -------
+        r : (n_rows,) ndarray
+            Image rows first (u, v interleaved per observation), then survey rows
+            (X, Y, Z per active survey).
+        obs_jac : ObservationJacobian or None
+        survey_diag : (n_survey,) ndarray
+            ``1/sigma`` [1/m] of each active survey (its Jacobian is ``I / sigma``).
+        """
+        uv, jac = self._predict(x, jacobian)
+        r_img = ((self.uv - uv) / self.sigma_px[:, None]).ravel()
+        if self.targets_adjusted and len(self.survey_k):
+            X = x[self.n_reduced:].reshape(-1, 3)
+            t = self.survey_k
+            r_sur = ((X[t] - self.data.targets.xyz_m[t]) / self.sigma_m[t, None]).ravel()
+            r = np.concatenate([r_img, r_sur])
+        else:
+            r = r_img
+        return r, jac, 1.0 / self.sigma_m[self.survey_k]
+
+    def column_names(self) -> list[str]:
+        """Names of the columns of ``x`` (for covariance/correlation tables)."""
+        names = list(self.estimate)
+        for i, im in enumerate(self.data.images):
+            names += [f"{im.file}:{c}" for c in ("w_x", "w_y", "w_z", "X_m", "Y_m", "Z_m")]
+        if self.targets_adjusted:
+            for t in self.data.targets.ids:
+                names += [f"{t}:X_m", f"{t}:Y_m", f"{t}:Z_m"]
+        return names
+
