@@ -34,7 +34,7 @@ import numpy as np
 
 from .camera import INDEX, Camera, correct_jacobian, distort
 from .fielddata import FieldData
-from .rotations import R_from_rotvec, left_jacobian_so3, skew
+from .rotations import R_from_rotvec, left_jacobian_so3
 
 __all__ = ["BundleModel", "ObservationJacobian"]
 
@@ -100,6 +100,7 @@ class BundleModel:
         self.survey_k = np.flatnonzero(self.survey_active) if self.targets_adjusted else np.zeros(0, int)
         self.sigma_m = data.targets.sigma_mm / 1000.0
         self.n_rows_image = 2 * len(k)
+        self._start_mm = data.sensor.pixel_to_mm(self.uv)  # Newton starts at the measured points
         self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
 
     # ------------------------------------------------------------------ packing
@@ -153,35 +154,36 @@ class BundleModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             zs = np.where(z < 0, z, np.nan)
             q = -f * Xc[:, :2] / zs[:, None]
-        xy = distort(q, params, check=False)
         s = self.data.sensor
+        xy = distort(q, params, check=False, start_mm=self._start_mm)
         uv = s.mm_to_pixel(xy)
         if not jacobian:
             return uv, None
-        _, G, Q = correct_jacobian(xy, params)
+        _, G, Q = correct_jacobian(xy, params, self.int_index)
         det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] * G[:, 1, 0]
-        Ginv = np.empty_like(G)
-        Ginv[:, 0, 0], Ginv[:, 1, 1] = G[:, 1, 1] / det, G[:, 0, 0] / det
-        Ginv[:, 0, 1], Ginv[:, 1, 0] = -G[:, 0, 1] / det, -G[:, 1, 0] / det
-        # d(uv)/d(x') = diag(1/d, -1/d); residual r = (uv_meas - uv)/sigma -> factor -1/sigma
-        dpx = np.array([1.0, -1.0]) / s.pixel_mm
-        A = -(dpx[None, :, None] * Ginv) / self.sigma_px[:, None, None]  # dr/dq at fixed p
-        # interior: dx'/dp = G^-1 (dq/dp - Q); dq/df = q/f
-        dq_dp = -Q[:, :, self.int_index]
+        # A = dr/dq at fixed p: r = (uv_meas - uv)/sigma, d(uv)/d(x') = diag(1/d, -1/d), dx'/dq = G^-1
+        w = -1.0 / (self.sigma_px * s.pixel_mm * det)
+        A = np.empty_like(G)
+        A[:, 0, 0], A[:, 0, 1] = w * G[:, 1, 1], -w * G[:, 0, 1]
+        A[:, 1, 0], A[:, 1, 1] = w * G[:, 1, 0], -w * G[:, 0, 0]
+        # interior: dx'/dp = G^-1 (dq/dp - Q), with dq/df = q/f
+        dq_dp = -Q
         if "f_mm" in self.estimate:
             dq_dp[:, :, self.estimate.index("f_mm")] += q / f
         d_int = A @ dq_dp
-        # exterior and target via Xc
-        zi = 1.0 / zs
-        dq_dXc = np.zeros((len(z), 2, 3))
-        dq_dXc[:, 0, 0] = -f * zi
-        dq_dXc[:, 1, 1] = -f * zi
-        dq_dXc[:, :, 2] = f * Xc[:, :2] * (zi**2)[:, None]
-        B = A @ dq_dXc  # (m, 2, 3)
-        Jl = left_jacobian_so3(ext[:, :3])[self.img]
-        dXc_dw = -skew(Xc) @ Jl
-        d_ext = np.concatenate([B @ dXc_dw, -(B @ Ri)], axis=2)
+        # exterior and target through Xc: dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]
+        fz = -f / zs
+        B = np.empty((len(z), 2, 3))
+        B[:, :, 0] = A[:, :, 0] * fz[:, None]
+        B[:, :, 1] = A[:, :, 1] * fz[:, None]
+        B[:, :, 2] = -(A[:, :, 0] * q[:, 0, None] + A[:, :, 1] * q[:, 1, None]) / zs[:, None]
         d_tgt = B @ Ri
+        # dXc/dw = -[Xc]x J_l(w): a row b of B gives b (-[Xc]x) = cross(Xc, b)
+        bw = np.cross(Xc[:, None, :], B)
+        Jl = left_jacobian_so3(ext[:, :3])
+        d_ext = np.empty((len(z), 2, 6))
+        d_ext[:, :, :3] = bw @ Jl[self.img]
+        d_ext[:, :, 3:] = -d_tgt
         return uv, ObservationJacobian(d_int, d_ext, d_tgt)
 
     def residuals_and_blocks(self, x, jacobian=True):
@@ -210,7 +212,7 @@ class BundleModel:
     def column_names(self) -> list[str]:
         """Names of the columns of ``x`` (for covariance/correlation tables)."""
         names = list(self.estimate)
-        for i, im in enumerate(self.data.images):
+        for im in self.data.images:
             names += [f"{im.file}:{c}" for c in ("w_x", "w_y", "w_z", "X_m", "Y_m", "Z_m")]
         if self.targets_adjusted:
             for t in self.data.targets.ids:
