@@ -76,12 +76,15 @@ class AdjustmentOptions:
         Correlation above which the weaker of two interior parameters is fixed.
     min_t : float
         An additional parameter with ``|value| / sigma`` below this is fixed.
+    max_rel_sigma_f : float
+        When the principal distance is determined worse than this (relative sigma), the
+        additional parameter that inflates the sigma of f, xp, yp most is fixed first.
     """
 
     targets_adjusted: bool = True
     estimate: tuple[str, ...] | None = None
     method: str = "lmqn"
-    max_iter: int = 200
+    max_iter: int = 1000
     tau: float = 1e-6
     eps2: float = 1e-10
     robust_k: float = 8.0
@@ -89,6 +92,7 @@ class AdjustmentOptions:
     max_rounds: int = 20
     max_correlation: float = 0.995
     min_t: float = 1.0
+    max_rel_sigma_f: float = 0.02
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
@@ -96,7 +100,8 @@ class AdjustmentOptions:
                 "method": self.method, "max_iter": self.max_iter, "tau": self.tau, "eps2": self.eps2,
                 "robust_k": self.robust_k,
                 "snoop_alpha": self.snoop_alpha, "max_rounds": self.max_rounds,
-                "max_correlation": self.max_correlation, "min_t": self.min_t}
+                "max_correlation": self.max_correlation, "min_t": self.min_t,
+                "max_rel_sigma_f": self.max_rel_sigma_f}
 
 
 # ---------------------------------------------------------------------------- validation
@@ -112,7 +117,7 @@ def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMA
         raise InputError(f"duplicate target id(s) {list(ids[counts > 1][:5])}", "targets")
     bad = ~np.isfinite(t.xyz_m).all(axis=1)
     if bad.any():
-        raise InputError(f"target {t.ids[np.argmax(bad)]!r} has non-finite coordinates", "targets")
+        raise InputError(f"target '{t.ids[np.argmax(bad)]}' has non-finite coordinates", "targets")
     if not (np.isfinite(t.sigma_mm) & (t.sigma_mm > 0)).all():
         raise InputError("target sigma_mm must be positive and finite", "targets")
     o = data.obs
@@ -418,6 +423,58 @@ def _drop_undetermined_targets(data, obs_active, survey_active, reason):
     return drop.sum()
 
 
+def _intersect(rays, centers):
+    """Least-squares intersection of rays (k, 3) from centres (k, 3): the point nearest all."""
+    P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
+    return np.linalg.solve(P.sum(0), np.einsum("kab,kb->a", P, centers))
+
+
+def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
+    """Targets whose rejected image points intersect consistently away from the survey.
+
+    For each target with rejected points in at least two images, the rays of those points
+    are intersected (least squares, current cameras), dropping the worst ray while the rest
+    do not meet within the image noise. If at least two rays remain that meet within the
+    noise, in front of their cameras and at an angle of at least ``10 / (n - 1)`` degrees
+    (two rays always nearly meet: they need a wide angle), and the intersection lies more
+    than 5 survey sigmas from the surveyed coordinates, the survey is the blunder: it is
+    rejected and the consistent points are readmitted. Returns the number of surveys rejected.
+    """
+    data = solver.data
+    out = ~obs_active & np.isin(reason, ("initial outlier", "blunder"))
+    if not out.any():
+        return 0
+    cam = Camera(data.sensor, solver.params)
+    n = 0
+    for t in np.unique(data.obs.target[out]):
+        if not survey_active[t]:
+            continue
+        k = np.flatnonzero(out & (data.obs.target == t))
+        if len(np.unique(data.obs.image[k])) < 2:
+            continue
+        while len(k) >= 2:
+            img = data.obs.image[k]
+            rays = np.einsum("kba,kb->ka", solver.R[img], cam.unproject(data.obs.uv_px[k]))
+            X = _intersect(rays, solver.C[img])
+            uv = np.stack([cam.project(X, solver.R[i], solver.C[i]) for i in img])
+            err = np.hypot(*(uv - data.obs.uv_px[k]).T)
+            ok = np.isfinite(err) & (err < np.maximum(1.0, 5.0 * sigma0 * data.obs.sigma_px[k]))
+            if ok.all():
+                break
+            k = np.delete(k, int(np.argmax(np.where(np.isfinite(err), err, np.inf))))
+        if len(k) < 2:
+            continue
+        angle = np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0)))
+        far = np.linalg.norm(X - data.targets.xyz_m[t]) * 1000.0 > 5.0 * data.targets.sigma_mm[t]
+        if angle >= 10.0 / (len(k) - 1) and far:
+            survey_active[t] = False
+            obs_active[k] = True
+            reason[k] = ""
+            solver.X[t] = X
+            n += 1
+    return n
+
+
 def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o):
     """Reject observations beyond robust_k robust sigmas; returns how many."""
     r = result.r
@@ -484,26 +541,39 @@ def _interior_stats(model, result):
 
 
 def _select_parameter(model, result, estimate, o):
-    """The next parameter to hold fixed and why, or None."""
-    _, s, corr = _interior_stats(model, result)
+    """The next parameter to hold fixed and why, or None (module docstring, step 4)."""
+    cov, s, corr = _interior_stats(model, result)
+    C = cov[: model.n_int, : model.n_int]
     values = result.x[: model.n_int]
     names = list(estimate)
+    core = [i for i, n in enumerate(names) if n in CORE_PARAMS]
+    extra = [j for j, n in enumerate(names) if n not in CORE_PARAMS]
+    if not extra:
+        return None
+    # (1) the principal distance is not determined: drop the parameter that inflates it most
+    if "f_mm" in names:
+        jf = names.index("f_mm")
+        rel = s[jf] / abs(values[jf])
+        if rel > o.max_rel_sigma_f:
+            def inflation(j):
+                cond = np.diag(C)[core] - C[core, j] ** 2 / C[j, j]
+                return float(np.max(np.sqrt(np.diag(C)[core] / cond)))
+            j = max(extra, key=inflation)
+            i = max((i for i in range(len(names)) if i != j), key=lambda i: abs(corr[j, i]))
+            return names[j], (f"f undetermined (sigma {100 * rel:.2g} %); {names[j]} inflates the sigma of "
+                              f"f, xp, yp {inflation(j):.2g}x (correlation {corr[j, i]:.3f} with {names[i]})")
+    # (2) an additional parameter nearly equal to another: fix the weaker of the pair
     candidates = []
-    for j, n in enumerate(names):
-        if n in CORE_PARAMS:
-            continue
+    for j in extra:
         others = [i for i in range(len(names)) if i != j]
-        if others:
-            i = others[int(np.argmax(np.abs(corr[j, others])))]
-            rho = corr[j, i]
-            t_j = abs(values[j]) / s[j]
-            t_i = abs(values[i]) / s[i] if names[i] not in CORE_PARAMS else np.inf
-            if abs(rho) > o.max_correlation and t_j <= t_i:
-                candidates.append((2.0 + abs(rho), n, f"correlation {rho:.3f} with {names[i]}"))
-                continue
-        t = abs(values[j]) / s[j]
-        if t < o.min_t:
-            candidates.append((1.0 + (o.min_t - t), n, f"not significant ({t:.2f} sigma)"))
+        i = others[int(np.argmax(np.abs(corr[j, others])))]
+        t_j = abs(values[j]) / s[j]
+        t_i = abs(values[i]) / s[i] if i not in core else np.inf
+        if abs(corr[j, i]) > o.max_correlation and t_j <= t_i:
+            candidates.append((2.0 + abs(corr[j, i]), names[j], f"correlation {corr[j, i]:.4f} with {names[i]}"))
+        elif t_j < o.min_t:
+            # (3) not significant
+            candidates.append((1.0 + (o.min_t - t_j), names[j], f"not significant ({t_j:.2f} sigma)"))
     if not candidates:
         return None
     candidates.sort(reverse=True)
@@ -579,6 +649,9 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
             fits = (reason == "initial outlier") & (np.hypot(res[:, 0], res[:, 1]) < 3.0 * s)
             obs_active[fits] = True
             reason[fits] = ""
+            # a target whose rejected image points agree with each other: its survey is wrong
+            if o.targets_adjusted:
+                n += _blame_the_survey(solver, obs_active, survey_active, reason, max(result.sigma0, 1.0))
             if n == 0 and not fits.any():
                 return model, result
         return model, result

@@ -48,6 +48,10 @@ pairs kept this is exactly the book's dense ``B``; more than ``memory`` (default
 drop the oldest (then it is L-BFGS). ``h^T y > 0`` is tested as
 ``h^T y > eps ||h|| ||y||``, which differs from ``> 0`` only within round-off.
 
+The actual reduction ``F(x) - F(x_new)`` is computed as ``1/2 (r - r_new)^T (r + r_new)``,
+not as the difference of two large sums, so that near the optimum of a large-residual
+problem a genuine decrease is not lost to round-off in ``F``.
+
 Stopping. ``||g||_inf <= eps1`` (status 1), ``||h|| <= eps2 (||x|| + eps2)`` (status 2), or
 ``max_iter`` iterations (status 0); all in scaled variables. A trial point whose
 residuals or Jacobian are not finite is a rejected step (like SciPy), as is an LM system
@@ -421,7 +425,7 @@ def _step_lm(st: _State, eps2: float, method: str, switch_ratio: float) -> _Step
     F_new = 0.5 * float(r_new @ r_new)
     out.F_trial = F_new
     ginf_new = float(np.abs(g_new / st.d).max(initial=0.0))
-    dF = st.F - F_new
+    dF = 0.5 * float((st.r - r_new) @ (st.r + r_new))   # F(x) - F(x_new) without cancellation
     out.rho = rho = dF / dL if dL > 0 else -np.inf
     st.update_bfgs(x_new, r_new, J_new, g_new)
     if dL > 0 and dF > 0:
@@ -463,7 +467,7 @@ def _step_qn(st: _State, eps2: float) -> _StepOutcome:
     F_new = 0.5 * float(r_new @ r_new)
     out.F_trial = F_new
     ginf_new = float(np.abs(g_new / st.d).max(initial=0.0))
-    dF = st.F - F_new
+    dF = 0.5 * float((st.r - r_new) @ (st.r + r_new))   # F(x) - F(x_new) without cancellation
     out.rho = rho = dF / dL if dL > 0 else -np.inf
     if rho < 0.25:
         st.Delta /= 2.0

@@ -127,7 +127,7 @@ def _visible_all(camera: Camera, Rs, Cs, X, normals, margin_px, max_incidence_de
 
 def _simulate(name, camera, targets, poses, stations, *, image_noise_px, survey_noise_mm, seed,
               margin_px, target_diameter_mm, marker_size_mm, max_incidence_deg=70.0,
-              settings=None) -> SyntheticField:
+              settings=None, nominal_focal_mm=None) -> SyntheticField:
     rng = np.random.default_rng(seed)
     Rs = np.stack([p[0] for p in poses])
     Cs = np.stack([p[1] for p in poses])
@@ -142,7 +142,7 @@ def _simulate(name, camera, targets, poses, stations, *, image_noise_px, survey_
                             targets.codes, targets.normals),
         images=images,
         obs=FieldObservations(img, tgt, uv_meas, np.full(len(img), max(image_noise_px, 1e-3))),
-        nominal_focal_mm=None,
+        nominal_focal_mm=nominal_focal_mm,
         default_sigma_px=max(image_noise_px, 1e-3),
     )
     return SyntheticField(name, camera, targets, Rs, Cs, uv_true, data, target_diameter_mm,
@@ -168,8 +168,8 @@ def _grid_targets(xs, zs, depth_fn, keep_fraction, code_rule, rng, prefix):
 
 
 def paper_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 5.0,
-                n_attitudes: int = 12, distance_m: float = 60.0, camera: Camera | None = None
-                ) -> SyntheticField:
+                n_attitudes: int = 12, distance_m: float = 60.0, camera: Camera | None = None,
+                recess_m: float = 0.0, station_spread_m: float = 25.0) -> SyntheticField:
     """The field paper's geometry (see the module docstring); ~72 images, ~2000 targets.
 
     Parameters
@@ -190,16 +190,18 @@ def paper_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: 
     def relief(x, z):
         pilaster = (np.mod(x + 40.0, 8.0) < 2.0) * 0.6
         balcony = ((np.mod(z, 6.0) > 4.4) & (np.abs(x) < 30.0)) * 1.2
-        return -(pilaster + balcony)
+        recess = (np.abs(x) < 14.0) * recess_m
+        return -(pilaster + balcony) + recess
 
     def code_rule(ix, iz):
         return (ix % 6 == 3) & (iz % 5 == 2)
 
     targets = _grid_targets(np.arange(-39.5, 40.0, 1.0), np.arange(1.0, 30.5, 1.0), relief,
                             0.80, code_rule, rng, "T")
-    stations = [("G1", (-25.0, -distance_m, 1.5)), ("G2", (0.0, -distance_m, 1.5)),
-                ("G3", (25.0, -distance_m, 1.5)), ("R1", (-25.0, -distance_m + 2, 30.0)),
-                ("R2", (0.0, -distance_m + 2, 30.0)), ("R3", (25.0, -distance_m + 2, 30.0))]
+    a = station_spread_m
+    stations = [("G1", (-a, -distance_m, 1.5)), ("G2", (0.0, -distance_m, 1.5)),
+                ("G3", (a, -distance_m, 1.5)), ("R1", (-a, -distance_m + 2, 30.0)),
+                ("R2", (0.0, -distance_m + 2, 30.0)), ("R3", (a, -distance_m + 2, 30.0))]
     poses, names = [], []
     for name, C in stations:
         C = np.asarray(C)
@@ -212,7 +214,7 @@ def paper_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: 
             names.append(name)
     return _simulate("paper", cam, targets, poses, names, image_noise_px=image_noise_px,
                      survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=20.0,
-                     target_diameter_mm=60.0, marker_size_mm=400.0,
+                     target_diameter_mm=60.0, marker_size_mm=400.0, nominal_focal_mm=150.0,
                      settings={"scenario": "paper", "distance_m": distance_m})
 
 
@@ -244,7 +246,7 @@ def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: f
             names.append(f"S{s + 1}")
     return _simulate("wide", cam, targets, poses, names, image_noise_px=image_noise_px,
                      survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=15.0,
-                     target_diameter_mm=20.0, marker_size_mm=120.0,
+                     target_diameter_mm=20.0, marker_size_mm=120.0, nominal_focal_mm=24.0,
                      settings={"scenario": "wide"})
 
 
