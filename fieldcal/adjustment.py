@@ -358,7 +358,7 @@ class FieldResult:
             "sigma_px": d.obs.sigma_px,
             "used": pa.array(self.obs_used, pa.bool_()),
             "reason": pa.array(reason, pa.string()),
-            "normalized": self.obs_test,
+            "normalized_residual": self.obs_test,
         })
 
 

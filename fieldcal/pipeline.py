@@ -1,0 +1,217 @@
+"""One session's calibration as plain steps: prepare, measure (per image), solve.
+
+The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
+:func:`solve` once; the same functions serve notebooks and tests without Prefect.
+
+- :func:`prepare` validates the session (manifest, tables, paths) and lists the images
+  to measure. Nothing is written; bad input raises :class:`InputError` naming the file.
+- :func:`measure` turns one image into a measurement table: target centroids and coded
+  targets (field method) or the collimator spot (goniometer). A bad image raises
+  :class:`ImageError`; the flow reports it and goes on without that image.
+- :func:`solve` turns all measurements into an :class:`Outcome`: the calibration
+  document (CONTRACT section 4, without its version: the lake assigns it), the arrays and
+  the residual table the lake stores, and a human summary.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import pyarrow as pa
+
+from . import goniometer
+from .adjustment import AdjustmentOptions, FieldResult, adjust_field
+from .camera import PARAM_NAMES
+from .document import calibration_document
+from .errors import GeometryError, InputError
+from .fingerprint import fingerprint, sha256_file
+from .session import Session, field_data_from_observations, load_session, read_targets_csv
+
+__all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "image_hash",
+           "input_fingerprint"]
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What a run may change besides the session (part of the inputs' fingerprint)."""
+
+    targets_adjusted: bool = True
+    solver: str = "lmqn"
+    rigorous_goniometer: bool = False
+
+    def to_dict(self) -> dict:
+        return {"targets_adjusted": self.targets_adjusted, "solver": self.solver,
+                "rigorous_goniometer": self.rigorous_goniometer}
+
+
+@dataclass
+class Prepared:
+    """A validated session and what is to be measured."""
+
+    session: Session
+    settings: Settings
+    to_measure: list[str]                 # image names (relative paths) to measure
+    tables: dict[str, bytes] = field(default_factory=dict)   # name -> bytes of each table file
+    frames: pa.Table | None = None        # goniometer: frames.csv as read
+
+    @property
+    def method(self) -> str:
+        return self.session.method
+
+
+@dataclass
+class Outcome:
+    """Everything one calibration produced, ready for :meth:`fieldcal.lake.Lake.commit`."""
+
+    document: dict
+    arrays: dict
+    array_attrs: dict
+    residuals: pa.Table
+    summary: list[str]
+    left_out: list[dict]
+    result: object = None
+
+
+def image_hash(prepared: Prepared, name: str) -> str:
+    """SHA-256 of an image's bytes (the key of its cached measurements)."""
+    return sha256_file(prepared.session.image_path(name))
+
+
+def prepare(folder, settings: Settings | None = None) -> Prepared:
+    """Validate a session folder; nothing is written (see the module docstring)."""
+    settings = settings or Settings()
+    if settings.solver not in ("lmqn", "lm"):
+        raise InputError(f"solver must be 'lmqn' or 'lm', got {settings.solver!r}", "settings")
+    sess = load_session(folder)
+    tables = {"session.json": (sess.folder / "session.json").read_bytes()}
+    if sess.method == "field":
+        targets = read_targets_csv(sess.targets_path)          # validates now
+        tables[sess.targets_path.name] = sess.targets_path.read_bytes()
+        if sess.observations_path is not None:
+            field_data_from_observations(sess)                  # validates now
+            tables["observations.csv"] = sess.observations_path.read_bytes()
+            to_measure = []
+        else:
+            if not sess.images:
+                raise InputError("no images match the session's 'images' and there is no "
+                                 "observations.csv", str(sess.folder / "session.json"))
+            to_measure = [im.file for im in sess.images]
+            if sess.marks_path is not None:
+                from .session import read_marks_csv
+                read_marks_csv(sess.marks_path, targets, list(sess.images))
+                tables["marks.csv"] = sess.marks_path.read_bytes()
+            elif sess.coded is None:
+                raise InputError("images without coded targets need marks.csv (a few hand-identified "
+                                 "targets per image) to be identified", str(sess.folder / "session.json"))
+        return Prepared(sess, settings, to_measure, tables)
+    frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
+    tables[sess.frames_path.name] = sess.frames_path.read_bytes()
+    names = [str(f) for f in frames.column("file").to_pylist()]
+    return Prepared(sess, settings, names, tables, frames)
+
+
+def measure(prepared: Prepared, name: str) -> pa.Table:
+    """Measure one image of the session (see the module docstring)."""
+    sess = prepared.session
+    path = sess.image_path(name)
+    if prepared.method == "goniometer":
+        row = goniometer.measure_frame(path, sess.sensor, name=name)
+        return goniometer.measurements_table([row])
+    from .targets import measure_image
+
+    return measure_image(path, polarity=sess.target_polarity, sensor=sess.sensor, coded=sess.coded,
+                         name=name)
+
+
+def input_fingerprint(prepared: Prepared, image_hashes: Mapping[str, str]) -> str:
+    """The inputs' fingerprint: tables, image contents and settings (canonical JSON, SHA-256)."""
+    return fingerprint({
+        "tables": {k: v for k, v in sorted(prepared.tables.items())},
+        "images": dict(sorted(image_hashes.items())),
+        "settings": prepared.settings.to_dict(),
+    })
+
+
+def solve(prepared: Prepared, measurements: Mapping[str, pa.Table], *, fingerprint_: str,
+          progress: Callable[[str], None] | None = None, left_out: list[dict] | None = None) -> Outcome:
+    """Calibrate from the measurements (see the module docstring)."""
+    left_out = list(left_out or [])
+    if prepared.method == "goniometer":
+        return _solve_goniometer(prepared, measurements, fingerprint_, left_out)
+    return _solve_field(prepared, measurements, fingerprint_, progress, left_out)
+
+
+# ---------------------------------------------------------------------------- field method
+def _field_result(prepared, measurements, progress, left_out):
+    sess = prepared.session
+    options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
+                                estimate=sess.estimate, method=prepared.settings.solver)
+    if sess.observations_path is not None:
+        data = field_data_from_observations(sess)
+        return data, adjust_field(data, options, progress=progress)
+    from .field_images import calibrate_from_measurements
+
+    data, result, report = calibrate_from_measurements(sess, dict(measurements), options, progress=progress)
+    left_out.extend(r for r in report if r.get("status") != "ok")
+    return data, result
+
+
+def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
+    sess = prepared.session
+    data, res = _field_result(prepared, measurements, progress, left_out)
+    res: FieldResult
+    stats = res.stats()
+    stats["left_out_images"] = [r.get("image") for r in left_out]
+    doc = calibration_document(
+        camera_id=sess.camera_id, session_id=sess.session_id, version="", method="field",
+        sensor=sess.sensor, parameters=res.params, sigma=res.sigma, stats=stats,
+        images=res.images_section(), fingerprint=fp,
+        extra={"acquired": sess.acquired.strftime("%Y-%m-%dT%H:%M:%SZ")})
+    names = res.covariance_names
+    arrays = {"covariance": res.covariance, "correlation": res.correlation_interior}
+    attrs = {"covariance": {"names": names, "units": "a-posteriori, parameter units; rotations rad, centres m"},
+             "correlation": {"names": list(res.estimate)}}
+    if res.sigma_targets_m is not None:
+        arrays["targets/xyz_m"] = res.targets_m
+        arrays["targets/sigma_m"] = res.sigma_targets_m
+        attrs["targets/xyz_m"] = {"ids": [str(t) for t in data.targets.ids]}
+    summary = _field_summary(sess, res)
+    return Outcome(doc, arrays, attrs, res.residual_table(), summary, left_out, res)
+
+
+def _field_summary(sess, res: FieldResult) -> list[str]:
+    st = res.stats()
+    lines = [f"{sess.camera_id} / {sess.session_id}: field method, {st['n_images']} images, "
+             f"{st['n_targets']} targets, {st['n_observations']} points ({st['n_rejected']} rejected)",
+             f"rmse {st['rmse_px']:.3f} px, sigma0 {st['sigma0']:.3f}, {st['iterations']} iterations ({st['solver']})"]
+    for j, n in enumerate(PARAM_NAMES):
+        s = res.sigma.get(n)
+        lines.append(f"  {n:6s} {res.params[j]: .6e}" + (f"  +- {s:.2e}" if s is not None else "  (fixed)"))
+    if res.fixed_parameters:
+        lines.append("held fixed: " + ", ".join(f"{k} ({v})" for k, v in res.fixed_parameters.items()))
+    return lines
+
+
+# ---------------------------------------------------------------------------- goniometer
+def _solve_goniometer(prepared, measurements, fp, left_out) -> Outcome:
+    sess = prepared.session
+    rows = [measurements[n] for n in prepared.to_measure if n in measurements]
+    if not rows:
+        raise GeometryError("no goniometer frame could be measured")
+    table = pa.concat_tables(rows)
+    res = goniometer.calibrate(sess.sensor, prepared.frames, table, nominal_focal_mm=sess.nominal_focal_mm,
+                               rigorous=prepared.settings.rigorous_goniometer)
+    fields = res.document_fields()
+    sigma = {k: v for k, v in fields["sigma"].items() if v is not None}
+    doc = calibration_document(
+        camera_id=sess.camera_id, session_id=sess.session_id, version="", method="goniometer",
+        sensor=sess.sensor, parameters=res.parameters, sigma=sigma, stats=fields["stats"],
+        images=fields["images"], fingerprint=fp,
+        extra={"acquired": sess.acquired.strftime("%Y-%m-%dT%H:%M:%SZ")})
+    left_out = left_out + [{"image": r.get("file"), "status": "left out", "reason": r.get("reason")}
+                           for r in res.rejected]
+    arrays = res.arrays()
+    attrs = {"covariance": {"names": list(PARAM_NAMES)}, "correlation": {"names": list(PARAM_NAMES)}}
+    return Outcome(doc, arrays, attrs, res.lake_residuals(), list(res.report_lines()), left_out, res)
+
