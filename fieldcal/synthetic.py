@@ -238,9 +238,9 @@ def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: f
     station_xy = [(-4.0, -5.5), (-1.5, -6.5), (1.5, -6.5), (4.0, -5.5),
                   (-3.0, -5.0), (0.0, -5.5), (3.0, -5.0), (0.0, -7.0)]
     heights = [0.8, 2.0, 3.2, 1.2, 3.0, 1.0, 2.5, 2.0]
-    for s, ((x, y), h) in enumerate(zip(station_xy, heights)):
+    for s, ((x, y), h) in enumerate(zip(station_xy, heights, strict=True)):
         C = np.array([x, y, h])
-        for a, roll_deg in enumerate((0.0, 90.0, 270.0)):
+        for roll_deg in (0.0, 90.0, 270.0):
             aim = np.array([0.35 * x + rng.normal(0, 0.4), 0.0, 2.0 + rng.normal(0, 0.3)])
             poses.append((look_at(C, aim, np.radians(roll_deg + rng.normal(0, 3.0))), C))
             names.append(f"S{s + 1}")
