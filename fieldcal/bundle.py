@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import INDEX, Camera, correct_jacobian, distort
+from .camera import INDEX, Camera, _correct_terms, _param_columns, distort
 from .fielddata import FieldData
 from .rotations import R_from_rotvec, left_jacobian_so3
 
@@ -92,6 +92,7 @@ class BundleModel:
         self.n_reduced = self.n_int + 6 * self.n_images
         self.n_params = self.n_reduced + (3 * n_t if self.targets_adjusted else 0)
         k = np.flatnonzero(self.obs_active)
+        k = k[np.argsort(data.obs.image[k], kind="stable")]   # grouped by image (contiguous slices)
         self.k = k
         self.img = data.obs.image[k]
         self.tgt = data.obs.target[k]
@@ -101,6 +102,9 @@ class BundleModel:
         self.sigma_m = data.targets.sigma_mm / 1000.0
         self.n_rows_image = 2 * len(k)
         self._start_mm = data.sensor.pixel_to_mm(self.uv)  # Newton starts at the measured points
+        bounds = np.searchsorted(self.img, np.arange(self.n_images + 1))
+        self._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(self.n_images)
+                              if bounds[i + 1] > bounds[i]]
         self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
 
     # ------------------------------------------------------------------ packing
@@ -159,30 +163,42 @@ class BundleModel:
         uv = s.mm_to_pixel(xy)
         if not jacobian:
             return uv, None
-        _, G, Q = correct_jacobian(xy, params, self.int_index)
-        det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] * G[:, 1, 0]
+        xb, yb = xy[:, 0] - params[INDEX["xp_mm"]], xy[:, 1] - params[INDEX["yp_mm"]]
+        _, _, g00, g01, g10, g11, r2, xy_ = _correct_terms(xb, yb, params)
         # A = dr/dq at fixed p: r = (uv_meas - uv)/sigma, d(uv)/d(x') = diag(1/d, -1/d), dx'/dq = G^-1
-        w = -1.0 / (self.sigma_px * s.pixel_mm * det)
-        A = np.empty_like(G)
-        A[:, 0, 0], A[:, 0, 1] = w * G[:, 1, 1], -w * G[:, 0, 1]
-        A[:, 1, 0], A[:, 1, 1] = w * G[:, 1, 0], -w * G[:, 0, 0]
+        w = -1.0 / (self.sigma_px * s.pixel_mm * (g00 * g11 - g01 * g10))
+        a00, a01, a10, a11 = w * g11, -w * g01, w * g10, -w * g00
         # interior: dx'/dp = G^-1 (dq/dp - Q), with dq/df = q/f
-        dq_dp = -Q
-        if "f_mm" in self.estimate:
-            dq_dp[:, :, self.estimate.index("f_mm")] += q / f
-        d_int = A @ dq_dp
+        cols_t = np.empty((self.n_int, 2, len(z)))      # filled column by column (contiguous rows)
+        cols = _param_columns(xb, yb, params, (g00, g01, g10, g11), r2, xy_, self.int_index)
+        for j, (c0, c1) in enumerate(cols):
+            e0, e1 = -c0, -c1
+            if self.estimate[j] == "f_mm":
+                e0, e1 = q[:, 0] / f, q[:, 1] / f
+            cols_t[j, 0] = a00 * e0 + a01 * e1
+            cols_t[j, 1] = a10 * e0 + a11 * e1
+        d_int = cols_t.transpose(2, 1, 0)
         # exterior and target through Xc: dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]
         fz = -f / zs
         B = np.empty((len(z), 2, 3))
-        B[:, :, 0] = A[:, :, 0] * fz[:, None]
-        B[:, :, 1] = A[:, :, 1] * fz[:, None]
-        B[:, :, 2] = -(A[:, :, 0] * q[:, 0, None] + A[:, :, 1] * q[:, 1, None]) / zs[:, None]
-        d_tgt = B @ Ri
+        B[:, 0, 0], B[:, 0, 1] = a00 * fz, a01 * fz
+        B[:, 1, 0], B[:, 1, 1] = a10 * fz, a11 * fz
+        B[:, 0, 2] = -(a00 * q[:, 0] + a01 * q[:, 1]) / zs
+        B[:, 1, 2] = -(a10 * q[:, 0] + a11 * q[:, 1]) / zs
         # dXc/dw = -[Xc]x J_l(w): a row b of B gives b (-[Xc]x) = cross(Xc, b)
-        bw = np.cross(Xc[:, None, :], B)
+        X0, X1, X2 = Xc[:, 0, None], Xc[:, 1, None], Xc[:, 2, None]
+        bw = np.empty_like(B)
+        bw[:, :, 0] = X1 * B[:, :, 2] - X2 * B[:, :, 1]
+        bw[:, :, 1] = X2 * B[:, :, 0] - X0 * B[:, :, 2]
+        bw[:, :, 2] = X0 * B[:, :, 1] - X1 * B[:, :, 0]
         Jl = left_jacobian_so3(ext[:, :3])
         d_ext = np.empty((len(z), 2, 6))
-        d_ext[:, :, :3] = bw @ Jl[self.img]
+        d_tgt = np.empty((len(z), 2, 3))
+        # per image: (2 k_i, 3) @ (3, 3) products (BLAS) on the observations sorted by image
+        for i, sl in self._image_slices:
+            n2 = 2 * (sl.stop - sl.start)
+            d_ext[sl, :, :3] = (bw[sl].reshape(n2, 3) @ Jl[i]).reshape(-1, 2, 3)
+            d_tgt[sl] = (B[sl].reshape(n2, 3) @ R[i]).reshape(-1, 2, 3)
         d_ext[:, :, 3:] = -d_tgt
         return uv, ObservationJacobian(d_int, d_ext, d_tgt)
 

@@ -190,6 +190,40 @@ def _correct_terms(xb, yb, p):
     return qx, qy, g00, g01, g10, g11, r2, xy_
 
 
+def _param_columns(xb, yb, p, g, r2, xy_, columns):
+    """``dq/dp_c`` at fixed measured point for each parameter index ``c``: a list of (x, y) pairs.
+
+    ``g = (g00, g01, g10, g11)`` are the entries of ``G`` (:func:`_correct_terms`); constant
+    zero columns are returned as the scalar 0.
+    """
+    g00, g01, g10, g11 = g
+    out = []
+    for c in columns:
+        c = int(c)
+        if c == F:
+            out.append((0.0, 0.0))
+        elif c == XP:
+            out.append((-g00, -g10))
+        elif c == YP:
+            out.append((-g01, -g11))
+        elif c in (K0, K1, K2, K3):
+            w = r2 ** (c - K0) if c != K0 else 1.0
+            out.append((xb * w, yb * w))
+        elif c == P1:
+            out.append((r2 + 2 * xb * xb, 2 * xy_))
+        elif c == P2:
+            out.append((2 * xy_, r2 + 2 * yb * yb))
+        elif c == A1:
+            out.append((0.0, xb))
+        elif c == A2:
+            out.append((0.0, yb))
+        elif c == B1:
+            out.append((xb, 0.0))
+        else:
+            out.append((yb, 0.0))
+    return out
+
+
 def correct_jacobian(xy_mm, params, columns=None):
     """Derivatives of :func:`correct` at measured points ``xy_mm`` (N, 2) [mm].
 
@@ -215,25 +249,9 @@ def correct_jacobian(xy_mm, params, columns=None):
     q = np.stack([qx, qy], axis=-1)
     G = np.stack([np.stack([g00, g01], -1), np.stack([g10, g11], -1)], -2)
     cols = range(13) if columns is None else columns
-    zero = np.zeros_like(xb)
-    terms = {
-        F: lambda: (zero, zero),
-        XP: lambda: (-g00, -g10),
-        YP: lambda: (-g01, -g11),
-        K0: lambda: (xb, yb),
-        K1: lambda: (xb * r2, yb * r2),
-        K2: lambda: (xb * r2**2, yb * r2**2),
-        K3: lambda: (xb * r2**3, yb * r2**3),
-        P1: lambda: (r2 + 2 * xb * xb, 2 * xy_),
-        P2: lambda: (2 * xy_, r2 + 2 * yb * yb),
-        A1: lambda: (zero, xb),
-        A2: lambda: (zero, yb),
-        B1: lambda: (xb, zero),
-        B2: lambda: (yb, zero),
-    }
     Q = np.empty(xb.shape + (2, len(cols)))
-    for j, c in enumerate(cols):
-        Q[..., 0, j], Q[..., 1, j] = terms[int(c)]()
+    for j, (c0, c1) in enumerate(_param_columns(xb, yb, p, (g00, g01, g10, g11), r2, xy_, cols)):
+        Q[..., 0, j], Q[..., 1, j] = c0, c1
     return q, G, Q
 
 
