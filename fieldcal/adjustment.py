@@ -65,9 +65,9 @@ class AdjustmentOptions:
         automatic selection of step 4.
     method : str
         ``"lmqn"`` (default) or ``"lm"``.
-    tau, eps2 : float
-        LM's initial damping factor (small: the initial values are good) and the step
-        tolerance of :func:`fieldcal.lsq.solve`.
+    tau, eps2, ftol : float
+        LM's initial damping factor (small: the initial values are good), the step
+        tolerance and the negligible-decrease tolerance of :func:`fieldcal.lsq.solve`.
     robust_k : float
         Gross-error threshold in robust sigmas (normalised residual norm).
     snoop_alpha : float
@@ -87,6 +87,7 @@ class AdjustmentOptions:
     max_iter: int = 1000
     tau: float = 1e-6
     eps2: float = 1e-10
+    ftol: float = 1e-12
     robust_k: float = 8.0
     snoop_alpha: float = 1e-6
     max_rounds: int = 20
@@ -98,6 +99,7 @@ class AdjustmentOptions:
         return {"targets_adjusted": self.targets_adjusted,
                 "estimate": list(self.estimate) if self.estimate is not None else None,
                 "method": self.method, "max_iter": self.max_iter, "tau": self.tau, "eps2": self.eps2,
+                "ftol": self.ftol,
                 "robust_k": self.robust_k,
                 "snoop_alpha": self.snoop_alpha, "max_rounds": self.max_rounds,
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
@@ -382,7 +384,7 @@ class _Solver:
                             survey_active=survey_active)
         x0 = model.pack(self.params, self.C, self.X)
         result = solve(FieldProblem(model), x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
-                       eps2=o.eps2)
+                       eps2=o.eps2, ftol=o.ftol)
         if not np.all(np.isfinite(result.r)):
             raise GeometryError("the adjustment diverged (points behind a camera)")
         self.params, self.R, self.C, X = model.unpack(result.x)

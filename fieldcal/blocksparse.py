@@ -531,7 +531,7 @@ class BlockSparseJacobian:
 
     def all_finite(self) -> bool:
         """Whether every stored derivative is finite."""
-        return all(np.isfinite(blk.values).all() for blk in self.blocks)
+        return all(np.isfinite(v).all() for blk in self.blocks for v in blk.part_values)
 
     def to_csr(self) -> scipy.sparse.csr_matrix:
         """J as a ``scipy.sparse.csr_matrix`` (m, n)."""
