@@ -502,13 +502,23 @@ class BlockSparseJacobian:
         return zip(self.structure.layouts, self.blocks, strict=True)
 
     def gradient(self, r) -> np.ndarray:
-        """``J^T r`` (n,) for residuals ``r`` (m,)."""
+        """``J^T r`` (n,) for residuals ``r`` (m,).
+
+        Part by part: a column set shared by every group is one dense product, a per-group
+        set one ``bincount``; the parts are never concatenated.
+        """
         r = np.asarray(r, dtype=float)
         g = np.zeros(self.n_params)
         for lay, blk in self._pairs():
-            if lay.k:
-                contrib = np.einsum("krc,kr->kc", blk.values, r[lay.rows])
-                g += np.bincount(lay.cols.ravel(), contrib.ravel(), minlength=self.n_params)
+            if not lay.k:
+                continue
+            rr = r[lay.rows]
+            for cols, v in zip(blk.part_cols, blk.part_values, strict=True):
+                if cols.ndim == 1:
+                    g[cols] += np.einsum("krc,kr->c", v, rr)
+                else:
+                    g += np.bincount(cols.ravel(), np.einsum("krc,kr->kc", v, rr).ravel(),
+                                     minlength=self.n_params)
         return g
 
     def matvec(self, h) -> np.ndarray:
@@ -516,8 +526,13 @@ class BlockSparseJacobian:
         h = np.asarray(h, dtype=float)
         out = np.zeros(self.n_rows)
         for lay, blk in self._pairs():
-            if lay.k:
-                out[lay.rows] = np.einsum("krc,kc->kr", blk.values, h[lay.cols])
+            if not lay.k:
+                continue
+            acc = np.zeros((lay.k, lay.r))
+            for cols, v in zip(blk.part_cols, blk.part_values, strict=True):
+                spec = "krc,c->kr" if cols.ndim == 1 else "krc,kc->kr"
+                acc += np.einsum(spec, v, h[cols])
+            out[lay.rows] = acc
         return out
 
     def column_norms(self) -> np.ndarray:
