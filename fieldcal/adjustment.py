@@ -237,10 +237,10 @@ class FieldProblem:
         self._rows_img = np.arange(2 * k).reshape(k, 2)
         self._cols_int = np.arange(m.n_int)
         self._cols_ext = m.n_int + 6 * m.img[:, None] + np.arange(6)
-        self._cols_tgt = m.n_reduced + 3 * m.tgt[:, None] + np.arange(3)
+        self._cols_tgt = m.n_reduced + 3 * m.tgt_slot[:, None] + np.arange(3)
         ns = len(m.survey_k)
         self._rows_sur = m.n_rows_image + np.arange(3 * ns).reshape(ns, 3)
-        self._cols_sur = m.n_reduced + 3 * m.survey_k[:, None] + np.arange(3)
+        self._cols_sur = m.n_reduced + 3 * m.t_slot[m.survey_k][:, None] + np.arange(3)
         self._template: list[ResidualBlock] | None = None
         self._structure = None
 
@@ -478,11 +478,21 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
 
 
 def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o):
-    """Reject observations beyond robust_k robust sigmas; returns how many."""
+    """Reject observations beyond robust_k robust sigmas; returns how many.
+
+    The robust scale (1.4826 MAD) is taken over points of targets seen in three or more
+    images when targets are adjusted: a target seen once or twice absorbs its points'
+    errors (redundancy near 0), and their near-zero residuals would shrink the scale.
+    """
     r = result.r
     ri = r[: model.n_rows_image].reshape(-1, 2)
     norm_i = np.hypot(ri[:, 0], ri[:, 1])
-    s = _robust_scale(ri.ravel())
+    redundant = np.ones(len(ri), bool)
+    if model.targets_adjusted:
+        redundant = np.bincount(model.tgt, minlength=model.n_targets)[model.tgt] >= 3
+        if redundant.sum() < 20:
+            redundant[:] = True
+    s = _robust_scale(ri[redundant].ravel())
     bad_i = norm_i > o.robust_k * s * np.sqrt(2.0)
     k = model.k[bad_i]
     obs_active[k] = False
@@ -684,7 +694,8 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
-        sigma_X = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
+        sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
+        sigma_X[model.target_index] = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
     survey_res = (data.targets.xyz_m - solver.X) * 1000.0
     return FieldResult(

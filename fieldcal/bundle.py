@@ -4,7 +4,10 @@ Unknowns (the layout of the parameter vector ``x``)::
 
     x = [ interior (the estimated subset of PARAM_NAMES)      n_int
           exterior: per image  w (3, rotation increment) C (3, m)   6 n_images
-          targets: per adjusted target  X (3, m)               3 n_targets ]
+          targets: per adjusted target  X (3, m)               3 n_adjusted ]
+
+Adjusted targets are those that some active image point sees (``target_index``); the
+others keep their coordinates.
 
 The rotation of image i is ``R_i = exp([w_i]x) R0_i`` with a reference ``R0_i`` held by the
 model (the increments stay small; :meth:`BundleModel.rebase` folds them in). Targets come
@@ -90,7 +93,6 @@ class BundleModel:
         self.n_targets = n_t
         self.n_int = len(self.estimate)
         self.n_reduced = self.n_int + 6 * self.n_images
-        self.n_params = self.n_reduced + (3 * n_t if self.targets_adjusted else 0)
         k = np.flatnonzero(self.obs_active)
         k = k[np.argsort(data.obs.image[k], kind="stable")]   # grouped by image (contiguous slices)
         self.k = k
@@ -98,7 +100,16 @@ class BundleModel:
         self.tgt = data.obs.target[k]
         self.uv = data.obs.uv_px[k]
         self.sigma_px = data.obs.sigma_px[k]
-        self.survey_k = np.flatnonzero(self.survey_active) if self.targets_adjusted else np.zeros(0, int)
+        # adjusted targets: those some active image point sees (a target seen by none adds
+        # nothing to the camera); slot t_slot[t] in the parameter vector, -1 when not adjusted
+        self.target_index = np.unique(self.tgt) if self.targets_adjusted else np.zeros(0, np.int64)
+        self.t_slot = np.full(n_t, -1, np.int64)
+        self.t_slot[self.target_index] = np.arange(len(self.target_index))
+        self.tgt_slot = self.t_slot[self.tgt]
+        self.n_params = self.n_reduced + 3 * len(self.target_index)
+        self.X_base = data.targets.xyz_m.copy()       # coordinates of the targets not adjusted
+        self.survey_k = (self.target_index[self.survey_active[self.target_index]] if self.targets_adjusted
+                         else np.zeros(0, np.int64))
         self.sigma_m = data.targets.sigma_mm / 1000.0
         self.n_rows_image = 2 * len(k)
         self._start_mm = data.sensor.pixel_to_mm(self.uv)  # Newton starts at the measured points
@@ -109,12 +120,16 @@ class BundleModel:
 
     # ------------------------------------------------------------------ packing
     def pack(self, params, center_m, targets_m=None):
-        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3)."""
+        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3).
+
+        ``targets_m`` holds all targets; the ones not adjusted keep these coordinates.
+        """
         parts = [np.asarray(params, float)[self.int_index], np.zeros((self.n_images, 6))]
         parts[1][:, 3:] = center_m
         x = [parts[0], parts[1].ravel()]
         if self.targets_adjusted:
-            x.append(np.asarray(targets_m, float).ravel())
+            self.X_base = np.array(targets_m, float).reshape(-1, 3)
+            x.append(self.X_base[self.target_index].ravel())
         return np.concatenate(x)
 
     def unpack(self, x):
@@ -125,8 +140,9 @@ class BundleModel:
         ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
         R = R_from_rotvec(ext[:, :3]) @ self.R0
         C = ext[:, 3:].copy()
-        X = (x[self.n_reduced:].reshape(-1, 3) if self.targets_adjusted
-             else self.data.targets.xyz_m.copy())
+        X = self.X_base.copy()
+        if self.targets_adjusted:
+            X[self.target_index] = x[self.n_reduced:].reshape(-1, 3)
         return params, R, C, X
 
     def rebase(self, x):
@@ -219,7 +235,7 @@ class BundleModel:
         if self.targets_adjusted and len(self.survey_k):
             X = x[self.n_reduced:].reshape(-1, 3)
             t = self.survey_k
-            r_sur = ((X[t] - self.data.targets.xyz_m[t]) / self.sigma_m[t, None]).ravel()
+            r_sur = ((X[self.t_slot[t]] - self.data.targets.xyz_m[t]) / self.sigma_m[t, None]).ravel()
             r = np.concatenate([r_img, r_sur])
         else:
             r = r_img
@@ -230,8 +246,7 @@ class BundleModel:
         names = list(self.estimate)
         for im in self.data.images:
             names += [f"{im.file}:{c}" for c in ("w_x", "w_y", "w_z", "X_m", "Y_m", "Z_m")]
-        if self.targets_adjusted:
-            for t in self.data.targets.ids:
-                names += [f"{t}:X_m", f"{t}:Y_m", f"{t}:Z_m"]
+        for t in self.data.targets.ids[self.target_index]:
+            names += [f"{t}:X_m", f"{t}:Y_m", f"{t}:Z_m"]
         return names
 

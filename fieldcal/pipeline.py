@@ -153,7 +153,8 @@ def _field_result(prepared, measurements, progress, left_out):
     from .field_images import calibrate_from_measurements
 
     data, result, report = calibrate_from_measurements(sess, dict(measurements), options, progress=progress)
-    left_out.extend(r for r in report if r.get("status") != "ok")
+    known = {r.get("image") for r in left_out}
+    left_out.extend(r for r in report if r.get("status") != "ok" and r.get("image") not in known)
     return data, result
 
 

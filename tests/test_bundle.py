@@ -20,10 +20,10 @@ def dense_jacobian(m, x):
         Jd[rows[:, a, None], np.arange(m.n_int)[None, :]] = J.d_int[:, a, :]
         Jd[rows[:, a, None], m.n_int + 6 * m.img[:, None] + np.arange(6)] = J.d_ext[:, a, :]
         if m.targets_adjusted:
-            Jd[rows[:, a, None], m.n_reduced + 3 * m.tgt[:, None] + np.arange(3)] = J.d_tgt[:, a, :]
+            Jd[rows[:, a, None], m.n_reduced + 3 * m.tgt_slot[:, None] + np.arange(3)] = J.d_tgt[:, a, :]
     for i, t in enumerate(m.survey_k):
         for a in range(3):
-            Jd[m.n_rows_image + 3 * i + a, m.n_reduced + 3 * t + a] = sd[i]
+            Jd[m.n_rows_image + 3 * i + a, m.n_reduced + 3 * m.t_slot[t] + a] = sd[i]
     return Jd
 
 
