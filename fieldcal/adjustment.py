@@ -22,6 +22,13 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
    correlation with another interior parameter exceeds ``max_correlation`` (the weaker
    of the pair is fixed) or it is not significant (``|value| < min_t * sigma``). One
    parameter per round, the worst first, each reason reported (``stats.fixed_parameters``).
+5. **Diagnoses instead of calibrations** (:class:`~fieldcal.errors.GeometryError`): fewer
+   than :data:`MIN_IMAGES` images or :data:`MIN_POINTS_PER_IMAGE` points in an image; a
+   network that cannot determine f even with every additional parameter held fixed (checked
+   on the first solve's a-priori covariance: relative sigma above ``max_rel_sigma_f``, naming
+   the unknown f is most correlated with, e.g. the camera distance of a flat wall photographed
+   from one direction); an automatic selection that ends with f still undetermined; singular
+   normal equations (naming the unknown where known).
 """
 
 from __future__ import annotations
@@ -50,6 +57,8 @@ CORE_PARAMS = ("f_mm", "xp_mm", "yp_mm")
 """Never held fixed by the automatic selection (a degenerate one is a diagnosis, not a fix)."""
 
 MIN_POINTS_PER_IMAGE = 6
+MIN_IMAGES = 3
+"""The field method needs at least this many images (as a session measured from images does)."""
 
 
 @dataclass
@@ -111,7 +120,8 @@ def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMA
     """Refuse data the adjustment cannot use, naming what and where.
 
     NaN or infinite coordinates, duplicate target ids, non-positive sigmas, observations
-    of unknown targets or images, and images with fewer than ``min_points`` points.
+    of unknown targets or images, images with fewer than ``min_points`` points, and fewer
+    than :data:`MIN_IMAGES` images.
     """
     t = data.targets
     if len(np.unique(t.ids)) != len(t.ids):
@@ -138,6 +148,10 @@ def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMA
     for i in np.flatnonzero(counts < min_points):
         raise GeometryError(f"{data.images[i].file}: only {counts[i]} observed target(s); an image "
                             f"needs at least {min_points} to be oriented (leave it out or add points)")
+    if len(data.images) < MIN_IMAGES:
+        raise GeometryError(f"only {len(data.images)} image(s) ({', '.join(im.file for im in data.images)}); "
+                            f"the field method needs at least {MIN_IMAGES}, from different positions "
+                            "and roll angles")
 
 
 # ---------------------------------------------------------------------------- initial values
@@ -376,6 +390,7 @@ class _Solver:
         self.X = data.targets.xyz_m.copy()
         self.iterations = 0
         self.rounds: list[dict] = []
+        self.model: BundleModel | None = None
 
     def run(self, estimate, obs_active, survey_active, label):
         o = self.options
@@ -383,8 +398,13 @@ class _Solver:
                             targets_adjusted=o.targets_adjusted, obs_active=obs_active,
                             survey_active=survey_active)
         x0 = model.pack(self.params, self.C, self.X)
-        result = solve(FieldProblem(model), x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
-                       eps2=o.eps2, ftol=o.ftol)
+        self.model = model
+        try:
+            result = solve(FieldProblem(model), x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
+                           eps2=o.eps2, ftol=o.ftol)
+        except InputError as err:          # not finite at x0: the previous round went astray
+            raise GeometryError(f"the adjustment diverged before {label} ({err.reason}); the "
+                                "data do not hold the camera in place") from None
         if not np.all(np.isfinite(result.r)):
             raise GeometryError("the adjustment diverged (points behind a camera)")
         self.params, self.R, self.C, X = model.unpack(result.x)
@@ -592,7 +612,99 @@ def _select_parameter(model, result, estimate, o):
     return candidates[0][1], candidates[0][2]
 
 
-def _check_core_determined(model, result, corr):
+_ADVICE = "add images from other positions and distances, rolled by 90 degrees, or targets in depth"
+
+
+def _column_label(name: str) -> str:
+    """``images/a.tif:Y_m`` -> ``Y_m of images/a.tif`` (a column of :meth:`BundleModel.column_names`)."""
+    head, sep, tail = name.rpartition(":")
+    return f"{tail} of {head}" if sep else name
+
+
+def _f_determination(model, cov, fixed_extras: bool):
+    """Relative sigma of f and its strongest correlation, optionally with the additional
+    parameters held fixed (the conditional covariance ``C_rr - C_re C_ee^-1 C_er``).
+
+    Returns ``(sigma_f, correlation, column name)`` (f must be estimated).
+    """
+    names = list(model.estimate)
+    jf = names.index("f_mm")
+    cf, var = cov[jf].copy(), np.diag(cov).copy()
+    e = [j for j, n in enumerate(names) if n not in CORE_PARAMS] if fixed_extras else []
+    if e:
+        K = np.linalg.lstsq(cov[np.ix_(e, e)], cov[e], rcond=None)[0]
+        cf -= cov[jf, e] @ K
+        var -= np.einsum("ij,ij->j", cov[e], K)
+    var = np.maximum(var, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cf / np.sqrt(var[jf] * var)
+    corr[jf] = 0.0
+    corr[e] = 0.0
+    corr[~np.isfinite(corr)] = 0.0
+    k = int(np.argmax(np.abs(corr)))
+    return float(np.sqrt(var[jf])), float(corr[k]), model.column_names()[k]
+
+
+def _f_undetermined(rel, c, name, held=""):
+    return GeometryError(f"the data cannot determine the principal distance: its sigma is "
+                         f"{100 * rel:.3g} % of f{held} (correlation {c:.4f} with "
+                         f"{_column_label(name)}): {_ADVICE}")
+
+
+def _check_f_determinable(model, result, o):
+    """Refuse, right after the first adjustment, a network that cannot determine f.
+
+    With the a-priori covariance (a property of the geometry, not of the residuals, which
+    may still hold blunders) and every additional parameter held fixed (the most any choice
+    of parameters could do): a relative sigma of f above ``max_rel_sigma_f`` then will not
+    get better by fixing parameters, so the diagnosis is given now, naming the unknown that
+    f cannot be told from. (A session's explicit ``estimate`` whose additional parameters
+    alone make f uncertain is honoured, with the sigma it gives.)
+    """
+    if "f_mm" not in model.estimate:
+        return
+    ne = result.jac.normal_equations()
+    try:
+        cov = ne.covariance_reduced()
+    except SingularSystemError:
+        _f_in_null_space(model, ne)
+        raise
+    sigma_f, c, name = _f_determination(model, cov, fixed_extras=True)
+    rel = sigma_f / max(abs(result.x[list(model.estimate).index("f_mm")]), 1e-12)
+    if not (rel <= o.max_rel_sigma_f):
+        extra = any(n not in CORE_PARAMS for n in model.estimate)
+        raise _f_undetermined(rel, c, name, " even with every additional parameter held fixed" if extra else "")
+
+
+def _f_in_null_space(model, ne) -> None:
+    """Singular normal equations: if f takes part in their null space, say what it cannot be
+    told from (the other unknown with the largest share of the null vector, equilibrated)."""
+    S = ne.schur_complement()
+    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    w, V = np.linalg.eigh(S / np.outer(d, d))
+    v = V[:, 0]
+    jf = list(model.estimate).index("f_mm")
+    if abs(v[jf]) < 0.1:
+        return
+    share = np.abs(v)
+    share[jf] = 0.0
+    k = int(np.argmax(share))
+    raise GeometryError(f"the data cannot determine the principal distance: it cannot be told from "
+                        f"{_column_label(model.column_names()[k])} (singular normal equations, "
+                        f"smallest eigenvalue {w[0]:.1e} relative to the diagonal): {_ADVICE}")
+
+
+def _singular_diagnosis(err, model) -> str:
+    """A :class:`SingularSystemError` as a diagnosis naming the unknown, where known."""
+    what = ""
+    if model is not None and err.index is not None:
+        names = model.column_names()
+        if 0 <= err.index < len(names):
+            what = f" ({_column_label(names[err.index])} cannot be determined)"
+    return f"the data do not determine every unknown{what}: {err}; {_ADVICE}"
+
+
+def _check_core_determined(model, result, corr, sigma, o):
     names = list(model.estimate)
     for a in CORE_PARAMS:
         if a not in names:
@@ -603,6 +715,11 @@ def _check_core_determined(model, result, corr):
                 raise GeometryError(f"the data cannot separate {a} from {b} (correlation "
                                     f"{corr[j, i]:.5f}): add images with other roll angles, "
                                     "distances or a deeper target field")
+    if o.estimate is None and "f_mm" in names:     # the automatic selection could not make f determined
+        rel = sigma[names.index("f_mm")] / max(abs(result.x[names.index("f_mm")]), 1e-12)
+        if not (rel <= o.max_rel_sigma_f):
+            cov = result.jac.normal_equations().covariance_reduced() * result.sigma0**2
+            raise _f_undetermined(rel, *_f_determination(model, cov, fixed_extras=False)[1:])
 
 
 def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
@@ -652,6 +769,8 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
         for rnd in range(o.max_rounds):
             _drop_undetermined_targets(data, obs_active, survey_active, reason)
             model, result = solver.run(estimate, obs_active, survey_active, f"{label} {rnd + 1}")
+            if len(solver.rounds) == 1:       # the very first solve: can this network determine f?
+                _check_f_determinable(model, result, o)
             n = _gross_rejection(solver, model, result, obs_active, survey_active, reason, o)
             if n == 0:
                 n = _snooping(model, result, obs_active, survey_active, reason, test, o)
@@ -668,23 +787,26 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
                 return model, result
         return model, result
 
-    model, result = solve_clean("adjustment")
-    while o.estimate is None:
-        pick = _select_parameter(model, result, estimate, o)
-        if pick is None:
-            break
-        name, why = pick
-        fixed[name] = why
-        estimate.remove(name)
-        solver.params[INDEX[name]] = 0.0
-        if progress:
-            progress(f"holding {name} fixed at 0: {why}")
-        model, result = solve_clean("re-adjustment")
     try:
-        cov, s, corr = _interior_stats(model, result)
+        model, result = solve_clean("adjustment")
+        while o.estimate is None:
+            pick = _select_parameter(model, result, estimate, o)
+            if pick is None:
+                break
+            name, why = pick
+            fixed[name] = why
+            estimate.remove(name)
+            solver.params[INDEX[name]] = 0.0
+            if progress:
+                progress(f"holding {name} fixed at 0: {why}")
+            model, result = solve_clean("re-adjustment")
+        try:
+            cov, s, corr = _interior_stats(model, result)
+        except SingularSystemError as err:
+            raise GeometryError(f"the interior orientation is not determined: {err}") from None
+        _check_core_determined(model, result, corr, s, o)
     except SingularSystemError as err:
-        raise GeometryError(f"the interior orientation is not determined: {err}") from None
-    _check_core_determined(model, result, corr)
+        raise GeometryError(_singular_diagnosis(err, solver.model)) from None
     # everything not used: reason 'initial outlier' left -> it is a blunder
     reason[(reason == "initial outlier")] = "blunder"
     params, R, C, X = model.unpack(result.x)

@@ -205,7 +205,8 @@ def read_frames_csv(path, *, strict: bool = True) -> pa.Table:
         elif not (math.isfinite(w) and abs(w) < 90.0):
             problem = f"angle_deg {t!r} is not a finite angle within +-90 deg"
         if problem and strict:
-            raise InputError(f"line {line} ({f or 'no file'}): {problem}", where)
+            shown = f if f.isprintable() else repr(f)[1:-1]      # one line, whatever the name holds
+            raise InputError(f"line {line} ({shown or 'no file'}): {problem}", where)
         angles.append(w)
         problems.append(f"frames.csv line {line}: {problem}" if problem else None)
     return pa.table({"file": pa.array(files, pa.string()), "axis": pa.array(axes, pa.string()),

@@ -58,6 +58,7 @@ def probe_image(path) -> ImageInfo:
             if not tif.pages:
                 raise ImageError("TIFF has no image pages", where)
             page = tif.pages.first
+            depth = int(getattr(page, "imagedepth", 1) or 1)
             dtype = np.dtype(page.dtype) if page.dtype is not None else None
             info = ImageInfo(
                 path=where, width_px=int(page.imagewidth), height_px=int(page.imagelength),
@@ -74,6 +75,8 @@ def probe_image(path) -> ImageInfo:
         raise ImageError(f"unsupported number of samples per pixel ({info.samples}); 1, 3 or 4", where)
     if info.width_px * info.height_px > MAX_PIXELS or info.width_px <= 0 or info.height_px <= 0:
         raise ImageError(f"implausible image size {info.width_px} x {info.height_px} in the header", where)
+    if depth != 1:   # a volume (SGI ImageDepth): the pixel count above would not bound the allocation
+        raise ImageError(f"a volume of {depth} planes (ImageDepth) is not a single 2-D image", where)
     return info
 
 

@@ -98,7 +98,10 @@ def parse_acquired(text: str, where: str) -> datetime:
                          where) from None
     if value.tzinfo is None:
         value = value.replace(tzinfo=UTC)
-    return value.astimezone(UTC)
+    try:
+        return value.astimezone(UTC)
+    except OverflowError:                  # e.g. 9999-12-31T23:59-23:00 is after the year 9999 in UTC
+        raise InputError(f"'acquired' is out of range in UTC: {text!r} (at /acquired)", where) from None
 
 
 def safe_path(folder: Path, relative: str, what: str) -> Path:
@@ -109,9 +112,16 @@ def safe_path(folder: Path, relative: str, what: str) -> Path:
         raise InputError(f"{what} path {relative!r} must be relative to the session folder", where)
     if ".." in rel.split("/"):
         raise InputError(f"{what} path {relative!r} leaves the session folder", where)
+    if "\x00" in rel:
+        raise InputError(f"{what} path {relative!r} contains a NUL character", where)
     base = Path(folder).resolve()
     full = (base / rel)
-    resolved = full.resolve()
+    try:
+        resolved = full.resolve()
+        full.exists()                      # surfaces a name the OS refuses (too long, ...)
+    except (OSError, RuntimeError) as err:  # RuntimeError: a symlink loop
+        raise InputError(f"{what} path {relative!r} cannot be used: "
+                         f"{getattr(err, 'strerror', None) or err}", where) from None
     if resolved != base and base not in resolved.parents:
         raise InputError(f"{what} path {relative!r} leads outside the session folder (link?)", where)
     return full
@@ -139,6 +149,31 @@ def _resolve_images(folder: Path, spec, where: str) -> list[FieldImage]:
     return out
 
 
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _unique_keys(pairs):
+    keys = [k for k, _ in pairs]
+    if len(set(keys)) != len(keys):
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        raise ValueError(f"duplicate key(s) {dup} in an object")
+    return dict(pairs)
+
+
+def _check_frame_paths(folder: Path, frames_path: Path) -> None:
+    """Every frame that frames.csv names stays inside the session folder (path checks only)."""
+    from .goniometer import read_frames_csv
+
+    frames = read_frames_csv(frames_path, strict=False)
+    for name, line in zip(frames.column("file").to_pylist(), frames.column("line").to_pylist(), strict=True):
+        if name:
+            try:
+                safe_path(folder, name, "frame")
+            except InputError as err:
+                raise InputError(err.reason, f"{frames_path}:{line}") from None
+
+
 def load_session(folder) -> Session:
     """Read and validate ``folder/session.json`` and resolve the paths it names.
 
@@ -155,11 +190,15 @@ def load_session(folder) -> Session:
     if not path.is_file():
         raise InputError("missing (a session folder needs its session.json)", where)
     try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
+        manifest = json.loads(path.read_text(encoding="utf-8-sig"), parse_constant=_no_constant,
+                              object_pairs_hook=_unique_keys)
     except UnicodeDecodeError:
         raise InputError("not UTF-8 text", where) from None
     except json.JSONDecodeError as err:
         raise InputError(f"invalid JSON: {err.msg} at line {err.lineno} column {err.colno}", where) from None
+    except (ValueError, RecursionError) as err:    # NaN, duplicate keys, huge numbers, deep nesting
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise InputError(f"invalid JSON: {text[:200]}", where) from None
     if not isinstance(manifest, dict):
         raise InputError("must be a JSON object", where)
     validate_json(manifest, "session", where)
@@ -194,6 +233,13 @@ def load_session(folder) -> Session:
         sess.target_diameter_mm = fld.get("target_diameter_mm")
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
+        if sess.coded is not None:
+            from .coded import _dictionary
+
+            try:
+                _dictionary(sess.coded["dictionary"])
+            except InputError as err:
+                raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
@@ -202,6 +248,7 @@ def load_session(folder) -> Session:
         sess.frames_path = safe_path(folder, manifest["frames"], "frames")
         if not sess.frames_path.is_file():
             raise InputError(f"the frames file {manifest['frames']!r} does not exist (at /frames)", where)
+        _check_frame_paths(folder, sess.frames_path)
     return sess
 
 
@@ -315,11 +362,13 @@ def _image_index(images: list[FieldImage], allow_new: bool):
 
 
 def read_observations_csv(path, targets: TargetField, images: list[FieldImage], *,
-                          default_sigma_px: float, allow_new_images: bool):
+                          default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None):
     """``observations.csv``: ``image,target_id,u,v,sigma_px`` -> :class:`FieldObservations`.
 
     ``images`` is extended in place with images the file names (when ``allow_new_images``,
     i.e. the manifest's glob matched no file). A (image, target) pair may appear once.
+    With ``sensor``, a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px,
+    CONTRACT section 1).
     """
     rows = read_csv_rows(path, ("image", "target_id", "u", "v"), ("sigma_px",))
     tindex = targets.index()
@@ -339,9 +388,13 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
         s = _number(r.get("sigma_px", ""), "sigma_px", where, default=default_sigma_px)
         if s <= 0:
             raise InputError(f"sigma_px must be positive, got {s}", where)
+        u, v = _number(r["u"], "u", where), _number(r["v"], "v", where)
+        if sensor is not None and not (-0.5 <= u <= sensor.width_px - 0.5 and -0.5 <= v <= sensor.height_px - 0.5):
+            raise InputError(f"point ({u:g}, {v:g}) px is outside the {sensor.width_px} x "
+                             f"{sensor.height_px} px image", where)
         img.append(i)
         tgt.append(t)
-        uv.append((_number(r["u"], "u", where), _number(r["v"], "v", where)))
+        uv.append((u, v))
         sig.append(s)
     return FieldObservations(np.array(img), np.array(tgt), np.array(uv), np.array(sig))
 
@@ -352,18 +405,21 @@ def read_marks_csv(path, targets: TargetField, images: list[FieldImage]) -> dict
     tindex = targets.index()
     lookup = _image_index(images, False)
     out: dict[int, list] = {}
+    seen: dict[tuple[int, int], int] = {}
     for line, r in rows:
         where = f"{path}:{line}"
         i = lookup(r["image"], where)
         if r["target_id"] not in tindex:
             raise InputError(f"target_id {r['target_id']!r} is not in targets.csv", where)
-        out.setdefault(i, []).append((tindex[r["target_id"]], _number(r["u"], "u", where),
-                                      _number(r["v"], "v", where)))
+        t = tindex[r["target_id"]]
+        if (i, t) in seen:
+            raise InputError(f"target {r['target_id']!r} is marked twice in image {images[i].file!r} "
+                             f"(first on line {seen[(i, t)]})", where)
+        seen[(i, t)] = line
+        out.setdefault(i, []).append((t, _number(r["u"], "u", where), _number(r["v"], "v", where)))
     result = {}
     for i, items in out.items():
         t = np.array([x[0] for x in items])
-        if len(np.unique(t)) != len(t):
-            raise InputError(f"a target is marked twice in image {images[i].file!r}", str(path))
         result[i] = (t, np.array([(x[1], x[2]) for x in items]))
     return result
 
@@ -378,7 +434,8 @@ def field_data_from_observations(sess: Session) -> FieldData:
     images = list(sess.images)
     allow_new = isinstance(sess.manifest["images"], str) and not images
     obs = read_observations_csv(sess.observations_path, targets, images,
-                                default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new)
+                                default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
+                                sensor=sess.sensor)
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
                      meta={"camera_id": sess.camera_id, "session_id": sess.session_id})

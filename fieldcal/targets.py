@@ -933,7 +933,10 @@ def measure_image(path, *, polarity: str = "dark", sensor: Sensor | None = None,
     Raises
     ------
     ImageError
-        The file is missing, corrupt, unsupported or of the wrong size (one line naming it).
+        The file is missing, corrupt, unsupported or of the wrong size, blank (every pixel
+        the same: all black, saturated) or over-exposed (more than
+        :data:`MAX_SATURATED_FRACTION` of the pixels at the sample type's maximum); one
+        line naming it.
     """
     from .coded import detect_aruco, marker_exclusion_polygons
     from .imageio import read_image
@@ -942,6 +945,7 @@ def measure_image(path, *, polarity: str = "dark", sensor: Sensor | None = None,
     image_name = name if name is not None else where.replace(os.sep, "/")
     expect = None if sensor is None else (sensor.width_px, sensor.height_px)
     pixels = read_image(path, expect_size=expect)
+    _check_exposure(pixels, where)
     tables = []
     exclude = list(detect_kw.pop("exclude", None) or [])
     try:
@@ -963,6 +967,28 @@ def measure_image(path, *, polarity: str = "dark", sensor: Sensor | None = None,
     table = pa.concat_tables(tables) if tables else empty_measurements()
     return table.set_column(table.schema.get_field_index("blob"), "blob",
                             pa.array(np.arange(table.num_rows, dtype=np.int32)))
+
+
+MAX_SATURATED_FRACTION = 0.5
+"""An image with more of its pixels at the sample type's maximum is refused as over-exposed."""
+
+
+def _check_exposure(pixels: np.ndarray, where: str) -> None:
+    """Refuse an image with nothing to measure: blank (one value) or mostly saturated.
+
+    Raises :class:`ImageError` naming the file; a measurement of such an image would only be
+    an empty table, left out later with a misleading reason.
+    """
+    top = np.iinfo(pixels.dtype).max
+    lo, hi = int(pixels.min()), int(pixels.max())
+    if lo == hi:
+        what = "all black" if hi == 0 else "saturated" if hi == top else "no contrast"
+        raise ImageError(f"blank image: every pixel is {hi} ({what}); nothing to measure", where)
+    if hi == top:
+        share = np.count_nonzero(pixels == top) / pixels.size
+        if share > MAX_SATURATED_FRACTION:
+            raise ImageError(f"over-exposed: {100 * share:.0f} % of the pixels are saturated at {top}",
+                             where)
 
 
 def opencv_blob_centres(image, *, polarity: str = "dark") -> np.ndarray:
