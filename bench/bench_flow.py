@@ -1,0 +1,255 @@
+"""End-to-end benchmark of the calibration flow: 72 full-size field images, 2 Dask workers.
+
+Usage::
+
+    OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 .venv/bin/python bench/bench_flow.py [--images 72]
+
+The session is the field paper's geometry at full size (Phase One iXU150-like camera,
+8208 x 6280 px 16-bit TIFFs in the renderer's mix of layouts: tiled zstd, striped
+uncompressed, tiled deflate BigTIFF, striped uncompressed BigTIFF; coded targets), rendered
+once into ``bench/out/flow/paper72`` (about 10 minutes on two processes, ~5 GB) and reused.
+
+Runs, each through :func:`flows.calibrate.calibrate_session` on one Prefect server that is
+started first (its start is timed and reported separately):
+
+1. **cold**: a fresh lake and hash store, the embedded default: the flow's local Dask
+   cluster of 2 single-threaded workers inside the flow's process, measures all images,
+   solves, commits;
+2. **rerun**: the same session again, unchanged (the no-op: no image is read);
+3. **processes**: a fresh lake, every image hashed again, the flow's local cluster made of
+   2 single-threaded worker processes that it starts and stops (``fieldcal run --processes``);
+4. **warm cluster**: a fresh lake with every image hashed again, on a standing 2-worker
+   local cluster (processes) started beforehand (a deployment's situation), so the
+   cluster's start is not in the flow's time.
+
+For each: wall time, images per second, peak resident memory per worker (``VmHWM`` of the
+worker process, its libraries included), and the share of the wall time outside
+reading, extraction and solving::
+
+    useful  = (sum of hashing + read-and-measure time over the images) / workers + solver time
+    outside = wall - useful      (cluster start, Prefect, Dask, Parquet writes and reads,
+                                  the Zarr/Parquet commit, idle workers)
+
+Hashing the image bytes counts as reading. The images sit in the page cache (they were
+just rendered or read), as in ``bench/README_extract.md``. Results go to
+``bench/out/flow/results.json`` and, as a table, to standard output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+
+def _render_chunk(args):
+    """Render some images of the session into a scratch folder (one process of the pool)."""
+    folder, indices, seed = args
+    from fieldcal.render import write_field_session
+    from fieldcal.synthetic import paper_field
+
+    write_field_session(folder, paper_field(seed=seed), images=True, coded=True, image_indices=indices,
+                        seed=seed, camera_id="ixu150-bench", session_id="paper72")
+    return indices
+
+
+def render_session(folder: Path, n_images: int, procs: int, seed: int = 0) -> float:
+    """Write the full-size session (images rendered by ``procs`` processes); returns seconds."""
+    import multiprocessing
+
+    from fieldcal.render import write_field_session
+    from fieldcal.synthetic import paper_field
+
+    t = time.perf_counter()
+    sf = paper_field(seed=seed)
+    step = len(sf.data.images) / n_images
+    indices = sorted({int(i * step) for i in range(n_images)})
+    scratch = folder.parent / (folder.name + "-parts")
+    shutil.rmtree(scratch, ignore_errors=True)
+    chunks = [(scratch / f"part{k}", indices[k::procs], seed) for k in range(procs)]
+    with multiprocessing.get_context("spawn").Pool(procs) as pool:
+        for done in pool.imap_unordered(_render_chunk, chunks):
+            print(f"  rendered {len(done)} images", flush=True)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    for part, _, _ in chunks:
+        for f in (part / "images").iterdir():
+            os.replace(f, folder / "images" / f.name)
+    shutil.rmtree(scratch)
+    # the manifest and targets.csv listing every image (nothing rendered here)
+    write_field_session(folder, sf, images=False, coded=True, image_indices=indices, seed=seed,
+                        camera_id="ixu150-bench", session_id="paper72")
+    return time.perf_counter() - t
+
+
+def analyse(result: dict, wall_s: float) -> dict:
+    """Wall time, throughput, memory and the share outside reading / extraction / solving."""
+    m = result["measure"]
+    t = result["timings"]
+    out = {"wall_s": wall_s, "status": result["status"], "version": result["version"],
+           "images": result["images"], "timings": t}
+    n = result["images"]["total"]
+    out["images_per_s"] = n / wall_s if wall_s > 0 else None
+    solver = t.get("solver_s", 0.0)
+    if m is None:
+        out.update(useful_s=solver, outside_s=wall_s - solver, outside_share=(wall_s - solver) / wall_s)
+        return out
+    rows = m["rows"]
+    w = m["n_workers"]
+    hash_s = sum(r["hash_s"] for r in rows)
+    measure_s = sum(r["measure_s"] for r in rows)
+    write_s = sum(r["write_s"] for r in rows)
+    useful = (hash_s + measure_s) / w + solver
+    per_worker = {}
+    for task in m["tasks"]:
+        per_worker[task["worker"]] = max(per_worker.get(task["worker"], 0.0), task["rss_peak_mb"])
+    measured = [r for r in rows if r["status"] == "measured"]
+    out.update(
+        n_workers=w, batches=m.get("batches"), n_tasks=len(m["tasks"]), probe=m["estimate"],
+        cluster_s=m["cluster_s"], hash_s_sum=hash_s, measure_s_sum=measure_s, parquet_write_s_sum=write_s,
+        measure_s_median=statistics.median([r["measure_s"] for r in measured]) if measured else None,
+        useful_s=useful, outside_s=wall_s - useful, outside_share=(wall_s - useful) / wall_s,
+        peak_rss_mb_per_worker=per_worker,
+        outside_items={
+            "cluster start": m["cluster_s"],
+            "Parquet writes (per worker)": write_s / w,
+            "observations read back (Parquet)": t.get("read_observations_s", 0.0),
+            "commit (Zarr, Parquet, JSON)": t.get("commit_s", 0.0),
+            "validate + lookup": t.get("validate_s", 0.0) + t.get("lookup_s", 0.0),
+            "flow run start + end": wall_s - t.get("total_s", wall_s),
+            "sub-flow start + end, cluster shutdown": t.get("measure_s", 0.0) - m.get("body_s", 0.0),
+        })
+    known = sum(out["outside_items"].values())
+    out["outside_items"]["Prefect tasks / Dask / idle workers (rest)"] = out["outside_s"] - known
+    return out
+
+
+def _sizes(d: dict) -> str:
+    return ", ".join(str(x) for x in d["batches"])
+
+
+def table(results: dict) -> str:
+    runs = [("cold", "cold: 2 workers in the flow's process (default)"), ("rerun", "rerun, unchanged"),
+            ("threads", "processes: the flow starts 2 worker processes"), ("warm", "warm: standing 2-process cluster")]
+    runs = [(k, title) for k, title in runs if k in results]
+    lines = ["| quantity | " + " | ".join(t for _, t in runs) + " |", "|---" * (len(runs) + 1) + "|"]
+
+    def row(label, fn):
+        cells = []
+        for k, _ in runs:
+            try:
+                v = fn(results[k])
+            except (KeyError, TypeError, ZeroDivisionError):
+                v = None
+            cells.append("-" if v is None else v)
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+
+    row("wall time [s]", lambda d: f"{d['wall_s']:.2f}" if d["wall_s"] < 10 else f"{d['wall_s']:.1f}")
+    row("images per second", lambda d: f"{d['images_per_s']:.2f}" if d.get("measure_s_sum") else None)
+    row("read + extract, sum over images [s]", lambda d: f"{d['measure_s_sum']:.1f}")
+    row("hashing, sum over images [s]", lambda d: f"{d['hash_s_sum']:.1f}")
+    row("read + extract per image, median [s]", lambda d: f"{d['measure_s_median']:.3f}")
+    row("solver [s]", lambda d: f"{d['timings']['solver_s']:.1f}")
+    row("outside reading / extraction / solving [s]", lambda d: f"{d['outside_s']:.1f}")
+    row("**share outside**", lambda d: f"**{d['outside_share']:.1%}**" if d.get("measure_s_sum") else None)
+    for key in ("cluster start", "sub-flow start + end, cluster shutdown", "flow run start + end",
+                "Parquet writes (per worker)", "observations read back (Parquet)", "commit (Zarr, Parquet, JSON)",
+                "validate + lookup", "Prefect tasks / Dask / idle workers (rest)"):
+        row(f"&nbsp;&nbsp;{key} [s]", lambda d, key=key: f"{d['outside_items'][key]:.2f}")
+    row("tasks (images per task)", lambda d: f"{d['n_tasks']} (probes 1, 1; then {_sizes(d)})")
+    row("peak RSS per worker process [MiB] (threads: of the whole flow process, solver included)",
+        lambda d: ", ".join(f"{v:.0f}" for v in d["peak_rss_mb_per_worker"].values()) or None)
+    row("time / first run", lambda d: f"**{d['wall_s'] / results['cold']['wall_s']:.1%}**")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=str(HERE / "out" / "flow"))
+    ap.add_argument("--images", type=int, default=72)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--render-procs", type=int, default=2)
+    ap.add_argument("--skip", action="append", default=[], choices=("cold", "rerun", "threads", "warm"))
+    args = ap.parse_args()
+    out = Path(args.out)
+    session = out / f"paper{args.images}"
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict = {"images": args.images, "workers": args.workers}
+
+    n_have = len(list((session / "images").glob("*.tif"))) if (session / "images").is_dir() else 0
+    if not (session / "session.json").is_file() or n_have < args.images:
+        print(f"rendering {args.images} full-size images into {session} ...", flush=True)
+        shutil.rmtree(session, ignore_errors=True)
+        results["render_s"] = render_session(session, args.images, args.render_procs)
+    size = sum(f.stat().st_size for f in (session / "images").glob("*.tif"))
+    results["session_bytes"] = size
+    print(f"session: {session} ({size / 2**30:.2f} GiB)", flush=True)
+
+    os.environ["FIELDCAL_HASH_CACHE"] = str(out / "hashes.sqlite")
+    from fieldcal.cli import _prefect_env, prefect_api
+
+    _prefect_env(verbose=False)
+    t = time.perf_counter()
+    with prefect_api() as url:
+        results["prefect_server_s"] = time.perf_counter() - t
+        results["prefect_api"] = url
+        print(f"Prefect API {url} ready in {results['prefect_server_s']:.1f} s", flush=True)
+        from flows.calibrate import calibrate_session
+
+        lake = out / "lake-cold"
+        if "cold" not in args.skip:
+            shutil.rmtree(lake, ignore_errors=True)
+            Path(os.environ["FIELDCAL_HASH_CACHE"]).unlink(missing_ok=True)
+            t = time.perf_counter()
+            r = calibrate_session(str(session), str(lake), n_workers=args.workers)
+            results["cold"] = analyse(r, time.perf_counter() - t)
+            print(f"cold: {results['cold']['wall_s']:.1f} s, outside share {results['cold']['outside_share']:.1%}",
+                  flush=True)
+        if "rerun" not in args.skip:
+            t = time.perf_counter()
+            r = calibrate_session(str(session), str(lake), n_workers=args.workers)
+            results["rerun"] = analyse(r, time.perf_counter() - t)
+            print(f"rerun: {results['rerun']['wall_s']:.2f} s ({r['status']})", flush=True)
+        if "threads" not in args.skip:
+            lake_t = out / "lake-processes"
+            shutil.rmtree(lake_t, ignore_errors=True)
+            t = time.perf_counter()
+            r = calibrate_session(str(session), str(lake_t), n_workers=args.workers, rehash=True,
+                                  cluster_kwargs={"processes": True})
+            results["threads"] = analyse(r, time.perf_counter() - t)
+            print(f"processes: {results['threads']['wall_s']:.1f} s, outside share "
+                  f"{results['threads']['outside_share']:.1%}", flush=True)
+        if "warm" not in args.skip:
+            import distributed
+
+            from flows.cluster import local_cluster_kwargs
+
+            t = time.perf_counter()
+            with distributed.LocalCluster(**local_cluster_kwargs(args.workers, {"processes": True})) as cluster:
+                results["standing_cluster_start_s"] = time.perf_counter() - t
+                lake_w = out / "lake-warm"
+                shutil.rmtree(lake_w, ignore_errors=True)
+                t = time.perf_counter()
+                r = calibrate_session(str(session), str(lake_w), dask_address=cluster.scheduler_address,
+                                      rehash=True)
+                results["warm"] = analyse(r, time.perf_counter() - t)
+            print(f"warm: {results['warm']['wall_s']:.1f} s, outside share "
+                  f"{results['warm']['outside_share']:.1%}", flush=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
+    print()
+    print(f"Prefect local server start (once, not in the times below): {results['prefect_server_s']:.1f} s")
+    if "standing_cluster_start_s" in results:
+        print(f"standing cluster start (before the warm run): {results['standing_cluster_start_s']:.1f} s")
+    print(table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
