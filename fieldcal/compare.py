@@ -9,16 +9,57 @@ independent of how the parameters are split between principal point and distorti
 Where the camera frame itself is not observable (a narrow field of view: a principal-
 point shift and a small rotation of the camera are nearly indistinguishable), the best
 common rotation of B's rays onto A's (Wahba's problem, solved by SVD) is removed first.
+
+Is the change real? (:func:`compare_calibrations`)
+--------------------------------------------------
+Stack the difference map over an ``n``-point grid as ``d`` (2n,). To first order
+``d = J (theta_A - theta_B)`` with the landing Jacobian ``J`` (2n, p) of
+:func:`fieldcal.uncertainty.landing_jacobian` (a ray fixed in the camera frame: where it
+lands moves with the parameters), evaluated once, at A, over the union of the parameters
+either calibration estimated. If both measured the same camera with independent errors,
+``d ~ N(0, C)`` with
+
+    C = J (Sigma_A + Sigma_B) J^T = M M^T,    M = J L,   L L^T = Sigma_A + Sigma_B
+
+(the interior covariances, zero-padded to the union). ``C`` has rank ``r`` <= p, far
+below 2n: the map is the parameter difference projected onto the sensor. (One Jacobian
+for both matters: ``J_A`` and ``J_B`` differ slightly, and stacking both would add
+spurious tiny singular values that a pseudo-inverse blows up.) With the SVD
+``M = U S V^T`` truncated to the ``r`` singular values above ``rcond * s_max``, the
+pseudo-inverse gives the test statistic
+
+    chi2 = d^T C^+ d = |S_r^-1 U_r^T d|^2    ~  chi-square with r degrees of freedom
+
+and its p-value. A part of ``d`` outside the range of ``C`` (``(I - U_r U_r^T) d``) is a
+change that neither calibration's uncertainty allows for at all; it is reported as
+``outside_px`` and makes the change significant when it exceeds ``outside_tol_px``. With
+``remove_rotation`` both ``d`` and ``M`` are first projected onto the fields that no
+common rotation explains (:func:`fieldcal.uncertainty.remove_rotation_part`).
+
+The verdict combines the test (significant at level ``alpha``) with the size of the change
+against a tolerance in the image plane (``tolerance_um``, largest ``|d|`` over the grid
+times the pixel pitch): a camera is *flagged* when its change is both significant and
+larger than the tolerance.
 """
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
+from scipy import stats
 
-from .camera import Camera, project, unproject
+from .camera import PARAM_NAMES, Camera, project, unproject
 from .errors import InputError
+from .uncertainty import Calibration, landing_jacobian, remove_rotation_part, summarise_2x2
 
-__all__ = ["ray_difference_px", "best_rotation"]
+__all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations",
+           "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA"]
+
+DEFAULT_TOLERANCE_UM = 2.0
+"""Default tolerance of a change in the image plane [um] (about 0.4 px at 5.3 um pixels)."""
+DEFAULT_ALPHA = 0.01
+"""Default significance level of the change test."""
 
 
 def best_rotation(a, b):
@@ -60,3 +101,174 @@ def ray_difference_px(cam_a: Camera, cam_b: Camera, uv_px=None, *, remove_rotati
         ray_b = ray_b @ R.T
     uv_a = project(ray_b, np.eye(3), np.zeros(3), cam_a)
     return uv, uv_a - uv
+
+
+# --------------------------------------------------------------------------------------
+# the change test
+# --------------------------------------------------------------------------------------
+@dataclass
+class Comparison:
+    """Two calibrations of one sensor compared (see the module docstring).
+
+    Attributes
+    ----------
+    version_a, version_b : str
+        ``a`` is the reference (e.g. the older), ``b`` the other.
+    grid : (nx, ny)
+    uv_px : (n, 2) ndarray
+        The grid pixels, row by row.
+    diff_px : (n, 2) ndarray
+        ``uv_A(ray_B(uv)) - uv`` [px].
+    sigma_px : (n,) ndarray
+        1-sigma (semi-major axis) of the difference at each pixel that the two
+        calibrations' uncertainties explain [px].
+    chi2, dof, p_value : float, int, float
+        The test of the module docstring.
+    outside_px : float
+        Largest norm of the part of the map outside the range of its covariance [px].
+    pixel_size_um, tolerance_um, alpha : float
+    remove_rotation : bool
+    """
+
+    version_a: str
+    version_b: str
+    method_a: str
+    method_b: str
+    grid: tuple[int, int]
+    uv_px: np.ndarray
+    diff_px: np.ndarray
+    sigma_px: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    outside_px: float
+    pixel_size_um: float
+    tolerance_um: float
+    alpha: float
+    outside_tol_px: float
+    remove_rotation: bool
+
+    @property
+    def norm_px(self) -> np.ndarray:
+        """``|d|`` (n,) [px]."""
+        return np.hypot(self.diff_px[:, 0], self.diff_px[:, 1])
+
+    @property
+    def max_px(self) -> float:
+        return float(self.norm_px.max())
+
+    @property
+    def rms_px(self) -> float:
+        return float(np.sqrt(np.mean(self.norm_px ** 2)))
+
+    @property
+    def max_um(self) -> float:
+        return self.max_px * self.pixel_size_um
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.p_value < self.alpha or self.outside_px > self.outside_tol_px)
+
+    @property
+    def exceeds_tolerance(self) -> bool:
+        return bool(self.max_um > self.tolerance_um)
+
+    @property
+    def flagged(self) -> bool:
+        """Significant and larger than the tolerance."""
+        return self.significant and self.exceeds_tolerance
+
+    @property
+    def verdict(self) -> str:
+        size = (f"largest change {self.max_um:.2f} um ({self.max_px:.3f} px) "
+                f"{'>' if self.exceeds_tolerance else '<='} tolerance {self.tolerance_um:g} um")
+        if self.outside_px > self.outside_tol_px:
+            why = (f"changed where neither calibration has any uncertainty "
+                   f"({self.outside_px:.3f} px outside the explained range)")
+        elif self.significant:
+            why = f"significant change (p = {self.p_value:.2g} < {self.alpha:g})"
+        else:
+            why = f"no significant change (p = {self.p_value:.2g} >= {self.alpha:g})"
+        return f"{why}; {size}" + ("; FLAGGED" if self.flagged else "")
+
+    def summary(self) -> dict:
+        """Scalars for tables and JSON."""
+        d = {k: v for k, v in asdict(self).items() if k not in ("uv_px", "diff_px", "sigma_px")}
+        d.update(grid=list(self.grid), max_px=self.max_px, max_um=self.max_um, rms_px=self.rms_px,
+                 max_sigma_px=float(self.sigma_px.max()), significant=self.significant,
+                 exceeds_tolerance=self.exceeds_tolerance, flagged=self.flagged,
+                 verdict=self.verdict)
+        return d
+
+
+def _sqrt_psd(cov):
+    """``L`` with ``L L^T = cov`` for a symmetric positive semi-definite matrix."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def _combined_covariance(a: Calibration, b: Calibration):
+    """``Sigma_A + Sigma_B`` over the union of their estimated parameters (PARAM_NAMES order)."""
+    names = [n for n in PARAM_NAMES if n in a.names or n in b.names]
+    pos = {n: i for i, n in enumerate(names)}
+    cov = np.zeros((len(names), len(names)))
+    for c in (a, b):
+        idx = [pos[n] for n in c.names]
+        cov[np.ix_(idx, idx)] += c.covariance
+    return names, cov
+
+
+def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int] = (41, 31),
+                         tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
+                         remove_rotation: bool = False, rcond: float = 1e-7,
+                         outside_tol_px: float = 0.01) -> Comparison:
+    """Where the same rays land in two calibrations, and whether the change is real.
+
+    Parameters
+    ----------
+    a, b : Calibration
+        Two calibrations of the same sensor (``a`` the reference). Either method.
+    grid : (nx, ny)
+        Grid of pixels spanning the sensor corner to corner.
+    tolerance_um : float
+        Largest acceptable change in the image plane [um].
+    alpha : float
+        Significance level of the test.
+    remove_rotation : bool
+        Remove the best common rotation first (:func:`ray_difference_px`).
+    rcond : float
+        Singular values of ``M`` below ``rcond * s_max`` count as zero (rank).
+    outside_tol_px : float
+        A change outside the range of the covariance larger than this [px] is significant.
+
+    Returns
+    -------
+    Comparison
+    """
+    if not (tolerance_um > 0):
+        raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
+    if not (0 < alpha < 1):
+        raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
+    uv, d = ray_difference_px(a.camera, b.camera, remove_rotation=remove_rotation, grid=grid)
+    n = len(uv)
+    names, cov = _combined_covariance(a, b)
+    J = landing_jacobian(a.camera, uv, names).reshape(2 * n, len(names))
+    M = J @ _sqrt_psd(cov)
+    dv = d.reshape(2 * n)
+    if remove_rotation:
+        M = remove_rotation_part(a.camera, uv, M)
+        dv = remove_rotation_part(a.camera, uv, dv)
+    U, s, _ = np.linalg.svd(M, full_matrices=False)
+    keep = s > rcond * (s[0] if s.size and s[0] > 0 else 1.0)
+    r = int(keep.sum())
+    z = (U[:, keep].T @ dv) / s[keep]
+    chi2 = float(z @ z)
+    outside = dv - U[:, keep] @ (U[:, keep].T @ dv)
+    outside_px = float(np.hypot(*outside.reshape(n, 2).T).max()) if n else 0.0
+    p_value = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
+    Mp = M.reshape(n, 2, -1)
+    sigma = summarise_2x2(np.einsum("nik,njk->nij", Mp, Mp))
+    return Comparison(a.version, b.version, a.method, b.method, tuple(grid), uv,
+                      dv.reshape(n, 2) if remove_rotation else d, sigma, chi2, r, p_value,
+                      outside_px, float(a.sensor.pixel_size_um), float(tolerance_um),
+                      float(alpha), float(outside_tol_px), bool(remove_rotation))
