@@ -40,6 +40,16 @@ The verdict combines the test (significant at level ``alpha``) with the size of 
 against a tolerance in the image plane (``tolerance_um``, largest ``|d|`` over the grid
 times the pixel pitch): a camera is *flagged* when its change is both significant and
 larger than the tolerance.
+
+A goniometer calibration observes only the two scanned axes of the sensor, and there only
+the component along each axis, and not where the optical axis points (the arm's zero is
+aligned on the sensor centre): its model off the axes is an extrapolation, and its split
+between principal point and decentering is a convention of the method. When either
+calibration is a goniometer's (``region="auto"``), the test and the size of the change use
+the points of the centre row (their u component) and of the centre column (their v
+component) only, at the spot positions the goniometer measured (its sweeps do not reach
+the sensor's edges), with the best common rotation removed; the map over the sensor is
+kept for display.
 """
 
 from __future__ import annotations
@@ -51,7 +61,13 @@ from scipy import stats
 
 from .camera import PARAM_NAMES, Camera, project, unproject
 from .errors import InputError
-from .uncertainty import Calibration, landing_jacobian, remove_rotation_part, summarise_2x2
+from .uncertainty import (
+    Calibration,
+    landing_jacobian,
+    remove_rotation_part,
+    rotation_jacobian,
+    summarise_2x2,
+)
 
 __all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations",
            "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA"]
@@ -147,6 +163,8 @@ class Comparison:
     alpha: float
     outside_tol_px: float
     remove_rotation: bool
+    region: str = "sensor"
+    test_max_px: float | None = None
 
     @property
     def norm_px(self) -> np.ndarray:
@@ -163,7 +181,9 @@ class Comparison:
 
     @property
     def max_um(self) -> float:
-        return self.max_px * self.pixel_size_um
+        """The largest change where it was tested [um] (the axes for a goniometer comparison)."""
+        top = self.max_px if self.test_max_px is None else self.test_max_px
+        return top * self.pixel_size_um
 
     @property
     def significant(self) -> bool:
@@ -180,7 +200,8 @@ class Comparison:
 
     @property
     def verdict(self) -> str:
-        size = (f"largest change {self.max_um:.2f} um ({self.max_px:.3f} px) "
+        where = " along the scanned axes" if self.region == "axes" else ""
+        size = (f"largest change{where} {self.max_um:.2f} um ({self.max_um / self.pixel_size_um:.3f} px) "
                 f"{'>' if self.exceeds_tolerance else '<='} tolerance {self.tolerance_um:g} um")
         if self.outside_px > self.outside_tol_px:
             why = (f"changed where neither calibration has any uncertainty "
@@ -218,10 +239,47 @@ def _combined_covariance(a: Calibration, b: Calibration):
     return names, cov
 
 
+def _swept_points(*cals):
+    """The spot positions of a goniometer calibration's frames and the component each tests.
+
+    Returns ``(uv (n, 2), rows)`` with ``rows`` indexing the stacked ``(du, dv)`` vector: the
+    u component of the x sweep's points, the v component of the y sweep's; None if no
+    calibration lists its frames.
+    """
+    for cal in cals:
+        if cal.method != "goniometer":
+            continue
+        frames = [im for im in cal.document.get("images", [])
+                  if im.get("axis") in ("x", "y") and im.get("u_px") is not None and im.get("v_px") is not None]
+        if len(frames) >= 3:
+            uv = np.array([(im["u_px"], im["v_px"]) for im in frames], dtype=float)
+            uv, first = np.unique(uv, axis=0, return_index=True)
+            comp = np.array([0 if frames[i]["axis"] == "x" else 1 for i in first])
+            return uv, 2 * np.arange(len(uv)) + comp
+    return None
+
+
+def _axis_points(sensor, grid):
+    """Pixels of the centre row (nx) and centre column (ny), and the stacked rows tested."""
+    nx, ny = grid
+    u = np.linspace(0.0, sensor.width_px - 1.0, nx)
+    v = np.linspace(0.0, sensor.height_px - 1.0, ny)
+    uv = np.concatenate([np.stack([u, np.full(nx, (sensor.height_px - 1) / 2.0)], axis=1),
+                         np.stack([np.full(ny, (sensor.width_px - 1) / 2.0), v], axis=1)])
+    rows = np.concatenate([2 * np.arange(nx), 2 * (nx + np.arange(ny)) + 1])
+    return uv, rows
+
+
+def _project_out(basis, X):
+    """``X`` without its least-squares part in the span of ``basis`` (columns)."""
+    Q, _ = np.linalg.qr(basis)
+    return X - Q @ (Q.T @ X)
+
+
 def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int] = (41, 31),
                          tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
                          remove_rotation: bool = False, rcond: float = 1e-7,
-                         outside_tol_px: float = 0.01) -> Comparison:
+                         outside_tol_px: float = 0.01, region: str = "auto") -> Comparison:
     """Where the same rays land in two calibrations, and whether the change is real.
 
     Parameters
@@ -240,6 +298,9 @@ def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int
         Singular values of ``M`` below ``rcond * s_max`` count as zero (rank).
     outside_tol_px : float
         A change outside the range of the covariance larger than this [px] is significant.
+    region : {"auto", "sensor", "axes"}
+        Where the change is tested: the whole grid, or the scanned axes of a goniometer
+        (module docstring); ``"auto"`` picks ``"axes"`` when either is a goniometer's.
 
     Returns
     -------
@@ -249,26 +310,44 @@ def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int
         raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
     if not (0 < alpha < 1):
         raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
+    if region not in ("auto", "sensor", "axes"):
+        raise InputError(f"region must be 'auto', 'sensor' or 'axes', got {region!r}", "compare")
+    if region == "auto":
+        region = "axes" if "goniometer" in (a.method, b.method) else "sensor"
+    if region == "axes":
+        remove_rotation = True
     uv, d = ray_difference_px(a.camera, b.camera, remove_rotation=remove_rotation, grid=grid)
     n = len(uv)
     names, cov = _combined_covariance(a, b)
+    L = _sqrt_psd(cov)
     J = landing_jacobian(a.camera, uv, names).reshape(2 * n, len(names))
-    M = J @ _sqrt_psd(cov)
+    M = J @ L
     dv = d.reshape(2 * n)
     if remove_rotation:
         M = remove_rotation_part(a.camera, uv, M)
         dv = remove_rotation_part(a.camera, uv, dv)
-    U, s, _ = np.linalg.svd(M, full_matrices=False)
-    keep = s > rcond * (s[0] if s.size and s[0] > 0 else 1.0)
-    r = int(keep.sum())
-    z = (U[:, keep].T @ dv) / s[keep]
-    chi2 = float(z @ z)
-    outside = dv - U[:, keep] @ (U[:, keep].T @ dv)
-    outside_px = float(np.hypot(*outside.reshape(n, 2).T).max()) if n else 0.0
-    p_value = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
     Mp = M.reshape(n, 2, -1)
     sigma = summarise_2x2(np.einsum("nik,njk->nij", Mp, Mp))
+    test_max = None
+    if region == "axes":
+        uv_t, rows = _swept_points(a, b) or _axis_points(a.sensor, grid)
+        _, d_t = ray_difference_px(a.camera, b.camera, uv_t)
+        R = rotation_jacobian(a.camera, uv_t).reshape(-1, 3)[rows]
+        dv_t = _project_out(R, d_t.reshape(-1)[rows])
+        M_t = _project_out(R, (landing_jacobian(a.camera, uv_t, names).reshape(-1, len(names)) @ L)[rows])
+        test_max = float(np.abs(dv_t).max())
+    else:
+        dv_t, M_t = dv, M
+    U, s, _ = np.linalg.svd(M_t, full_matrices=False)
+    keep = s > rcond * (s[0] if s.size and s[0] > 0 else 1.0)
+    r = int(keep.sum())
+    z = (U[:, keep].T @ dv_t) / s[keep]
+    chi2 = float(z @ z)
+    outside = dv_t - U[:, keep] @ (U[:, keep].T @ dv_t)
+    outside_px = (float(np.abs(outside).max()) if region == "axes"
+                  else float(np.hypot(*outside.reshape(-1, 2).T).max()) if n else 0.0)
+    p_value = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
     return Comparison(a.version, b.version, a.method, b.method, tuple(grid), uv,
                       dv.reshape(n, 2) if remove_rotation else d, sigma, chi2, r, p_value,
                       outside_px, float(a.sensor.pixel_size_um), float(tolerance_um),
-                      float(alpha), float(outside_tol_px), bool(remove_rotation))
+                      float(alpha), float(outside_tol_px), bool(remove_rotation), region, test_max)

@@ -184,7 +184,7 @@ def test_a_laboratory_and_a_field_calibration_of_one_sensor_compare(tmp_path_fac
     cov = _interior_cov(np.random.default_rng(5), names) * 0.01      # a precise field result
     doc = dict(lab.document, method="field", version="field-v")
     field = Calibration(doc, lab.camera, names, cov)
-    c = compare_calibrations(lab, field, grid=(21, 16))
+    c = compare_calibrations(lab, field, grid=(21, 16), region="sensor")
     assert (c.method_a, c.method_b) == ("goniometer", "field")
     union = set(lab.names) | set(names)
     assert c.dof <= len(union) and c.dof >= len(union) - 2   # f / k0 and xp / p1-like pairs may merge
@@ -192,3 +192,9 @@ def test_a_laboratory_and_a_field_calibration_of_one_sensor_compare(tmp_path_fac
     # the lab calibration's own uncertainty dominates in the corners it never observed
     s = c.sigma_px.reshape(16, 21)
     assert s[0, 0] > 5 * s[8, 10]
+    # by default a goniometer comparison is tested where the goniometer observes: at its spots
+    # along the scanned axes, each in its own component, pointing removed
+    axes = compare_calibrations(lab, field, grid=(21, 16))
+    assert axes.region == "axes" and axes.remove_rotation
+    assert 3 <= axes.dof <= c.dof
+    assert axes.max_um < 1e-6 and not axes.significant
