@@ -17,7 +17,19 @@ import numpy as np
 from fieldcal.camera import Sensor
 from fieldcal.fielddata import FieldData, FieldImage, FieldObservations, TargetField
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+def _data_dir() -> Path:
+    """``../shared/data`` beside the checkout (or ``$FIELDCAL_SHARED_DATA``, or /work/shared/data)."""
+    import os
+
+    candidates = [os.environ.get("FIELDCAL_SHARED_DATA"),
+                  Path(__file__).resolve().parents[2] / "shared" / "data", "/work/shared/data"]
+    for c in candidates:
+        if c and (Path(c) / "opencv-calib1").is_dir():
+            return Path(c)
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+DATA = _data_dir()
 CALIB1 = DATA / "opencv-calib1" / "calib1_inputs.dat"
 DBAT = DATA / "dbat-camcal"
 
