@@ -17,6 +17,7 @@ import numpy as np
 from fieldcal.camera import Sensor
 from fieldcal.fielddata import FieldData, FieldImage, FieldObservations, TargetField
 
+
 def _data_dir() -> Path:
     """``../shared/data`` beside the checkout (or ``$FIELDCAL_SHARED_DATA``, or /work/shared/data)."""
     import os

@@ -9,12 +9,7 @@ cluster, the default path of ``fieldcal run``.
 """
 
 import json
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import duckdb
@@ -237,49 +232,6 @@ def test_bad_input_fails_with_the_file_named_and_writes_nothing(prefect_server, 
         calibrate_session(str(folder), str(tmp_path / "lake"))
     assert not (tmp_path / "lake").exists()
     assert not hash_store.exists()
-
-
-# --------------------------------------------------------------------------------------
-# killed before the commit
-# --------------------------------------------------------------------------------------
-KILLER = textwrap.dedent("""
-    import os, signal, sys
-
-    if __name__ == "__main__":
-        import fieldcal.lake
-
-        def killed(self, rel, data):          # the commit's last step: the catalog row
-            os.kill(os.getpid(), signal.SIGKILL)
-
-        fieldcal.lake.Lake._write_catalog_row = killed
-        from flows.calibrate import calibrate_session
-
-        calibrate_session(sys.argv[1], sys.argv[2], dask_address=sys.argv[3])
-""")
-
-
-def test_a_flow_killed_before_the_commit_leaves_no_version_and_the_rerun_completes_it(
-        prefect_server, gonio, dask_cluster, tmp_path):
-    lake_dir = tmp_path / "lake"
-    script = tmp_path / "killed_run.py"
-    script.write_text(KILLER)
-    env = dict(os.environ, PREFECT_API_URL=prefect_server, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
-               PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL="CRITICAL", PYTHONPATH=str(ROOT))
-    proc = subprocess.run([sys.executable, str(script), str(gonio[0].folder), str(lake_dir), dask_cluster],
-                          env=env, cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
-    lake = Lake(lake_dir)
-    obs = list((lake_dir / "observations").rglob("*.parquet"))
-    assert len(obs) == 180                                          # the observations were written
-    assert list((lake_dir / "calibrations").rglob("*.json"))        # so was the version's document ...
-    assert len(lake.catalog()) == 0                                 # ... but no version is visible
-    assert history.sql(lake, "SELECT count(*) AS n FROM catalog")["n"].to_pylist() == [0]
-
-    out = calibrate_session(str(gonio[0].folder), str(lake_dir), dask_address=dask_cluster)
-    assert out["status"] == "committed"
-    assert out["images"]["measured"] == 0 and out["images"]["cached"] == 180
-    assert lake.catalog()["version"].to_pylist() == [out["version"]]
-    assert lake.load_document(out["version"])["stats"]["n_frames"] == 180
 
 
 # --------------------------------------------------------------------------------------
