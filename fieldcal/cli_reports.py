@@ -82,6 +82,12 @@ def open_lake(args):
     return Lake(url, options)
 
 
+def _lake_and_version(args):
+    """``(lake, version)`` named by ``--lake``, ``--version`` and ``--camera``."""
+    lake = open_lake(args)
+    return lake, resolve_version(lake, args.version, args.camera)
+
+
 def resolve_version(lake, name: str, camera: str | None) -> str:
     """A version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``)."""
     if name not in ("latest", "previous"):
@@ -190,9 +196,7 @@ def _export(args) -> int:
     from .export import export_text
     from .uncertainty import Calibration
 
-    lake = open_lake(args)
-    version = resolve_version(lake, args.version, args.camera)
-    cal = Calibration.from_lake(lake, version)
+    cal = Calibration.from_lake(*_lake_and_version(args))
     exp = export_text(cal, args.format, model=args.model)
     for line in exp.report_lines():
         print(line, file=sys.stderr)
@@ -209,14 +213,12 @@ def _undistort(args) -> int:
     from .uncertainty import Calibration
     from .undistort import undistort_file
 
-    lake = open_lake(args)
-    version = resolve_version(lake, args.version, args.camera)
-    cal = Calibration.from_lake(lake, version)
+    cal = Calibration.from_lake(*_lake_and_version(args))
     doc = cal.document
     info = undistort_file(cal.camera, args.image, args.output, f_px=args.f_px,
                           interpolation=args.interpolation,
                           provenance={"camera_id": doc.get("camera_id"),
-                                      "session_id": doc.get("session_id"), "version": version})
+                                      "session_id": doc.get("session_id"), "version": doc.get("version")})
     k = info["K"]
     print(f"{args.output}: corrected image {info['width_px']} x {info['height_px']} px, pinhole "
           f"fx = fy = {k[0][0]:.6g} px, cx = {k[0][2]:.6g}, cy = {k[1][2]:.6g} (OpenCV convention), "

@@ -430,11 +430,7 @@ def _step_lm(st: _State, eps2: float, method: str, switch_ratio: float, ftol: fl
         out.status = st.lm_fail()
         return out
     x_new, r_new, J_new, g_new = new
-    F_new = 0.5 * float(r_new @ r_new)
-    out.F_trial = F_new
-    ginf_new = float(np.abs(g_new / st.d).max(initial=0.0))
-    dF = 0.5 * float((st.r - r_new) @ (st.r + r_new))   # F(x) - F(x_new) without cancellation
-    out.rho = rho = dF / dL if dL > 0 else -np.inf
+    F_new, ginf_new, dF, rho = _trial_gain(st, r_new, g_new, dL, out)
     if method == "lmqn":
         st.update_bfgs(x_new, r_new, J_new, g_new)
     if dL > 0 and dF > 0:
@@ -451,6 +447,21 @@ def _step_lm(st: _State, eps2: float, method: str, switch_ratio: float, ftol: fl
     if negligible and out.status is None:
         out.status = 5            # converged: not even the model expects a decrease worth having
     return out
+
+
+def _trial_gain(st: _State, r_new: np.ndarray, g_new: np.ndarray, dL: float, out: _StepOutcome):
+    """``(F_new, ||g_new||_inf scaled, dF, rho)`` of a trial point; ``out`` records F and rho.
+
+    ``dF = F(x) - F(x_new)`` is computed as ``1/2 (r - r_new) . (r + r_new)``, without the
+    cancellation of subtracting two nearly equal sums of squares; ``rho = dF / dL``, the
+    gain ratio against the model's predicted decrease ``dL`` (``-inf`` when ``dL <= 0``).
+    """
+    F_new = 0.5 * float(r_new @ r_new)
+    out.F_trial = F_new
+    ginf_new = float(np.abs(g_new / st.d).max(initial=0.0))
+    dF = 0.5 * float((st.r - r_new) @ (st.r + r_new))
+    out.rho = rho = dF / dL if dL > 0 else -np.inf
+    return F_new, ginf_new, dF, rho
 
 
 def _step_qn(st: _State, eps2: float) -> _StepOutcome:
@@ -475,11 +486,7 @@ def _step_qn(st: _State, eps2: float) -> _StepOutcome:
         st.Delta /= 2.0
         return out
     x_new, r_new, J_new, g_new = new
-    F_new = 0.5 * float(r_new @ r_new)
-    out.F_trial = F_new
-    ginf_new = float(np.abs(g_new / st.d).max(initial=0.0))
-    dF = 0.5 * float((st.r - r_new) @ (st.r + r_new))   # F(x) - F(x_new) without cancellation
-    out.rho = rho = dF / dL if dL > 0 else -np.inf
+    F_new, ginf_new, _, rho = _trial_gain(st, r_new, g_new, dL, out)
     if rho < 0.25:
         st.Delta /= 2.0
     elif rho > 0.75:

@@ -361,6 +361,29 @@ def _image_index(images: list[FieldImage], allow_new: bool):
     return lookup
 
 
+def _image_target_rows(path, rows, targets: TargetField, images: list[FieldImage], allow_new: bool,
+                       verb: str):
+    """Yield ``(where, row, image index, target index)`` of ``image,target_id,...`` rows.
+
+    Refuses an unknown image or target and a (image, target) pair given twice
+    ("target 'T7' observed twice in 'images/a.tif'"); ``where`` is ``path:line``.
+    """
+    tindex = targets.index()
+    lookup = _image_index(images, allow_new)
+    seen: dict[tuple[int, int], int] = {}
+    for line, r in rows:
+        where = f"{path}:{line}"
+        i = lookup(r["image"], where)
+        if r["target_id"] not in tindex:
+            raise InputError(f"target_id {r['target_id']!r} is not in targets.csv", where)
+        t = tindex[r["target_id"]]
+        if (i, t) in seen:
+            raise InputError(f"target {r['target_id']!r} {verb} twice in {images[i].file!r} "
+                             f"(first on line {seen[(i, t)]})", where)
+        seen[(i, t)] = line
+        yield where, r, i, t
+
+
 def read_observations_csv(path, targets: TargetField, images: list[FieldImage], *,
                           default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None):
     """``observations.csv``: ``image,target_id,u,v,sigma_px`` -> :class:`FieldObservations`.
@@ -371,20 +394,8 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
     CONTRACT section 1).
     """
     rows = read_csv_rows(path, ("image", "target_id", "u", "v"), ("sigma_px",))
-    tindex = targets.index()
-    lookup = _image_index(images, allow_new_images)
     img, tgt, uv, sig = [], [], [], []
-    seen: dict[tuple[int, int], int] = {}
-    for line, r in rows:
-        where = f"{path}:{line}"
-        i = lookup(r["image"], where)
-        if r["target_id"] not in tindex:
-            raise InputError(f"target_id {r['target_id']!r} is not in targets.csv", where)
-        t = tindex[r["target_id"]]
-        if (i, t) in seen:
-            raise InputError(f"target {r['target_id']!r} observed twice in {r['image']!r} "
-                             f"(first on line {seen[(i, t)]})", where)
-        seen[(i, t)] = line
+    for where, r, i, t in _image_target_rows(path, rows, targets, images, allow_new_images, "observed"):
         s = _number(r.get("sigma_px", ""), "sigma_px", where, default=default_sigma_px)
         if s <= 0:
             raise InputError(f"sigma_px must be positive, got {s}", where)
@@ -402,20 +413,8 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
 def read_marks_csv(path, targets: TargetField, images: list[FieldImage]) -> dict[int, tuple]:
     """``marks.csv``: ``image,target_id,u,v`` -> ``{image index: (target indices, uv (n,2))}``."""
     rows = read_csv_rows(path, ("image", "target_id", "u", "v"))
-    tindex = targets.index()
-    lookup = _image_index(images, False)
     out: dict[int, list] = {}
-    seen: dict[tuple[int, int], int] = {}
-    for line, r in rows:
-        where = f"{path}:{line}"
-        i = lookup(r["image"], where)
-        if r["target_id"] not in tindex:
-            raise InputError(f"target_id {r['target_id']!r} is not in targets.csv", where)
-        t = tindex[r["target_id"]]
-        if (i, t) in seen:
-            raise InputError(f"target {r['target_id']!r} is marked twice in image {images[i].file!r} "
-                             f"(first on line {seen[(i, t)]})", where)
-        seen[(i, t)] = line
+    for where, r, i, t in _image_target_rows(path, rows, targets, images, False, "marked"):
         out.setdefault(i, []).append((t, _number(r["u"], "u", where), _number(r["v"], "v", where)))
     result = {}
     for i, items in out.items():

@@ -326,7 +326,7 @@ TABLES = [
     ("marks_zero_bytes", "marks", "marks.csv", lambda t: "", "marks.csv", r"empty file"),
     ("marks_no_v", "marks", "marks.csv", lambda t: "image,target_id,u\n", "marks.csv", r"missing column\(s\) \['v'\]"),
     ("marks_duplicate", "marks", "marks.csv", _append_copy(1), "marks.csv:",
-     r":\d+: target 'T\d+' is marked twice in image 'images/i00\.tif' \(first on line 2\)"),
+     r":\d+: target 'T\d+' marked twice in 'images/i00\.tif' \(first on line 2\)"),
     ("marks_nan", "marks", "marks.csv", _edit_line(3, _field(3, "NaN")), "marks.csv:4", r"'v' is not finite: 'NaN'"),
     ("marks_text", "marks", "marks.csv", _edit_line(3, _field(2, "left")), "marks.csv:4",
      r"'u' is not a number: 'left'"),

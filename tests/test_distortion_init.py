@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from fieldcal.camera import INDEX, Camera, Sensor, correct, correction, params_from_dict
 from fieldcal.distortion_init import (
@@ -14,20 +13,10 @@ from fieldcal.distortion_init import (
 )
 from fieldcal.dlt import dlt
 from fieldcal.errors import GeometryError, InputError
+from fieldcal.synthetic import IXU150_TABLE1, look_at
 
 IXU_SENSOR = Sensor(8208, 6280, 5.3)
-IXU_TRUTH = {
-    "f_mm": 146.39,
-    "xp_mm": 0.27555,
-    "yp_mm": 0.040671,
-    "k1": -1.1177e-5,
-    "k2": 1.9235e-9,
-    "k3": -1.5038e-12,
-    "p1": -8.1256e-7,
-    "p2": -4.2276e-6,
-    "a1": 1.2759e-6,
-    "a2": 3.8587e-5,
-}
+IXU_TRUTH = IXU150_TABLE1
 IXU = Camera.from_dict(IXU_SENSOR, IXU_TRUTH)
 WIDE_SENSOR = Sensor(6000, 4000, 3.9)
 WIDE_TRUTH = {"f_mm": 24.0, "k1": 3.5e-5, "k2": -3e-8, "k3": 1e-11}
@@ -35,20 +24,10 @@ WIDE = Camera.from_dict(WIDE_SENSOR, WIDE_TRUTH)
 FIELD = ("k1", "k2", "k3", "p1", "p2", "a1", "a2")
 
 
-def look_at(C, target, roll_deg=0.0):
-    """R_world_to_camera of a camera at C looking at target (camera looks along -z, y up)."""
-    fwd = np.asarray(target, float) - C
-    fwd /= np.linalg.norm(fwd)
-    x = np.cross(fwd, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(-fwd, x), -fwd])
-    return Rotation.from_euler("z", roll_deg, degrees=True).as_matrix() @ R
-
-
 def field_view(rng, cam, C, target, n=500, relief_m=4.0, noise_px=0.1):
     """A wall with relief seen by `cam` from C: R, X (n, 3), measured pixels (n, 2) with noise."""
     C = np.asarray(C, float)
-    R = look_at(C, target, roll_deg=10.0)
+    R = look_at(C, target, np.radians(10.0))
     dist = np.linalg.norm(np.asarray(target) - C)
     half = 1.3 * dist * cam.sensor.half_diagonal_mm / cam.f_mm
     X = np.asarray(target) + np.column_stack(

@@ -20,25 +20,12 @@ from fieldcal.dlt import (
     zhang_focal,
 )
 from fieldcal.errors import GeometryError, InputError
+from fieldcal.synthetic import IXU150_TABLE1, look_at
 
 # Phase One iXU150 as calibrated in METHODS Table 1, and a wide-angle camera with about
 # 20 px of radial distortion in the corners.
 IXU_SENSOR = Sensor(8208, 6280, 5.3)
-IXU = Camera.from_dict(
-    IXU_SENSOR,
-    {
-        "f_mm": 146.39,
-        "xp_mm": 0.27555,
-        "yp_mm": 0.040671,
-        "k1": -1.1177e-5,
-        "k2": 1.9235e-9,
-        "k3": -1.5038e-12,
-        "p1": -8.1256e-7,
-        "p2": -4.2276e-6,
-        "a1": 1.2759e-6,
-        "a2": 3.8587e-5,
-    },
-)
+IXU = Camera.from_dict(IXU_SENSOR, IXU150_TABLE1)
 WIDE_SENSOR = Sensor(6000, 4000, 3.9)
 WIDE = Camera.from_dict(WIDE_SENSOR, {"f_mm": 24.0, "k1": 3.5e-5, "k2": -3e-8, "k3": 1e-11})
 
@@ -50,17 +37,6 @@ def pinhole(camera):
     return Camera(camera.sensor, p)
 
 
-def look_at(C, target, roll_deg=0.0, up=(0.0, 0.0, 1.0)):
-    """R_world_to_camera of a camera at C looking at target (camera looks along -z, y up)."""
-    fwd = np.asarray(target, float) - C
-    fwd /= np.linalg.norm(fwd)
-    x = np.cross(fwd, up)
-    x /= np.linalg.norm(x)
-    z = -fwd
-    R = np.stack([x, np.cross(z, x), z])
-    return Rotation.from_euler("z", roll_deg, degrees=True).as_matrix() @ R
-
-
 def wall_view(rng, camera, pose, n, relief_m=3.0, width_m=60.0, noise_px=0.0):
     """Points on a wall (world X right, Z up, relief along +Y) seen by `camera`.
 
@@ -69,7 +45,7 @@ def wall_view(rng, camera, pose, n, relief_m=3.0, width_m=60.0, noise_px=0.0):
     """
     C, target, roll_deg = pose
     C = np.asarray(C, float)
-    R = look_at(C, target, roll_deg)
+    R = look_at(C, target, np.radians(roll_deg))
     X = np.column_stack(
         [
             rng.uniform(-width_m / 2, width_m / 2, 40 * n),
@@ -415,7 +391,7 @@ def plane_views(rng, camera, n_views, tilt_deg, n=150, noise_px=0.1):
     for az in np.linspace(0, 2 * np.pi, n_views, endpoint=False) + rng.uniform(0, 1):
         t = np.deg2rad(tilt_deg)
         C = centre + dist * (np.cos(t) * normal + np.sin(t) * (np.cos(az) * e1 + np.sin(az) * e2))
-        R = look_at(C, centre, roll_deg=rng.uniform(-30, 30), up=normal)
+        R = look_at(C, centre, np.radians(rng.uniform(-30, 30)), up=normal)
         half = dist * camera.sensor.half_diagonal_mm / camera.f_mm * 1.5  # beyond the footprint
         ab = rng.uniform(-half, half, (40 * n, 2))
         X = centre + ab[:, :1] * e1 + ab[:, 1:] * e2

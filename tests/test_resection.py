@@ -9,22 +9,9 @@ from fieldcal.camera import Camera, Sensor
 from fieldcal.dlt import ideal_pixels, opencv_camera_matrix, pose_from_opencv
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.resection import resect
+from fieldcal.synthetic import IXU150_TABLE1, look_at
 
-IXU = Camera.from_dict(
-    Sensor(8208, 6280, 5.3),
-    {
-        "f_mm": 146.39,
-        "xp_mm": 0.27555,
-        "yp_mm": 0.040671,
-        "k1": -1.1177e-5,
-        "k2": 1.9235e-9,
-        "k3": -1.5038e-12,
-        "p1": -8.1256e-7,
-        "p2": -4.2276e-6,
-        "a1": 1.2759e-6,
-        "a2": 3.8587e-5,
-    },
-)
+IXU = Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)
 WIDE = Camera.from_dict(
     Sensor(6000, 4000, 3.9), {"f_mm": 24.0, "k1": 3.5e-5, "k2": -3e-8, "k3": 1e-11}
 )
@@ -32,21 +19,11 @@ DIST_M = {"wide": 12.0, "ixu150": 60.0}
 CAMERAS = {"wide": WIDE, "ixu150": IXU}
 
 
-def look_at(C, target, roll_deg=0.0):
-    """R_world_to_camera of a camera at C looking at target (camera looks along -z, y up)."""
-    fwd = np.asarray(target, float) - C
-    fwd /= np.linalg.norm(fwd)
-    x = np.cross(fwd, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(-fwd, x), -fwd])
-    return Rotation.from_euler("z", roll_deg, degrees=True).as_matrix() @ R
-
-
 def scene(rng, name, n, relief_m, noise_px=0.0, offset=(0.0, 0.0, 0.0)):
     """A wall (X right, Z up, relief along +Y) seen from DIST_M metres, world shifted by offset."""
     cam, dist = CAMERAS[name], DIST_M[name]
     C = np.array([4.0, -dist, 5.0])
-    R = look_at(C, (0.0, 0.5 * relief_m, 8.0), roll_deg=25.0)
+    R = look_at(C, (0.0, 0.5 * relief_m, 8.0), np.radians(25.0))
     half = 1.3 * dist * cam.sensor.half_diagonal_mm / cam.f_mm  # a little beyond the footprint
     X = np.column_stack(
         [
