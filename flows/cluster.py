@@ -6,10 +6,10 @@ scheduler at ``address``. The address comes from the flow's ``dask_address`` par
 else from the environment variable ``FIELDCAL_DASK_ADDRESS``.
 
 Local clusters run their workers as threads of the flow's process by default: starting
-and stopping worker processes (each importing Prefect, fieldcal and OpenCV) costs 8-13 s
-per run on this 2-core machine, which 72 full-size images do not amortise (bench/README.md:
-20-26 % of the wall time outside reading, extraction and solving, against 8-10 % with
-in-process workers); the image work is NumPy/OpenCV/tifffile code that releases the GIL
+and stopping worker processes (each importing Prefect, fieldcal and OpenCV) costs 3 s
+(quiet) to 8-13 s (loaded) per run on this 2-core machine, which 72 full-size images do not
+amortise (bench/README.md: 18-26 % of the wall time outside reading, extraction and
+solving, against 8-14 % with in-process workers); the image work is NumPy/OpenCV/tifffile code that releases the GIL
 for its heavy parts. ``processes=True`` (``fieldcal run --processes``) gives one
 single-threaded worker process each instead, with the BLAS / OpenMP thread counts pinned to
 1 in their environment and the preload :mod:`flows.worker`. A deployment points at a
