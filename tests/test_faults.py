@@ -139,7 +139,7 @@ KILLER = textwrap.dedent("""
         if point == "validated":             # the session is validated, nothing is measured
             after(fieldcal.pipeline, "prepare")
         elif point == "measuring":           # 20 of the 60 frames' observations are written
-            after(fieldcal.lake.Lake, "write_observations", lambda: writes.append(1) or len(writes) == 20)
+            after(fieldcal.lake.Lake, "write_observations", lambda: writes.append(1) or len(writes) >= 20)
         elif point == "observed":            # every observation is written, the solve starts
             before(fieldcal.pipeline, "solve")
         elif point == "solved":              # solved, the commit starts
@@ -213,9 +213,13 @@ def test_a_dask_worker_killed_during_extraction_does_not_stop_the_run(small_goni
         out = calibrate_session(str(folder), str(lake_dir), dask_address=address, batch_size=4)
         watcher.join(5)
         assert procs[0].poll() == -signal.SIGKILL and procs[1].poll() is None
-    assert 12 <= killed["n_obs"] < N_FRAMES
+    assert 12 <= killed["n_obs"] <= 32
     tasks = out["measure"]["tasks"]
     assert sum(t["n"] for t in tasks) == N_FRAMES
+    # the killed worker delivered only tasks it finished before it died (an undisturbed
+    # run splits the 15 tasks about evenly: 7 or 8 each)
+    n_dead = sum(t["worker"] == workers[0] for t in tasks)
+    assert 4 * n_dead <= killed["n_obs"] + 4
     assert out["images"]["bad"] == 0 and out["images"]["measured"] + out["images"]["cached"] == N_FRAMES
     # the survivor did the rest: Dask moved the dead worker's tasks to it
     assert {t["worker"] for t in tasks} <= set(workers)
