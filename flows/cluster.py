@@ -9,8 +9,8 @@ Local clusters run their workers as threads of the flow's process by default: st
 and stopping worker processes (each importing Prefect, fieldcal and OpenCV) costs 3 s
 (quiet) to 8-13 s (loaded) per run on this 2-core machine, which 72 full-size images do not
 amortise (bench/README.md: 18-26 % of the wall time outside reading, extraction and
-solving, against 8-14 % with in-process workers); the image work is NumPy/OpenCV/tifffile code that releases the GIL
-for its heavy parts. ``processes=True`` (``fieldcal run --processes``) gives one
+solving, against 8-14 % with in-process workers); the image work is NumPy, OpenCV and
+tifffile code that releases the GIL for its heavy parts. ``processes=True`` (``fieldcal run --processes``) gives one
 single-threaded worker process each instead, with the BLAS / OpenMP thread counts pinned to
 1 in their environment and the preload :mod:`flows.worker`. A deployment points at a
 standing cluster (``--dask ADDRESS``); settings for a real cluster are in ``deploy/dask/``.
