@@ -10,7 +10,7 @@ What it does, in one run:
 1. Renders (once; cached in ``--workdir``) a dense planar field seen square-on by the
    paper's camera (IXU150-like, 5.3 um, Table 1 distortion) from 60 m: a 52 x 40 grid of
    60 mm dark discs (~28 px) filling the frame, PSF sigma 0.8 px, shot and read noise
-   (``fieldcal.render.render_image``), written as an uncompressed TIFF and a zstd TIFF.
+   (``fieldcal.synthetic.render.render_image``), written as an uncompressed TIFF and a zstd TIFF.
 2. In a fresh subprocess per measurement (so the peak memory is that of the measurement
    alone): read time (uncompressed, zstd), one NumPy pass (``arr.max()``), extraction
    time with the pixels in memory (all stages), and peak resident memory of
@@ -52,9 +52,9 @@ DISTANCE_M = 60.0
 
 def dense_field():
     """A SyntheticField: one image of a planar grid of discs filling the frame."""
-    from fieldcal.camera import Camera, Sensor
-    from fieldcal.fielddata import FieldData, FieldImage, FieldObservations, TargetField
-    from fieldcal.synthetic import IXU150_TABLE1, SyntheticField, look_at
+    from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
+    from fieldcal.model.camera import Camera, Sensor
+    from fieldcal.synthetic.field import IXU150_TABLE1, SyntheticField, look_at
 
     cam = Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)
     # the frame covers about 8208 * 5.3e-3 / 146.39 * 60 = 17.8 m x 13.6 m at 60 m
@@ -81,7 +81,7 @@ def dense_field():
 def make_images(workdir: Path):
     import tifffile
 
-    from fieldcal.render import render_image
+    from fieldcal.synthetic.render import render_image
 
     workdir.mkdir(parents=True, exist_ok=True)
     raw, zst, truth_p = workdir / "dense.tif", workdir / "dense_zstd.tif", workdir / "truth.pkl"
@@ -105,8 +105,8 @@ def make_images(workdir: Path):
 def _child(task: str, path: str, repeat: int) -> dict:
     import cv2
 
-    from fieldcal.imageio import read_image
-    from fieldcal.targets import detect_targets
+    from fieldcal.measure.imageio import read_image
+    from fieldcal.measure.targets import detect_targets
 
     def status_mb(key):
         # VmHWM is this process image's peak RSS (getrusage's maxrss survives fork + exec,
@@ -158,7 +158,7 @@ def _child(task: str, path: str, repeat: int) -> dict:
     elif task == "blob":
         import cv2 as _cv2
 
-        from fieldcal.coded import to_uint8
+        from fieldcal.measure.coded import to_uint8
 
         times, times_conv = [], []
         for _ in range(max(1, repeat // 2)):
@@ -213,8 +213,8 @@ def accuracy(uv, truth, exclude_truncated=None):
 
 def eccentricity_table():
     """Size of the perspective eccentricity in the two synthetic scenarios (true poses)."""
-    from fieldcal.eccentricity import correction_px
-    from fieldcal.synthetic import paper_field, wide_field
+    from fieldcal.field.eccentricity import correction_px
+    from fieldcal.synthetic.field import paper_field, wide_field
 
     rows = []
     for sf in (paper_field(), wide_field()):
@@ -243,10 +243,10 @@ def methods_table():
     """
     from scipy.spatial import cKDTree
 
-    from fieldcal.coded import detect_aruco, marker_exclusion_polygons
-    from fieldcal.render import render_image, scaled_field
-    from fieldcal.synthetic import paper_field, wide_field
-    from fieldcal.targets import detect_targets, opencv_blob_centres
+    from fieldcal.measure.coded import detect_aruco, marker_exclusion_polygons
+    from fieldcal.measure.targets import detect_targets, opencv_blob_centres
+    from fieldcal.synthetic.field import paper_field, wide_field
+    from fieldcal.synthetic.render import render_image, scaled_field
 
     cases = [("paper x0.25, img 5", "paper", 0.25, 5, {}), ("paper x0.25, img 13", "paper", 0.25, 13, {}),
              ("paper x0.25, dim (SNR ~15)", "paper", 0.25, 5, {"exposure": 0.02}),
@@ -265,7 +265,7 @@ def methods_table():
         disc = (tr["kind"] == "disc") & tr["fully_inside"]
         ell = np.stack([tr["u_ellipse_px"], tr["v_ellipse_px"]], 1)
         if polys:
-            from fieldcal.targets import _inside_any
+            from fieldcal.measure.targets import _inside_any
 
             near = _inside_any(ell[:, 0], ell[:, 1], [p * 1.0 for p in polys])
             disc &= ~near

@@ -53,8 +53,8 @@ ROOT = HERE.parent
 def _render_chunk(args):
     """Render some images of the session into a scratch folder (one process of the pool)."""
     folder, indices, seed = args
-    from fieldcal.render import write_field_session
-    from fieldcal.synthetic import paper_field
+    from fieldcal.synthetic.field import paper_field
+    from fieldcal.synthetic.render import write_field_session
 
     write_field_session(folder, paper_field(seed=seed), images=True, coded=True, image_indices=indices,
                         seed=seed, camera_id="ixu150-bench", session_id="paper72")
@@ -65,8 +65,8 @@ def render_session(folder: Path, n_images: int, procs: int, seed: int = 0) -> fl
     """Write the full-size session (images rendered by ``procs`` processes); returns seconds."""
     import multiprocessing
 
-    from fieldcal.render import write_field_session
-    from fieldcal.synthetic import paper_field
+    from fieldcal.synthetic.field import paper_field
+    from fieldcal.synthetic.render import write_field_session
 
     t = time.perf_counter()
     sf = paper_field(seed=seed)
@@ -193,7 +193,7 @@ def main() -> int:
     print(f"session: {session} ({size / 2**30:.2f} GiB)", flush=True)
 
     os.environ["FIELDCAL_HASH_CACHE"] = str(out / "hashes.sqlite")
-    from fieldcal.cli import _prefect_env, prefect_api
+    from flows.cli import _prefect_env, prefect_api
 
     _prefect_env(verbose=False)
     t = time.perf_counter()

@@ -34,8 +34,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from fieldcal import goniometer as gon  # noqa: E402
-from fieldcal.synth_goniometer import write_session  # noqa: E402
+from fieldcal.goniometer import method as gon  # noqa: E402
+from fieldcal.synthetic.goniometer import write_session  # noqa: E402
 
 KEYS = ("f_mm", "xp_mm", "yp_mm")
 

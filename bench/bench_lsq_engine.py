@@ -33,7 +33,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from fieldcal.blocksparse import BlockSparseJacobian, ResidualBlock  # noqa: E402
+from fieldcal.solver.blocksparse import BlockSparseJacobian, ResidualBlock  # noqa: E402
 
 N_INT, N_IMG, N_TGT, N_OBS = 10, 72, 2000, 12000
 

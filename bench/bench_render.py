@@ -1,4 +1,4 @@
-"""Benchmark of the renderer (``fieldcal.render``) at full and test sizes, and the size of the
+"""Benchmark of the renderer (``fieldcal.synthetic.render``) at full and test sizes, and the size of the
 perspective eccentricity in the two synthetic scenarios.
 
 Usage::
@@ -46,8 +46,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def _field(scenario: str, scale: float):
-    from fieldcal import render
-    from fieldcal import synthetic as syn
+    from fieldcal.synthetic import field as syn
+    from fieldcal.synthetic import render
 
     sf = syn.paper_field(seed=0) if scenario == "paper" else syn.wide_field(seed=0)
     return sf if scale == 1.0 else render.scaled_field(sf, scale)
@@ -56,7 +56,7 @@ def _field(scenario: str, scale: float):
 def _child(scenario: str, scale: float, image: int, adaptive: bool) -> dict:
     import resource
 
-    from fieldcal import render
+    from fieldcal.synthetic import render
 
     sf = _field(scenario, scale)
     t0 = time.perf_counter()
@@ -78,7 +78,7 @@ def eccentricity(scenario: str, scale: float, step: int = 1) -> dict:
     """Statistics of |ellipse centre - projected centre| [px] over the observed targets."""
     import numpy as np
 
-    from fieldcal import render
+    from fieldcal.synthetic import render
 
     sf = _field(scenario, scale)
     e = []

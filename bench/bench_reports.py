@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 
 from fieldcal import pipeline
-from fieldcal.camera import INDEX, Camera, Sensor
-from fieldcal.compare import compare_calibrations
-from fieldcal.export import fit_metashape, fit_opencv
-from fieldcal.lake import Lake
-from fieldcal.render import write_field_session
-from fieldcal.report import write_report
-from fieldcal.synth_goniometer import make_scenario, write_session
-from fieldcal.synthetic import IXU150_TABLE1, WIDE_ANGLE, paper_field
-from fieldcal.uncertainty import Calibration
-from fieldcal.undistort import undistort_image
+from fieldcal.lake.store import Lake
+from fieldcal.model.camera import INDEX, Camera, Sensor
+from fieldcal.products.compare import compare_calibrations
+from fieldcal.products.export import fit_metashape, fit_opencv
+from fieldcal.products.report import write_report
+from fieldcal.products.uncertainty import Calibration
+from fieldcal.products.undistort import undistort_image
+from fieldcal.synthetic.field import IXU150_TABLE1, WIDE_ANGLE, paper_field
+from fieldcal.synthetic.goniometer import make_scenario, write_session
+from fieldcal.synthetic.render import write_field_session
 
 CAMERAS = {
     "iXU150 (paper Table 1), 8208 x 6280": Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1),

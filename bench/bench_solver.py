@@ -1,13 +1,13 @@
 """The field bundle adjustment against its peers, on the paper-sized problem.
 
-One run builds the paper-sized problem once (:func:`fieldcal.synthetic.paper_field`: 72
+One run builds the paper-sized problem once (:func:`fieldcal.synthetic.field.paper_field`: 72
 images, ~1900 targets, ~14 000 image points, 0.1 px image noise, 5 mm survey noise), makes
 one perturbed start (f +0.5 %, principal point +0.05 mm in x and y, every distortion
 coefficient 0, rotations perturbed by N(0, 0.5 mrad) per axis and centres by N(0, 5 cm)
 per axis) and solves it to convergence with each of (timed interleaved, round robin, best
 and median of N rounds):
 
-- fieldcal: :func:`fieldcal.lsq.solve` (LMQN and LM, with :class:`AdjustmentOptions`'s
+- fieldcal: :func:`fieldcal.solver.lsq.solve` (LMQN and LM, with :class:`AdjustmentOptions`'s
   default ``tau`` and ``eps2``) on :class:`FieldProblem`, targets fixed and targets
   adjusted (weighted by their survey sigma); the time includes building the
   :class:`BundleModel` and the problem from the arrays;
@@ -26,7 +26,7 @@ and median of N rounds):
   take steps of ``sqrt(eps) max(1, |x|)``, i.e. 1.5e-8 mm^-6 for k3 = 0 (several mm of
   image motion), and stop early; one such run is recorded too.
 
-and, separately, :func:`fieldcal.adjustment.adjust_field`: the whole procedure from the
+and, separately, :func:`fieldcal.field.adjustment.adjust_field`: the whole procedure from the
 observations alone (initial values, blunder rounds, parameter selection), which is not
 what the peers do.
 
@@ -83,12 +83,15 @@ import scipy  # noqa: E402
 import scipy.optimize  # noqa: E402
 import scipy.sparse  # noqa: E402
 
-from fieldcal import blocksparse, lsq  # noqa: E402
-from fieldcal.adjustment import AdjustmentOptions, FieldProblem, adjust_field  # noqa: E402
-from fieldcal.bundle import BundleModel  # noqa: E402
-from fieldcal.camera import FIELD_PARAMS, INDEX, Camera  # noqa: E402
-from fieldcal.rotations import R_from_rotvec  # noqa: E402
-from fieldcal.synthetic import SyntheticField, paper_field  # noqa: E402
+from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field  # noqa: E402
+from fieldcal.field.bundle import BundleModel  # noqa: E402
+from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera  # noqa: E402
+from fieldcal.model.rotations import R_from_rotvec  # noqa: E402
+from fieldcal.solver import (
+    blocksparse,  # noqa: E402
+    lsq,
+)
+from fieldcal.synthetic.field import SyntheticField, paper_field  # noqa: E402
 
 # OpenCV's camera frame is x right, y down, z forward; fieldcal's x right, y up, z backwards
 # (CONTRACT section 1): R_cv = FLIP @ R_world_to_camera.
@@ -545,7 +548,7 @@ def profile_fieldcal(sf, start, adjusted=False, method="lmqn", runs=7):
     distorting than cProfile, which also hooks every NumPy call); the best run is printed.
     Indented parts are inside the part above them.
     """
-    from fieldcal import adjustment, bundle
+    from fieldcal.field import adjustment, bundle
 
     o = AdjustmentOptions()
     parts = [  # (label, owner, attribute)

@@ -20,13 +20,13 @@ from dataclasses import dataclass, field
 
 import pyarrow as pa
 
-from . import goniometer
-from .adjustment import AdjustmentOptions, FieldResult, adjust_field
-from .camera import PARAM_NAMES
-from .document import calibration_document
-from .errors import GeometryError, InputError
-from .fingerprint import fingerprint, sha256_file
-from .session import Session, field_data_from_observations, load_session, read_targets_csv
+from fieldcal.errors import GeometryError, InputError
+from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field
+from fieldcal.goniometer import method as goniometer
+from fieldcal.model.camera import PARAM_NAMES
+from fieldcal.session.document import calibration_document
+from fieldcal.session.fingerprint import fingerprint, sha256_file
+from fieldcal.session.loader import Session, field_data_from_observations, load_session, read_targets_csv
 
 __all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "image_hash",
            "input_fingerprint"]
@@ -62,7 +62,7 @@ class Prepared:
 
 @dataclass
 class Outcome:
-    """Everything one calibration produced, ready for :meth:`fieldcal.lake.Lake.commit`."""
+    """Everything one calibration produced, ready for :meth:`fieldcal.lake.store.Lake.commit`."""
 
     document: dict
     arrays: dict
@@ -98,7 +98,7 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
                                  "observations.csv", str(sess.folder / "session.json"))
             to_measure = [im.file for im in sess.images]
             if sess.marks_path is not None:
-                from .session import read_marks_csv
+                from fieldcal.session.loader import read_marks_csv
                 read_marks_csv(sess.marks_path, targets, list(sess.images))
                 tables["marks.csv"] = sess.marks_path.read_bytes()
             elif sess.coded is None:
@@ -118,7 +118,7 @@ def measure(prepared: Prepared, name: str) -> pa.Table:
     if prepared.method == "goniometer":
         row = goniometer.measure_frame(path, sess.sensor, name=name)
         return goniometer.measurements_table([row])
-    from .targets import measure_image
+    from fieldcal.measure.targets import measure_image
 
     return measure_image(path, polarity=sess.target_polarity, sensor=sess.sensor, coded=sess.coded,
                          name=name)
@@ -150,7 +150,7 @@ def _field_result(prepared, measurements, progress, left_out):
     if sess.observations_path is not None:
         data = field_data_from_observations(sess)
         return data, adjust_field(data, options, progress=progress)
-    from .field_images import calibrate_from_measurements
+    from fieldcal.field.from_images import calibrate_from_measurements
 
     data, result, report = calibrate_from_measurements(sess, dict(measurements), options, progress=progress)
     known = {r.get("image") for r in left_out}

@@ -23,7 +23,7 @@ runs where and what can be skipped:
 4. **solve** (one task): reads the observations back from the lake and runs
    :func:`fieldcal.pipeline.solve`, which dispatches on the session's method (field or
    goniometer; a field session with ``observations.csv`` has no images to measure).
-5. **commit** (one task): :meth:`fieldcal.lake.Lake.commit`: everything of the version
+5. **commit** (one task): :meth:`fieldcal.lake.store.Lake.commit`: everything of the version
    first, its catalog row last. A run killed before this point leaves no visible version;
    the rerun finds the observations cached and completes the work.
 
@@ -64,8 +64,8 @@ from prefect.futures import as_completed
 
 from fieldcal import pipeline, progress
 from fieldcal.errors import ImageError, InputError, LakeError
-from fieldcal.fingerprint import canonical_json, sha256_bytes, sha256_file
-from fieldcal.lake import Lake
+from fieldcal.lake.store import Lake
+from fieldcal.session.fingerprint import canonical_json, sha256_bytes, sha256_file
 
 from . import cluster
 from .hashcache import HashCache, file_stamp
@@ -189,9 +189,9 @@ def _peak_rss_mb() -> float:
 def _warm(method: str, nthreads: int | None) -> None:
     """Import the measuring code before the work is timed; one OpenCV thread per Dask thread."""
     if method == "goniometer":
-        import fieldcal.goniometer  # noqa: F401
+        import fieldcal.goniometer.method  # noqa: F401
     else:
-        import fieldcal.targets  # noqa: F401
+        import fieldcal.measure.targets  # noqa: F401
     if nthreads:
         import cv2
 

@@ -7,7 +7,7 @@ Writes into ``OUT/`` (default ``demo-out/``):
 - ``sessions/field-paper``: an observation-only field session (the field paper's geometry:
   72 images, ~2000 targets, 0.1 px image noise, 5 mm survey noise);
 - ``sessions/field-images``: a field session of rendered images (coded targets), when the
-  identification step (``fieldcal.field_images``) is available;
+  identification step (``fieldcal.field.from_images``) is available;
 - ``lake/``: the lake the flows commit into.
 
 Sessions already written by an earlier demo are reused, so a second ``make demo`` shows
@@ -34,12 +34,12 @@ IMAGE_SESSION = ("field-images", dict(method="field", scenario="paper", seed=3, 
 
 
 def _identification_available() -> bool:
-    return importlib.util.find_spec("fieldcal.field_images") is not None
+    return importlib.util.find_spec("fieldcal.field.from_images") is not None
 
 
 def _truth_table(doc: dict, truth: dict) -> list[str]:
     """Calibrated vs true parameters (and the method's noise-free values for the goniometer)."""
-    from fieldcal.camera import PARAM_NAMES
+    from fieldcal.model.camera import PARAM_NAMES
 
     ref = truth.get("noise_free")
     head = f"  {'parameter':9s} {'calibrated':>14s} {'sigma':>10s} {'truth':>14s} {'(cal-truth)/sigma':>18s}"
@@ -64,11 +64,12 @@ def run_demo(out="demo-out", *, n_workers: int = 2, dask_address: str | None = N
     """Run the demo (module docstring); prints to ``stream``, returns the exit status.
 
     ``api`` is a context manager factory that provides a Prefect API
-    (:func:`fieldcal.cli.prefect_api`); ``with_images`` is ``"auto"``, ``"yes"`` or ``"no"``.
+    (:func:`flows.cli.prefect_api`); ``with_images`` is ``"auto"``, ``"yes"`` or ``"no"``.
     """
-    from fieldcal import history, progress
-    from fieldcal.cli import _progress_sink, _tty, describe, write_synthetic
-    from fieldcal.lake import Lake
+    from fieldcal import progress
+    from fieldcal.lake import history
+    from fieldcal.lake.store import Lake
+    from flows.cli import _progress_sink, _tty, describe, write_synthetic
 
     stream = stream or sys.stdout
     note_stream = note_stream or sys.stderr
@@ -83,7 +84,7 @@ def run_demo(out="demo-out", *, n_workers: int = 2, dask_address: str | None = N
     if with_images == "yes" or (with_images == "auto" and _identification_available()):
         sessions.append(IMAGE_SESSION)
     elif with_images == "auto":
-        say("(no field session of rendered images: fieldcal.field_images, the identification step, "
+        say("(no field session of rendered images: fieldcal.field.from_images, the identification step, "
             "is not available yet)")
 
     say(f"== 1. synthetic sessions in {out / 'sessions'}")

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
-from fieldcal.lake import Lake
+from fieldcal.lake.store import Lake
 
 from . import cluster
 from .calibrate import calibrate_session

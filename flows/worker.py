@@ -14,9 +14,9 @@ import cv2
 import prefect.task_engine  # noqa: F401  (the engine that runs each task in the worker)
 import prefect_dask.client  # noqa: F401
 
-import fieldcal.goniometer  # noqa: F401
+import fieldcal.goniometer.method  # noqa: F401
+import fieldcal.measure.targets  # noqa: F401
 import fieldcal.pipeline  # noqa: F401
-import fieldcal.targets  # noqa: F401
 import flows.calibrate  # noqa: F401
 
 

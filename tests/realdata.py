@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldcal.camera import Sensor
-from fieldcal.fielddata import FieldData, FieldImage, FieldObservations, TargetField
+from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
+from fieldcal.model.camera import Sensor
 
 
 def _data_dir() -> Path:

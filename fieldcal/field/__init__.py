@@ -1,0 +1,8 @@
+"""The field method (Wang et al. 2018, ``../shared/METHODS.md`` A).
+
+Initial values (:mod:`.dlt`, :mod:`.resection`, :mod:`.distortion_init`), the bundle
+model (:mod:`.bundle`), identification of measured targets (:mod:`.identify`,
+:mod:`.eccentricity`), the self-calibrating adjustment with blunder rejection and
+parameter selection (:mod:`.adjustment`) and the whole chain from images
+(:mod:`.from_images`). :mod:`.data` holds the field's data structures.
+"""

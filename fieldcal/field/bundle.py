@@ -1,0 +1,252 @@
+"""The self-calibrating bundle model of the field method: residuals and analytic Jacobian.
+
+Unknowns (the layout of the parameter vector ``x``)::
+
+    x = [ interior (the estimated subset of PARAM_NAMES)      n_int
+          exterior: per image  w (3, rotation increment) C (3, m)   6 n_images
+          targets: per adjusted target  X (3, m)               3 n_adjusted ]
+
+Adjusted targets are those that some active image point sees (``target_index``); the
+others keep their coordinates.
+
+The rotation of image i is ``R_i = exp([w_i]x) R0_i`` with a reference ``R0_i`` held by the
+model (the increments stay small; :meth:`BundleModel.rebase` folds them in). Targets come
+last so that the least-squares engine can eliminate them (3x3 blocks, Schur complement).
+
+Residuals (weighted, dimensionless):
+
+- image point k of image i and target t, in **image space** (CONTRACT section 4):
+  ``r_k = (uv_measured - uv(x)) / sigma_px`` where ``uv(x)`` is the pixel at which the
+  adjusted target lands through the adjusted camera: ``Xc = R_i (X_t - C_i)``,
+  ``q = -f (Xc, Yc)/Zc``, ``x' = distort(q)``, ``uv = pixel(x')``. The printed objective of
+  the field paper (eq. 10-11, corrected-plane residuals) is not scale invariant (METHODS
+  part A); this one is.
+- surveyed coordinate of target t (when targets are adjusted): ``(X_t - X_surveyed)/sigma``.
+
+Jacobian of ``x' = distort(q)``: with ``g(x'; p) = correct(x')``, the predicted point solves
+``g(x'; p) = q``, so ``dx' = G^-1 (dq - dg/dp dp)`` with ``G = dg/dx'``
+(:func:`fieldcal.model.camera.correct_jacobian`). Then ``dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]``,
+``dXc/dw = -[Xc]x J_l(w)``, ``dXc/dC = -R``, ``dXc/dX = R``, ``dq/df = q/f``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fieldcal.field.data import FieldData
+from fieldcal.model.camera import INDEX, Camera, _correct_terms, _param_columns, distort
+from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
+
+__all__ = ["BundleModel", "ObservationJacobian"]
+
+
+@dataclass
+class ObservationJacobian:
+    """Per-observation derivative blocks of the weighted image residuals (rows u, v).
+
+    ``d_int`` (m, 2, n_int), ``d_ext`` (m, 2, 6), ``d_tgt`` (m, 2, 3); columns of image
+    ``image[k]`` and target ``target[k]``.
+    """
+
+    d_int: np.ndarray
+    d_ext: np.ndarray
+    d_tgt: np.ndarray
+
+
+class BundleModel:
+    """Residuals and Jacobian of the field adjustment for one set of active observations.
+
+    Parameters
+    ----------
+    data : FieldData
+        Targets, images, observations.
+    params0 : (13,) ndarray
+        Camera parameters; the ones not in ``estimate`` stay at these values.
+    estimate : sequence of str
+        Names (PARAM_NAMES) of the interior parameters to estimate.
+    R0 : (n_images, 3, 3) ndarray
+        Reference rotations (world to camera).
+    targets_adjusted : bool
+        Whether target coordinates are unknowns (weighted by their survey sigma) or fixed.
+    obs_active : (m,) bool, optional
+        Image observations in use (others are ignored, e.g. rejected blunders).
+    survey_active : (n_targets,) bool, optional
+        Survey observations in use (a rejected survey leaves the target to the images).
+    """
+
+    def __init__(self, data: FieldData, params0, estimate, R0, *, targets_adjusted=True,
+                 obs_active=None, survey_active=None):
+        self.data = data
+        self.params0 = np.asarray(params0, dtype=float).copy()
+        self.estimate = tuple(estimate)
+        self.int_index = np.array([INDEX[n] for n in self.estimate], dtype=np.int64)
+        self.R0 = np.array(R0, dtype=float)
+        self.targets_adjusted = bool(targets_adjusted)
+        m = len(data.obs)
+        self.obs_active = np.ones(m, bool) if obs_active is None else np.asarray(obs_active, bool)
+        n_t = len(data.targets)
+        self.survey_active = (np.ones(n_t, bool) if survey_active is None
+                              else np.asarray(survey_active, bool))
+        self.n_images = len(data.images)
+        self.n_targets = n_t
+        self.n_int = len(self.estimate)
+        self.n_reduced = self.n_int + 6 * self.n_images
+        k = np.flatnonzero(self.obs_active)
+        k = k[np.argsort(data.obs.image[k], kind="stable")]   # grouped by image (contiguous slices)
+        self.k = k
+        self.img = data.obs.image[k]
+        self.tgt = data.obs.target[k]
+        self.uv = data.obs.uv_px[k]
+        self.sigma_px = data.obs.sigma_px[k]
+        # adjusted targets: those some active image point sees (a target seen by none adds
+        # nothing to the camera); slot t_slot[t] in the parameter vector, -1 when not adjusted
+        self.target_index = np.unique(self.tgt) if self.targets_adjusted else np.zeros(0, np.int64)
+        self.t_slot = np.full(n_t, -1, np.int64)
+        self.t_slot[self.target_index] = np.arange(len(self.target_index))
+        self.tgt_slot = self.t_slot[self.tgt]
+        self.n_params = self.n_reduced + 3 * len(self.target_index)
+        self.X_base = data.targets.xyz_m.copy()       # coordinates of the targets not adjusted
+        self.survey_k = (self.target_index[self.survey_active[self.target_index]] if self.targets_adjusted
+                         else np.zeros(0, np.int64))
+        self.sigma_m = data.targets.sigma_mm / 1000.0
+        self.n_rows_image = 2 * len(k)
+        self._start_mm = data.sensor.pixel_to_mm(self.uv)  # Newton starts at the measured points
+        bounds = np.searchsorted(self.img, np.arange(self.n_images + 1))
+        self._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(self.n_images)
+                              if bounds[i + 1] > bounds[i]]
+        self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
+
+    # ------------------------------------------------------------------ packing
+    def pack(self, params, center_m, targets_m=None):
+        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3).
+
+        ``targets_m`` holds all targets; the ones not adjusted keep these coordinates.
+        """
+        parts = [np.asarray(params, float)[self.int_index], np.zeros((self.n_images, 6))]
+        parts[1][:, 3:] = center_m
+        x = [parts[0], parts[1].ravel()]
+        if self.targets_adjusted:
+            self.X_base = np.array(targets_m, float).reshape(-1, 3)
+            x.append(self.X_base[self.target_index].ravel())
+        return np.concatenate(x)
+
+    def unpack(self, x):
+        """``(params (13,), R_world_to_camera (n_images,3,3), center_m (n_images,3), targets_m (n,3))``."""
+        x = np.asarray(x, float)
+        params = self.params0.copy()
+        params[self.int_index] = x[: self.n_int]
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        R = R_from_rotvec(ext[:, :3]) @ self.R0
+        C = ext[:, 3:].copy()
+        X = self.X_base.copy()
+        if self.targets_adjusted:
+            X[self.target_index] = x[self.n_reduced:].reshape(-1, 3)
+        return params, R, C, X
+
+    def rebase(self, x):
+        """Fold the rotation increments of ``x`` into ``R0`` and return the equivalent ``x``."""
+        x = np.array(x, float)
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        self.R0 = R_from_rotvec(ext[:, :3]) @ self.R0
+        ext[:, :3] = 0.0
+        x[self.n_int:self.n_reduced] = ext.ravel()
+        return x
+
+    def camera(self, x) -> Camera:
+        return Camera(self.data.sensor, self.unpack(x)[0])
+
+    # ------------------------------------------------------------------ model
+    def predict(self, x):
+        """Predicted pixels (m_active, 2) of the active image observations (NaN if behind)."""
+        return self._predict(x, jacobian=False)[0]
+
+    def _predict(self, x, jacobian):
+        params, _, C, X = self.unpack(x)
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        R = R_from_rotvec(ext[:, :3]) @ self.R0
+        Ri = R[self.img]
+        d = X[self.tgt] - C[self.img]
+        Xc = np.einsum("kab,kb->ka", Ri, d)
+        z = Xc[:, 2]
+        f = params[INDEX["f_mm"]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zs = np.where(z < 0, z, np.nan)
+            q = -f * Xc[:, :2] / zs[:, None]
+        s = self.data.sensor
+        xy = distort(q, params, check=False, start_mm=self._start_mm)
+        uv = s.mm_to_pixel(xy)
+        if not jacobian:
+            return uv, None
+        xb, yb = xy[:, 0] - params[INDEX["xp_mm"]], xy[:, 1] - params[INDEX["yp_mm"]]
+        _, _, g00, g01, g10, g11, r2, xy_ = _correct_terms(xb, yb, params)
+        # A = dr/dq at fixed p: r = (uv_meas - uv)/sigma, d(uv)/d(x') = diag(1/d, -1/d), dx'/dq = G^-1
+        w = -1.0 / (self.sigma_px * s.pixel_mm * (g00 * g11 - g01 * g10))
+        a00, a01, a10, a11 = w * g11, -w * g01, w * g10, -w * g00
+        # interior: dx'/dp = G^-1 (dq/dp - Q), with dq/df = q/f
+        cols_t = np.empty((self.n_int, 2, len(z)))      # filled column by column (contiguous rows)
+        cols = _param_columns(xb, yb, params, (g00, g01, g10, g11), r2, xy_, self.int_index)
+        for j, (c0, c1) in enumerate(cols):
+            e0, e1 = -c0, -c1
+            if self.estimate[j] == "f_mm":
+                e0, e1 = q[:, 0] / f, q[:, 1] / f
+            cols_t[j, 0] = a00 * e0 + a01 * e1
+            cols_t[j, 1] = a10 * e0 + a11 * e1
+        d_int = cols_t.transpose(2, 1, 0)
+        # exterior and target through Xc: dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]
+        fz = -f / zs
+        B = np.empty((len(z), 2, 3))
+        B[:, 0, 0], B[:, 0, 1] = a00 * fz, a01 * fz
+        B[:, 1, 0], B[:, 1, 1] = a10 * fz, a11 * fz
+        B[:, 0, 2] = -(a00 * q[:, 0] + a01 * q[:, 1]) / zs
+        B[:, 1, 2] = -(a10 * q[:, 0] + a11 * q[:, 1]) / zs
+        # dXc/dw = -[Xc]x J_l(w): a row b of B gives b (-[Xc]x) = cross(Xc, b)
+        X0, X1, X2 = Xc[:, 0, None], Xc[:, 1, None], Xc[:, 2, None]
+        bw = np.empty_like(B)
+        bw[:, :, 0] = X1 * B[:, :, 2] - X2 * B[:, :, 1]
+        bw[:, :, 1] = X2 * B[:, :, 0] - X0 * B[:, :, 2]
+        bw[:, :, 2] = X0 * B[:, :, 1] - X1 * B[:, :, 0]
+        Jl = left_jacobian_so3(ext[:, :3])
+        d_ext = np.empty((len(z), 2, 6))
+        d_tgt = np.empty((len(z), 2, 3))
+        # per image: (2 k_i, 3) @ (3, 3) products (BLAS) on the observations sorted by image
+        for i, sl in self._image_slices:
+            n2 = 2 * (sl.stop - sl.start)
+            d_ext[sl, :, :3] = (bw[sl].reshape(n2, 3) @ Jl[i]).reshape(-1, 2, 3)
+            d_tgt[sl] = (B[sl].reshape(n2, 3) @ R[i]).reshape(-1, 2, 3)
+        d_ext[:, :, 3:] = -d_tgt
+        return uv, ObservationJacobian(d_int, d_ext, d_tgt)
+
+    def residuals_and_blocks(self, x, jacobian=True):
+        """Weighted residuals (n_rows,) and the derivative blocks.
+
+        Returns
+        -------
+        r : (n_rows,) ndarray
+            Image rows first (u, v interleaved per observation), then survey rows
+            (X, Y, Z per active survey).
+        obs_jac : ObservationJacobian or None
+        survey_diag : (n_survey,) ndarray
+            ``1/sigma`` [1/m] of each active survey (its Jacobian is ``I / sigma``).
+        """
+        uv, jac = self._predict(x, jacobian)
+        r_img = ((self.uv - uv) / self.sigma_px[:, None]).ravel()
+        if self.targets_adjusted and len(self.survey_k):
+            X = x[self.n_reduced:].reshape(-1, 3)
+            t = self.survey_k
+            r_sur = ((X[self.t_slot[t]] - self.data.targets.xyz_m[t]) / self.sigma_m[t, None]).ravel()
+            r = np.concatenate([r_img, r_sur])
+        else:
+            r = r_img
+        return r, jac, 1.0 / self.sigma_m[self.survey_k]
+
+    def column_names(self) -> list[str]:
+        """Names of the columns of ``x`` (for covariance/correlation tables)."""
+        names = list(self.estimate)
+        for im in self.data.images:
+            names += [f"{im.file}:{c}" for c in ("w_x", "w_y", "w_z", "X_m", "Y_m", "Z_m")]
+        for t in self.data.targets.ids[self.target_index]:
+            names += [f"{t}:X_m", f"{t}:Y_m", f"{t}:Z_m"]
+        return names
+

@@ -1,0 +1,682 @@
+"""Initial exterior and interior orientation of one image: DLT, planar pose, Zhang's focal length.
+
+Method (METHODS part A, step 1, eq. 1-6)
+---------------------------------------
+The direct linear transformation models an image as a projective camera
+
+    lambda [u, v, 1]^T = P [X, Y, Z, 1]^T,        P = K [R_cv | -R_cv C]        (eq. 1)
+
+with pixel coordinates ``(u, v)`` (CONTRACT section 1), world points ``X`` [m] and the
+3x4 matrix ``P`` [px] known up to scale (11 parameters). Each point gives two linear
+equations in the 12 entries ``m`` of ``P`` (eq. 2):
+
+    [X^T  0^T  -u X^T] m = 0,      [0^T  X^T  -v X^T] m = 0        (X homogeneous)
+
+and with n >= 6 points in general (non-coplanar) position the least-squares ``m`` is the
+right singular vector of the stacked 2n x 12 matrix ``G`` with the smallest singular value.
+Both point sets are first normalised (Hartley): translated to their centroid and scaled
+isotropically to a mean distance of sqrt(2) (image) and sqrt(3) (world), which makes
+``G`` well conditioned at the magnitudes of a field calibration (thousands of pixels,
+tens of metres); ``P`` is de-normalised afterwards.
+
+Decomposition. ``P`` is scaled so that ``det P[:, :3] > 0`` and ``|P[2, :3]| = 1``
+(the paper's lambda); then the depth of a point in front of the camera is the positive
+third homogeneous coordinate. The RQ decomposition ``P[:, :3] = K R_cv`` with the
+diagonal of ``K`` made positive gives a proper rotation ``R_cv``. The camera centre is
+the null vector of ``P``. ``K`` and ``R_cv`` are in OpenCV's camera frame (x right,
+y down, z forward); fieldcal's frame (x right, y up, z backwards, CONTRACT section 1) is
+
+    R_world_to_camera = diag(1, -1, -1) R_cv,    f = (alpha + beta)/2 d,
+    xp = (cx - (W-1)/2) d,    yp = -(cy - (H-1)/2) d
+
+with ``K = [[alpha, s, cx], [0, beta, cy], [0, 0, 1]]`` [px] and ``d`` the pixel pitch [mm].
+(The paper's ``xp = (u0 - W/2) d`` is its own convention; fieldcal follows the contract.)
+The DLT has no distortion model: on distorted images its ``K`` absorbs the linear part of
+the distortion, and :mod:`fieldcal.field.distortion_init` fits the rest (METHODS step 2).
+
+Flat fields have no DLT (the 2n x 12 system has a 4-dimensional null space); for them
+:func:`planar_pose` finds the pose with known intrinsics (OpenCV's IPPE), and
+:func:`zhang_focal` estimates the principal distance from several views of the plane
+(Zhang's method, with the principal point at the sensor centre and square pixels).
+
+The OpenCV interop helpers (:func:`opencv_camera_matrix`, :func:`ideal_pixels`,
+:func:`pose_to_opencv`, :func:`pose_from_opencv`) convert between the two frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.linalg
+import scipy.spatial
+
+from fieldcal.errors import GeometryError, InputError
+from fieldcal.model.camera import Camera, Sensor
+
+__all__ = [
+    "DltResult",
+    "dlt",
+    "dlt_robust",
+    "planar_pose",
+    "zhang_focal",
+    "is_coplanar",
+    "is_collinear",
+    "plane_frame",
+    "opencv_camera_matrix",
+    "ideal_pixels",
+    "pose_to_opencv",
+    "pose_from_opencv",
+    "COPLANAR_TOL_REL",
+]
+
+FLIP_YZ = np.diag([1.0, -1.0, -1.0])
+"""fieldcal camera frame <-> OpenCV camera frame: ``R_cv = FLIP_YZ @ R_world_to_camera``."""
+
+COPLANAR_TOL_REL = 1e-3
+"""Relative thickness below which a point set counts as coplanar (:func:`is_coplanar`)."""
+
+
+def _at(where: str, message: str) -> str:
+    return f"{where}: {message}" if where else message
+
+
+# ---------------------------------------------------------------------------------------
+# point-set geometry
+# ---------------------------------------------------------------------------------------
+def _singular_values_centred(X):
+    X = np.asarray(X, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise InputError(f"points must have shape (n, 3), got {X.shape}")
+    if len(X) < 2:
+        return np.zeros(3)
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    return np.concatenate([s, np.zeros(3 - len(s))])
+
+
+def is_coplanar(X, tol_rel: float = COPLANAR_TOL_REL) -> bool:
+    """Whether 3-D points lie (nearly) in one plane.
+
+    Parameters
+    ----------
+    X : (n, 3) array_like
+        Points [any length unit].
+    tol_rel : float
+        The points are coplanar when the smallest singular value of the centred points is at
+        most ``tol_rel`` times the largest (the RMS distance from the best-fit plane relative
+        to the RMS extent along the main axis). The default 1e-3 is 2 cm of relief on a
+        20 m wide field; a DLT on such points is useless anyway.
+
+    Returns
+    -------
+    bool
+        True also for fewer than 4 points and for collinear points.
+    """
+    s = _singular_values_centred(X)
+    return bool(len(np.asarray(X)) < 4 or s[2] <= tol_rel * s[0])
+
+
+def is_collinear(X, tol_rel: float = COPLANAR_TOL_REL) -> bool:
+    """Whether 3-D points (n, 3) lie (nearly) on a line: 2nd singular value <= ``tol_rel`` x 1st."""
+    s = _singular_values_centred(X)
+    return bool(len(np.asarray(X)) < 3 or s[1] <= tol_rel * s[0])
+
+
+def plane_frame(X):
+    """The best-fit plane of points (n, 3) as an origin and a right-handed orthonormal basis.
+
+    Returns
+    -------
+    origin : (3,) ndarray
+        The centroid of the points.
+    B : (3, 3) ndarray
+        Columns ``e1, e2, n``: two in-plane axes (the main directions of the points) and the
+        normal, ``det B = +1``. Plane coordinates are ``(X - origin) @ B`` (third ~ 0).
+    """
+    X = np.asarray(X, dtype=float)
+    origin = X.mean(axis=0)
+    _, _, Vt = np.linalg.svd(X - origin, full_matrices=True)
+    B = Vt.T.copy()
+    if np.linalg.det(B) < 0:
+        B[:, 2] = -B[:, 2]
+    return origin, B
+
+
+def _check_points(X_world_m, uv_px, where: str, what: str):
+    X = np.asarray(X_world_m, dtype=float)
+    uv = np.asarray(uv_px, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise InputError(
+            f"{what}: world points must have shape (n, 3), got {X.shape}", where or None
+        )
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise InputError(
+            f"{what}: image points must have shape (n, 2), got {uv.shape}", where or None
+        )
+    if len(X) != len(uv):
+        raise InputError(f"{what}: {len(X)} world points but {len(uv)} image points", where or None)
+    bad = ~(np.isfinite(X).all(axis=1) & np.isfinite(uv).all(axis=1))
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise InputError(
+            f"{what}: {bad.sum()} point(s) with NaN or infinite coordinates "
+            f"(rows {rows[:5].tolist()}{'...' if len(rows) > 5 else ''})",
+            where or None,
+        )
+    return X, uv
+
+
+# ---------------------------------------------------------------------------------------
+# OpenCV interop
+# ---------------------------------------------------------------------------------------
+def opencv_camera_matrix(camera: Camera) -> np.ndarray:
+    """OpenCV's 3x3 intrinsic matrix [px] of the *ideal* (distortion-free) image of ``camera``.
+
+    ``fx = fy = f/d``, ``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (CONTRACT section 1).
+    Use it with :func:`ideal_pixels` and no distortion coefficients.
+    """
+    s = camera.sensor
+    d = s.pixel_mm
+    xp, yp = camera.params[1], camera.params[2]
+    fx = camera.f_mm / d
+    return np.array(
+        [
+            [fx, 0.0, (s.width_px - 1) / 2.0 + xp / d],
+            [0.0, fx, (s.height_px - 1) / 2.0 - yp / d],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def ideal_pixels(uv_px, camera: Camera) -> np.ndarray:
+    """Measured pixels (..., 2) -> distortion-free pixels (..., 2) of :func:`opencv_camera_matrix`.
+
+    The measured points are corrected with :func:`fieldcal.model.camera.correct` to ideal points
+    ``q`` [mm] (relative to the principal point) and mapped with ``u = cx + qx/d``,
+    ``v = cy - qy/d``. Without distortion this is the identity.
+    """
+    s = camera.sensor
+    q = camera.correct(s.pixel_to_mm(uv_px))
+    K = opencv_camera_matrix(camera)
+    d = s.pixel_mm
+    return np.stack([K[0, 2] + q[..., 0] / d, K[1, 2] - q[..., 1] / d], axis=-1)
+
+
+def pose_to_opencv(R_world_to_camera, center_m):
+    """fieldcal pose -> OpenCV ``(rvec (3,), tvec (3,))`` with ``x_cv = R_cv X + tvec``."""
+    R_cv = FLIP_YZ @ np.asarray(R_world_to_camera, dtype=float)
+    rvec, _ = cv2.Rodrigues(R_cv)
+    return rvec.ravel(), -R_cv @ np.asarray(center_m, dtype=float)
+
+
+def pose_from_opencv(rvec, tvec):
+    """OpenCV ``(rvec, tvec)`` -> fieldcal ``(R_world_to_camera (3, 3), center_m (3,))``."""
+    R_cv, _ = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))
+    C = -R_cv.T @ np.asarray(tvec, dtype=float).ravel()
+    return FLIP_YZ @ R_cv, C
+
+
+# ---------------------------------------------------------------------------------------
+# DLT
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DltResult:
+    """One image's DLT: the projective camera and its decomposition (fieldcal's conventions).
+
+    Attributes
+    ----------
+    f_mm, xp_mm, yp_mm : float
+        Principal distance ``(alpha + beta)/2 d`` and principal point [mm] (CONTRACT section 1).
+    aspect : float
+        ``beta / alpha`` (1 for square pixels and no affine distortion).
+    skew : float
+        ``K[0, 1] / alpha``, dimensionless (0 for perpendicular axes).
+    R_world_to_camera : (3, 3) ndarray
+        Proper rotation, world -> fieldcal camera frame (x right, y up, z backwards).
+    center_m : (3,) ndarray
+        Camera centre [m], the null vector of ``P``.
+    P : (3, 4) ndarray
+        The projection matrix [px], pixel convention of CONTRACT section 1, scaled so that
+        ``det P[:, :3] > 0`` and ``|P[2, :3]| = 1``.
+    K_px : (3, 3) ndarray
+        OpenCV-style intrinsic matrix [px] (x right, y down, z forward frame).
+    residuals_px : (n, 2) ndarray
+        Measured minus DLT-projected pixel, for every input point.
+    inliers : (n,) bool ndarray
+        Points the estimate used (all of them for :func:`dlt`).
+    rms_px : float
+        ``sqrt(mean(du^2 + dv^2))`` over the inliers.
+    """
+
+    f_mm: float
+    xp_mm: float
+    yp_mm: float
+    aspect: float
+    skew: float
+    R_world_to_camera: np.ndarray
+    center_m: np.ndarray
+    P: np.ndarray
+    K_px: np.ndarray
+    residuals_px: np.ndarray
+    inliers: np.ndarray
+    rms_px: float
+
+
+def _normaliser(points):
+    """Hartley's similarity (k+1, k+1) taking (n, k) points to centroid 0, mean distance sqrt(k)."""
+    k = points.shape[1]
+    c = points.mean(axis=0)
+    mean_dist = np.linalg.norm(points - c, axis=1).mean()
+    s = np.sqrt(k) / mean_dist if mean_dist > 0 else 1.0
+    T = np.eye(k + 1)
+    T[:k, :k] *= s
+    T[:k, k] = -s * c
+    return T
+
+
+def _design(Xh, uv):
+    """DLT matrix G (..., 2n, 12) of eq. 2; homogeneous points (..., n, 4), pixels (..., n, 2)."""
+    z = np.zeros_like(Xh)
+    r1 = np.concatenate([Xh, z, -uv[..., 0:1] * Xh], axis=-1)
+    r2 = np.concatenate([z, Xh, -uv[..., 1:2] * Xh], axis=-1)
+    G = np.stack([r1, r2], axis=-2)  # (..., n, 2, 12)
+    return G.reshape(G.shape[:-3] + (-1, 12))
+
+
+def _homogeneous(X):
+    return np.concatenate([X, np.ones(X.shape[:-1] + (1,))], axis=-1)
+
+
+def _solve_P(X, uv, normalize: bool = True):
+    """Least-squares P (3, 4) [px] from all points; Hartley-normalised unless told not to."""
+    if normalize:
+        Tw, Ti = _normaliser(X), _normaliser(uv)
+    else:
+        Tw, Ti = np.eye(4), np.eye(3)
+    Xn = _homogeneous(X) @ Tw.T
+    uvn = _homogeneous(uv) @ Ti.T
+    G = _design(Xn, uvn[:, :2])
+    _, _, Vt = np.linalg.svd(G, full_matrices=False)
+    Pn = Vt[-1].reshape(3, 4)
+    return np.linalg.solve(Ti, Pn) @ Tw
+
+
+def _project_P(P, X):
+    """Pixels (..., n, 2) and depths (..., n) of points (n, 3) through cameras P (..., 3, 4)."""
+    h = np.einsum("...ij,nj->...ni", P, _homogeneous(X))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h[..., :2] / h[..., 2:3], h[..., 2]
+
+
+def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
+    M = P[:, :3]
+    det = np.linalg.det(M)
+    if not np.isfinite(det) or abs(det) < 1e-300:
+        raise GeometryError(
+            _at(where, "DLT: the 3x3 part of P is singular (degenerate point configuration)")
+        )
+    P = P * (np.sign(det) / np.linalg.norm(P[2, :3]))
+    K, R_cv = scipy.linalg.rq(P[:, :3])
+    D = np.diag(np.sign(np.diag(K)))
+    K, R_cv = K @ D, D @ R_cv
+    K = K / K[2, 2]
+    _, _, Vt = np.linalg.svd(P)
+    c_h = Vt[-1]
+    if abs(c_h[3]) < 1e-12 * np.linalg.norm(c_h[:3]):
+        raise GeometryError(
+            _at(
+                where,
+                "DLT: camera centre at infinity (affine camera); the points need more depth relief",
+            )
+        )
+    center = c_h[:3] / c_h[3]
+    uv_hat, depth = _project_P(P, X)
+    if np.count_nonzero(depth[inliers] > 0) < 0.5 * np.count_nonzero(inliers):
+        raise GeometryError(
+            _at(
+                where,
+                "DLT: the points come out behind the camera: blunders "
+                "in the data, a left-handed world frame or a mirrored image",
+            )
+        )
+    res = uv - uv_hat
+    rms = float(np.sqrt(np.mean(np.sum(res[inliers] ** 2, axis=1))))
+    d = sensor.pixel_mm
+    alpha, beta = K[0, 0], K[1, 1]
+    return DltResult(
+        f_mm=float(0.5 * (alpha + beta) * d),
+        xp_mm=float((K[0, 2] - (sensor.width_px - 1) / 2.0) * d),
+        yp_mm=float(-(K[1, 2] - (sensor.height_px - 1) / 2.0) * d),
+        aspect=float(beta / alpha),
+        skew=float(K[0, 1] / alpha),
+        R_world_to_camera=FLIP_YZ @ R_cv,
+        center_m=center,
+        P=P,
+        K_px=K,
+        residuals_px=res,
+        inliers=np.asarray(inliers, dtype=bool).copy(),
+        rms_px=rms,
+    )
+
+
+def _check_dlt_geometry(X, where: str, what: str, tol_rel: float):
+    n = len(X)
+    if n < 6:
+        raise GeometryError(_at(where, f"{what} needs at least 6 points, got {n}"))
+    if is_collinear(X, tol_rel):
+        raise GeometryError(
+            _at(
+                where,
+                f"{what}: the {n} world points are collinear; the DLT needs points spread in 3-D",
+            )
+        )
+    if is_coplanar(X, tol_rel):
+        s = _singular_values_centred(X)
+        raise GeometryError(
+            _at(
+                where,
+                f"{what}: the {n} world points are coplanar (relative relief "
+                f"{s[2] / s[0]:.1e} <= {tol_rel:g}); the DLT needs non-coplanar "
+                "points, use planar_pose for a flat field",
+            )
+        )
+
+
+def dlt(
+    X_world_m,
+    uv_px,
+    sensor: Sensor,
+    *,
+    where: str = "",
+    normalize: bool = True,
+    tol_rel: float = COPLANAR_TOL_REL,
+) -> DltResult:
+    """The 11-parameter DLT of one image (METHODS A, eq. 1-6), decomposed in fieldcal's frames.
+
+    Parameters
+    ----------
+    X_world_m : (n, 3) array_like
+        Control points [m], n >= 6, not coplanar.
+    uv_px : (n, 2) array_like
+        Their measured image points [px] (CONTRACT section 1).
+    sensor : Sensor
+        Pixel grid (pitch and size), for the conversion to mm.
+    where : str
+        The image's name, quoted in error messages.
+    normalize : bool
+        Hartley normalisation (default). ``False`` only exists to show why it is needed.
+    tol_rel : float
+        Coplanarity / collinearity tolerance of :func:`is_coplanar`.
+
+    Returns
+    -------
+    DltResult
+
+    Raises
+    ------
+    InputError
+        Wrong shapes, NaN or infinite coordinates.
+    GeometryError
+        Fewer than 6 points, coplanar or collinear points, a singular or mirrored solution.
+    """
+    X, uv = _check_points(X_world_m, uv_px, where, "DLT")
+    _check_dlt_geometry(X, where, "DLT", tol_rel)
+    P = _solve_P(X, uv, normalize=normalize)
+    return _decompose(P, X, uv, sensor, np.ones(len(X), bool), where)
+
+
+def _robust_sigma(res):
+    """1.4826 x MAD of the residual components (n, 2) [px]: the noise sigma of one coordinate."""
+    r = res.ravel()
+    return 1.4826 * np.median(np.abs(r - np.median(r)))
+
+
+def dlt_robust(
+    X_world_m,
+    uv_px,
+    sensor: Sensor,
+    *,
+    where: str = "",
+    k_sigma: float = 5.0,
+    floor_px: float = 2.0,
+    detrend_degree: int = 3,
+    n_trials: int | None = None,
+    max_outlier_fraction: float = 0.3,
+    confidence: float = 0.999,
+    max_rounds: int = 20,
+    seed: int = 0,
+    tol_rel: float = COPLANAR_TOL_REL,
+) -> DltResult:
+    """The DLT with blunder rejection: LMedS on minimal 6-point sets, then iterative rejection.
+
+    1. Hypotheses: ``n_trials`` random 6-point samples (default: enough to draw one clean
+       sample with probability ``confidence`` at ``max_outlier_fraction`` blunders), each
+       solved in Hartley-normalised coordinates (batched SVD); the one with the least median
+       reprojection error wins (least median of squares: no threshold needed).
+    2. Rejection: the DLT has no distortion model, so on a real lens its residuals are a
+       smooth field of up to several pixels (in the corners) plus the noise. A polynomial
+       of degree ``detrend_degree`` in the image coordinates (default 3, the order of the
+       leading radial term; 10 coefficients per coordinate) is fitted to the residuals of
+       the current inliers and removed; what remains is the noise and the blunders. The
+       noise sigma of one coordinate is ``1.4826 MAD`` of these detrended residuals; a
+       point is an inlier when its detrended residual is below
+       ``max(k_sigma sigma, floor_px)``. The DLT is refitted on the inliers and the inliers
+       re-selected from all points until the set stops changing. With fewer than three
+       inliers per polynomial coefficient (or ``detrend_degree=0``) the raw residuals are
+       used, and the floor alone must absorb the distortion.
+
+    Parameters as :func:`dlt`; ``seed`` makes the sampling repeatable.
+
+    Returns
+    -------
+    DltResult
+        With ``inliers`` the points kept; ``residuals_px`` are given for all points.
+
+    Raises
+    ------
+    GeometryError
+        As :func:`dlt`, or fewer than 6 inliers (or a coplanar inlier set) remain.
+    """
+    X, uv = _check_points(X_world_m, uv_px, where, "robust DLT")
+    _check_dlt_geometry(X, where, "robust DLT", tol_rel)
+    n = len(X)
+    if n_trials is None:
+        p_clean = (1.0 - max_outlier_fraction) ** 6
+        n_trials = int(np.ceil(np.log(1.0 - confidence) / np.log1p(-p_clean))) if p_clean < 1 else 1
+    rng = np.random.default_rng(seed)
+
+    Tw, Ti = _normaliser(X), _normaliser(uv)
+    Xn = _homogeneous(X) @ Tw.T
+    uvn = (_homogeneous(uv) @ Ti.T)[:, :2]
+
+    best_P, best_med = None, np.inf
+    if n > 6:
+        for start in range(0, n_trials, 256):  # batches bound the (batch, n, 2) residual array
+            m = min(256, n_trials - start)
+            idx = np.argpartition(rng.random((m, n)), 6, axis=1)[:, :6]
+            G = _design(Xn[idx], uvn[idx])  # (m, 12, 12)
+            _, _, Vt = np.linalg.svd(G)
+            Pn = Vt[:, -1, :].reshape(m, 3, 4)
+            hat, _ = _project_P(Pn, Xn[:, :3] / Xn[:, 3:4])
+            err = np.sum((hat - uvn) ** 2, axis=-1)
+            med = np.median(np.where(np.isfinite(err), err, np.inf), axis=1)
+            k = int(np.argmin(med))
+            if med[k] < best_med:
+                best_med, best_P = med[k], Pn[k]
+    if best_P is None:  # exactly 6 points: nothing to vote with
+        P = _solve_P(X, uv)
+    else:
+        P = np.linalg.solve(Ti, best_P) @ Tw
+
+    # monomials x^i y^j (i + j <= detrend_degree) of the normalised pixel coordinates
+    ij = [(i, j) for i in range(detrend_degree + 1) for j in range(detrend_degree + 1 - i)]
+    M = (
+        np.stack([uvn[:, 0] ** i * uvn[:, 1] ** j for i, j in ij], axis=1)
+        if detrend_degree > 0
+        else None
+    )
+    inliers = np.ones(n, bool)
+    for _ in range(max_rounds):
+        hat, _ = _project_P(P, X)
+        res = uv - hat
+        finite = np.all(np.isfinite(res), axis=1)
+        res = np.where(finite[:, None], res, 0.0)
+        local = res
+        if M is not None and np.count_nonzero(inliers & finite) >= 3 * len(ij):
+            coef, *_ = np.linalg.lstsq(M[inliers & finite], res[inliers & finite], rcond=None)
+            local = res - M @ coef
+        e = np.linalg.norm(local, axis=1)
+        sigma = _robust_sigma(local[finite])
+        new = finite & (e <= max(k_sigma * sigma, floor_px))
+        if new.sum() < 6 or is_coplanar(X[new], tol_rel):
+            raise GeometryError(
+                _at(
+                    where,
+                    f"robust DLT: only {new.sum()} of {n} points fit one "
+                    "projective camera in non-coplanar position",
+                )
+            )
+        P = _solve_P(X[new], uv[new])
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    return _decompose(P, X, uv, sensor, inliers, where)
+
+
+# ---------------------------------------------------------------------------------------
+# flat fields
+# ---------------------------------------------------------------------------------------
+def planar_pose(
+    X_world_m, uv_px, camera: Camera, *, where: str = "", tol_rel: float = COPLANAR_TOL_REL
+):
+    """Pose of one image of a flat field with known interior orientation (the DLT's stand-in).
+
+    The measured pixels are corrected for the distortion of ``camera``
+    (:func:`fieldcal.model.camera.correct`), the points are expressed in their plane's own frame,
+    and OpenCV's IPPE (infinitesimal plane-based pose) gives the two candidate poses, of
+    which the one with the smaller reprojection error is refined by Levenberg-Marquardt
+    (this is :func:`fieldcal.field.resection.resect` restricted to coplanar points).
+
+    Parameters
+    ----------
+    X_world_m : (n, 3) array_like
+        Coplanar control points [m] (any plane, not only Z = 0), n >= 4, not collinear.
+    uv_px : (n, 2) array_like
+        Measured pixels [px].
+    camera : Camera
+        Interior orientation, e.g. the nominal focal length with the principal point at
+        the sensor centre and no distortion.
+    where : str
+        The image's name for error messages.
+
+    Returns
+    -------
+    R_world_to_camera : (3, 3) ndarray
+    center_m : (3,) ndarray
+    rms_px : float
+        Reprojection RMS through :func:`fieldcal.model.camera.project` [px].
+    """
+    X, uv = _check_points(X_world_m, uv_px, where, "planar pose")
+    if len(X) < 4:
+        raise GeometryError(_at(where, f"planar pose needs at least 4 points, got {len(X)}"))
+    if is_collinear(X, tol_rel):
+        raise GeometryError(_at(where, f"planar pose: the {len(X)} world points are collinear"))
+    if not is_coplanar(X, tol_rel):
+        raise GeometryError(
+            _at(
+                where,
+                "planar pose: the world points are not coplanar; use dlt() or resection.resect()",
+            )
+        )
+    from fieldcal.field.resection import resect  # resection builds on this module; imported here, no cycle
+
+    res = resect(X, uv, camera, where=where, tol_rel=tol_rel)
+    return res.R_world_to_camera, res.center_m, res.rms_px
+
+
+def zhang_focal(
+    views, sensor: Sensor, *, where: str = "", tol_rel: float = COPLANAR_TOL_REL
+) -> float:
+    """Principal distance from homographies of a plane seen in several images (Zhang's method).
+
+    With the principal point at the sensor centre, square pixels and no skew, pixel
+    coordinates relative to the centre and divided by a scale ``s`` (half the larger sensor
+    side [px]) have the intrinsic matrix ``K = diag(a, a, 1)`` with ``a = f / (d s)``. For
+    a homography ``H = [h1 h2 h3]`` from the plane's own metric 2-D frame to those image
+    coordinates, ``h1 ~ K r1``, ``h2 ~ K r2`` with ``r1 . r2 = 0`` and ``|r1| = |r2|``; with
+    ``w = 1/a^2`` (the image of the absolute conic, ``diag(w, w, 1)``) that is two linear
+    equations per view:
+
+        w (h11 h21 + h12 h22) = -h13 h23
+        w (h11^2 + h12^2 - h21^2 - h22^2) = h23^2 - h13^2
+
+    (``hji`` the i-th entry of column j), solved for ``w`` by least squares over all views.
+    Reference: Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI
+    22(11), 2000, section 3.1, here with three of the five intrinsics fixed.
+
+    Parameters
+    ----------
+    views : sequence of (X_plane (n, 3), uv_px (n, 2))
+        Coplanar points [m] (any plane in 3-D; each view is transformed to the plane's own
+        2-D frame) and their pixels, n >= 4 per view, at least 2 views (3+ recommended),
+        preferably with distortion already removed.
+    sensor : Sensor
+    where : str
+        Named in error messages (e.g. the session).
+
+    Returns
+    -------
+    float
+        ``f_mm`` [mm].
+
+    Raises
+    ------
+    GeometryError
+        Fewer than 2 views, a view with < 4, collinear or non-coplanar points, or views that
+        do not determine the focal length (all fronto-parallel, or so degenerate or noisy
+        that no positive ``w`` fits).
+    """
+    views = list(views)
+    if len(views) < 2:
+        raise GeometryError(
+            _at(where, f"zhang_focal needs at least 2 views of the plane, got {len(views)}")
+        )
+    centre = np.array([(sensor.width_px - 1) / 2.0, (sensor.height_px - 1) / 2.0])
+    s = max(sensor.width_px, sensor.height_px) / 2.0
+    A, b, persp = [], [], []
+    for i, (Xv, uvv) in enumerate(views):
+        label = f"zhang_focal view {i}"
+        X, uv = _check_points(Xv, uvv, where, label)
+        if len(X) < 4 or is_collinear(X, tol_rel) or not is_coplanar(X, tol_rel):
+            raise GeometryError(_at(where, f"{label}: needs >= 4 coplanar, non-collinear points"))
+        origin, B = plane_frame(X)
+        p2 = np.ascontiguousarray(((X - origin) @ B)[:, :2])
+        H, _ = cv2.findHomography(p2, np.ascontiguousarray((uv - centre) / s), 0)
+        if H is None or not np.all(np.isfinite(H)):
+            raise GeometryError(_at(where, f"{label}: no homography could be estimated"))
+        H = H / np.linalg.norm(H[:, :2])
+        h1, h2 = H[:, 0], H[:, 1]
+        persp.append(np.hypot(h1[2], h2[2]))
+        A += [h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2]
+        b += [-h1[2] * h2[2], h2[2] ** 2 - h1[2] ** 2]
+    A, b = np.asarray(A), np.asarray(b)
+    # the focal length enters only through the perspective terms h13, h23 (|H[:, :2]| = 1 here;
+    # about the tilt of the plane [rad] divided by sqrt(2 + 2 a^2))
+    if max(persp) < 1e-4:
+        raise GeometryError(
+            _at(
+                where,
+                "zhang_focal: the views are fronto-parallel; tilt the plane relative to the camera",
+            )
+        )
+    w = float(A @ b / (A @ A))
+    if not w > 0:
+        raise GeometryError(
+            _at(
+                where,
+                f"zhang_focal: no real focal length fits these views "
+                f"(w = {w:.3g}); the views are nearly degenerate",
+            )
+        )
+    return float(s / np.sqrt(w) * sensor.pixel_mm)

@@ -1,0 +1,393 @@
+"""Field calibration from measured images: identify, adjust, identify again, adjust again.
+
+The measuring step (:func:`fieldcal.pipeline.measure`, one ``measurements`` table per
+image) knows nothing of the targets' identities. This module turns those tables into a
+calibration (:func:`calibrate_from_measurements`):
+
+1. **First identification, nominal camera.** Every image is identified
+   (:func:`fieldcal.field.identify.identify_image`) with the camera the session describes: the
+   nominal focal length (``lens.nominal_focal_mm``), principal point at the sensor centre, no
+   distortion. It starts from the coded targets (ArUco markers named in targets.csv) or, in
+   fields without coded targets, from the hand marks of marks.csv (CONTRACT section 3).
+   Images whose measurement table is missing (the file could not be read or measured) or
+   with too few identified targets are left out and reported.
+2. **First adjustment** (:func:`fieldcal.field.adjustment.adjust_field`) of the identified points,
+   each with the detector's a-priori ``sigma_px`` (the session's ``default_sigma_px`` where
+   the detector gives none). With adjusted targets (the default), a point of a target that
+   only one image sees has no redundancy: its residual is absorbed by the target's
+   coordinates, so it can neither be checked nor add more than the survey's weak control
+   (5 mm is ~0.6 px at the paper's 60 m). Such points are left out, and an image left with
+   fewer than 6 points with them. (They would also drive the adjustment's gross-error
+   scale, a median over all residuals, towards zero and start a cascade of rejections.)
+3. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
+   or the plane of a planar field, and the session gives ``target_diameter_mm``): the
+   detector measures the centre of the imaged ellipse; with the first adjustment's camera and
+   poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image of
+   its centre.
+4. **Second identification, calibrated camera**, with the adjusted poses and target
+   coordinates: the gates shrink to the measurement noise, and targets near the corners,
+   where the nominal camera's missing distortion was too large, are found too. Images left out
+   in the first pass are tried again from their seeds.
+5. **Second adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+   much more their normalised residuals scatter than the discs' did in the first adjustment
+   (a variance component, at least 1): the corner-based centres of markers measure worse
+   than the detector's edge-line sigma says.
+
+The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
+``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
+(markers whose code names a target), ``n_identified`` (second pass), and for diagnosis
+``n_identified_first``, ``n_used`` (points given to the adjustment), ``n_marks``,
+``wrong_marks`` (ids of marks that disagree with the identification), ``wrong_codes``,
+``rms_px`` (identification residual after the local correction, second pass) and
+``eccentricity_max_px``. The second pass's
+:class:`~fieldcal.field.identify.ImageIdentification` of every measured image is in
+``data.meta["identifications"]`` (keyed by image name).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+
+import numpy as np
+import pyarrow as pa
+
+from fieldcal.errors import GeometryError, InputError
+from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, adjust_field
+from fieldcal.field.data import FieldData, FieldObservations, TargetField
+from fieldcal.field.dlt import is_coplanar, plane_frame
+from fieldcal.field.eccentricity import correction_px
+from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
+from fieldcal.model.camera import INDEX, Camera
+from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv
+
+__all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of"]
+
+MIN_IMAGES = 3
+MIN_POINTS = MIN_POINTS_PER_IMAGE
+"""The adjustment's minimum of points per image."""
+
+
+def nominal_camera(session: Session) -> Camera:
+    """The session's nominal camera: ``lens.nominal_focal_mm``, principal point at the sensor
+    centre, no distortion."""
+    f = session.nominal_focal_mm
+    if f is None:
+        raise InputError("lens.nominal_focal_mm is needed to identify the targets in the images "
+                         "(the nominal camera projects the surveyed targets)",
+                         str(session.folder / "session.json"))
+    params = np.zeros(13)
+    params[INDEX["f_mm"]] = float(f)
+    return Camera(session.sensor, params)
+
+
+def target_normals_of(targets: TargetField, normals=None):
+    """Unit normals (n, 3) of the targets' planes: ``normals`` when given, else the
+    ``targets.normals``, else the best-fit plane's normal when the field is planar; None when
+    unknown (a field in 3-D without normals)."""
+    if normals is None:
+        normals = targets.normals
+    if normals is not None:
+        N = np.asarray(normals, float).reshape(-1, 3)
+        if N.shape[0] == 1:
+            N = np.repeat(N, len(targets), axis=0)
+        if N.shape != (len(targets), 3):
+            raise InputError(f"target normals must be (n, 3) with n = {len(targets)}, got {N.shape}")
+        return N / np.linalg.norm(N, axis=1, keepdims=True)
+    if len(targets) >= 3 and is_coplanar(targets.xyz_m):
+        _, B = plane_frame(targets.xyz_m)
+        return np.repeat(B[:, 2][None], len(targets), axis=0)
+    return None
+
+
+def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
+    if "sigma_px" not in table.column_names:
+        return np.full(len(rows), default)
+    s = np.asarray(table.column("sigma_px").fill_null(np.nan).to_numpy(zero_copy_only=False), float)[rows]
+    return np.where(np.isfinite(s) & (s > 0), s, default)
+
+
+def _identify_all(targets, sigma_m, camera, measurements, marks, coded, poses, kw, names):
+    """Identify every measured image; ``poses`` maps image index -> (R, C) or is empty."""
+    out: dict[int, ImageIdentification] = {}
+    for i, name in enumerate(names):
+        table = measurements.get(name)
+        if table is None:
+            continue
+        out[i] = identify_image(table, targets, camera, marks=marks.get(i), init_pose=poses.get(i),
+                                target_sigma_m=sigma_m, codes_are_markers=coded, where=name, seed=i, **kw)
+    return out
+
+
+def _build(session, targets, images, keep, idents, measurements, names, *, uv_override=None,
+           marker_factor=1.0, single_view=True):
+    """FieldData of the identified points of the images ``keep`` (session image indices).
+
+    ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
+    ``single_view=False`` leaves out the points of targets that only one of the images sees,
+    and then the images left with fewer than :data:`MIN_POINTS` points.
+
+    Returns
+    -------
+    data : FieldData
+    marker : (m,) bool ndarray
+        Whether each observation is a marker's centre.
+    keep : list of int
+        The images in ``data`` (session indices).
+    dropped : dict
+        ``{image index: reason}`` of images dropped for lack of multi-view points.
+    """
+    keep = list(keep)
+    dropped: dict[int, str] = {}
+    while True:
+        data, marker = _assemble(session, targets, images, keep, idents, measurements, names, uv_override,
+                                 marker_factor, single_view)
+        counts = np.bincount(data.obs.image, minlength=len(keep))
+        weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
+        if not weak:
+            return data, marker, keep, dropped
+        for i in weak:
+            dropped[i] = (f"only {counts[keep.index(i)]} of its identified targets are seen in other images "
+                          f"too (at least {MIN_POINTS} needed with adjusted targets)" if not single_view else
+                          f"only {counts[keep.index(i)]} identified targets (at least {MIN_POINTS} needed)")
+        keep = [i for i in keep if i not in weak]
+        if not keep:
+            return data, marker, keep, dropped
+
+
+def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, marker_factor,
+              single_view):
+    img, tgt, uv, sig, mk = [], [], [], [], []
+    for n, i in enumerate(keep):
+        table = measurements[names[i]]
+        rows = np.flatnonzero(idents[i].target >= 0)
+        kind, _, uv_all, _ = measured_points(table)
+        marker = kind[rows] == "aruco"
+        img.append(np.full(len(rows), n))
+        tgt.append(idents[i].target[rows])
+        uv.append(uv_override[i][rows] if uv_override is not None and i in uv_override else uv_all[rows])
+        sig.append(_sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0))
+        mk.append(marker)
+    if not img:
+        img, tgt, uv, sig, mk = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
+            [np.zeros(0, bool)]
+    obs = FieldObservations(np.concatenate(img), np.concatenate(tgt), np.concatenate(uv),
+                            np.concatenate(sig))
+    marker = np.concatenate(mk)
+    if not single_view:
+        views = np.bincount(obs.target, minlength=len(targets))
+        multi = views[obs.target] >= 2
+        obs, marker = obs.take(multi), marker[multi]
+    data = FieldData(sensor=session.sensor, targets=targets, images=[images[i] for i in keep], obs=obs,
+                     nominal_focal_mm=session.nominal_focal_mm, default_sigma_px=session.default_sigma_px,
+                     meta={"camera_id": session.camera_id, "session_id": session.session_id})
+    return data, marker
+
+
+def _marker_factor(result: FieldResult, marker: np.ndarray) -> float:
+    """How much worse the markers' centres are than their a-priori sigma says, relative to
+    the discs: a variance component from the first adjustment, at least 1 (from 10 of each).
+
+    The adjustment's data-snooping statistic ``T = v^T Q_vv^-1 v / sigma0^2`` of each point is
+    its squared residual normalised by its own redundancy (a marker on a target seen in few
+    images has a small residual however bad it is), so ``sqrt(mean T_markers / mean T_discs)``
+    is the factor; where the statistic is missing the squared normalised residuals are used.
+    """
+    used = result.obs_used
+    T = np.asarray(result.obs_test, float)
+    if not np.all(np.isfinite(T[used])):
+        z = result.residual_px / result.data.obs.sigma_px[:, None]
+        T = np.sum(z**2, axis=1)
+    a, b = used & marker, used & ~marker
+    if a.sum() < 10 or b.sum() < 10:
+        return 1.0
+    return float(max(1.0, np.sqrt(np.mean(T[a]) / np.mean(T[b]))))
+
+
+def _usable(idents, names, measurements):
+    return [i for i in range(len(names)) if names[i] in measurements and i in idents and idents[i].ok]
+
+
+def _check_enough(keep, names, idents, measurements, stage):
+    if len(keep) >= MIN_IMAGES:
+        return
+    reasons = []
+    for i, name in enumerate(names):
+        if name not in measurements:
+            reasons.append(f"{name}: not measured")
+        elif i in idents and not idents[i].ok:
+            reasons.append(f"{name}: {idents[i].reason}")
+    more = "; ".join(reasons[:5]) + (f"; and {len(reasons) - 5} more" if len(reasons) > 5 else "")
+    raise GeometryError(f"only {len(keep)} of {len(names)} images could be identified ({stage}); "
+                        f"at least {MIN_IMAGES} are needed: {more}")
+
+
+def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.Table],
+                                options: AdjustmentOptions | None = None, *,
+                                progress: Callable[[str], None] | None = None,
+                                target_normals=None, eccentricity: bool = True,
+                                min_identified: int = DEFAULT_MIN_IDENTIFIED,
+                                **identify_kw) -> tuple[FieldData, FieldResult, list[dict]]:
+    """Identify the measured targets of every image and calibrate (module docstring).
+
+    Parameters
+    ----------
+    session : Session
+        A field session with images (:func:`fieldcal.session.loader.load_session`).
+    measurements : mapping of str to pyarrow.Table
+        The ``measurements`` table of every image that could be measured, keyed by the image's
+        name in the session (``images/x.tif``). A missing image is left out and reported.
+    options : AdjustmentOptions, optional
+        Passed to both adjustments.
+    progress : callable, optional
+        Called with one line per stage.
+    target_normals : (n, 3) or (3,) array_like, optional
+        Normals of the targets' planes (synthetic fields know them); without them a planar
+        field's plane is used, and a 3-D field gets no eccentricity correction.
+    eccentricity : bool
+        Apply the perspective-eccentricity correction to disc centres when it can be computed
+        (normals known and ``field.target_diameter_mm`` in the session).
+    min_identified : int
+        An image with fewer identified targets is left out.
+    **identify_kw
+        Further settings of :func:`fieldcal.field.identify.identify_image` (gates).
+
+    Returns
+    -------
+    data : FieldData
+        The observations of the final adjustment (eccentricity removed where applied).
+    result : FieldResult
+        The final adjustment.
+    report : list of dict
+        One entry per image of the session (module docstring).
+
+    Raises
+    ------
+    InputError
+        Not a field session, no nominal focal length, unreadable targets.csv / marks.csv.
+    GeometryError
+        Fewer than 3 images could be identified (the message lists why), or the adjustment
+        cannot calibrate.
+    """
+    if session.method != "field":
+        raise InputError("not a field-method session", str(session.folder / "session.json"))
+    say = progress or (lambda _line: None)
+    options = options or AdjustmentOptions()
+    nominal = nominal_camera(session)
+    targets = read_targets_csv(session.targets_path)
+    images = list(session.images)
+    names = [im.file for im in images]
+    marks = read_marks_csv(session.marks_path, targets, images) if session.marks_path is not None else {}
+    coded = session.coded is not None
+    kw = dict(identify_kw, min_identified=min_identified)
+
+    # 1-2: nominal camera, first adjustment
+    first = _identify_all(targets, targets.sigma_mm / 1000.0, nominal, measurements, marks, coded, {}, kw,
+                          names)
+    keep1 = _usable(first, names, measurements)
+    _check_enough(keep1, names, first, measurements, "nominal camera")
+    single_view = not options.targets_adjusted
+    data1, marker1, keep1, dropped1 = _build(session, targets, images, keep1, first, measurements, names,
+                                             single_view=single_view)
+    for i, why in dropped1.items():
+        first[i].reason = why
+    _check_enough(keep1, names, first, measurements, "nominal camera")
+    say(f"identification with the nominal camera (f {nominal.f_mm:g} mm): {len(keep1)} of {len(names)} "
+        f"images, {len(data1.obs)} points")
+    res1 = adjust_field(data1, options, progress=progress)
+    say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
+
+    # 4: calibrated camera, adjusted poses and targets
+    cam = res1.camera
+    adjusted = replace(targets, xyz_m=np.asarray(res1.targets_m, float))
+    poses = {i: (res1.R_world_to_camera[n], res1.center_m[n]) for n, i in enumerate(keep1)}
+    if res1.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
+        sigma2 = np.sqrt(np.mean(np.asarray(res1.sigma_targets_m, float) ** 2, axis=1))
+        sigma2 = np.where(np.isfinite(sigma2), sigma2, targets.sigma_mm / 1000.0)
+    else:
+        sigma2 = targets.sigma_mm / 1000.0
+    second = _identify_all(adjusted, sigma2, cam, measurements, marks, coded, poses, kw, names)
+    keep2 = _usable(second, names, measurements)
+    _check_enough(keep2, names, second, measurements, "calibrated camera")
+
+    # 3: perspective eccentricity of the discs, with the calibrated camera and the new poses
+    normals = target_normals_of(targets, target_normals)
+    diameter_mm = session.target_diameter_mm
+    ecc_max = {}
+    uv_override = None
+    if eccentricity and normals is not None and diameter_mm:
+        uv_override = {}
+        all_e = []
+        for i in keep2:
+            table = measurements[names[i]]
+            kind, _, uv_all, _ = measured_points(table)
+            rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
+            t = second[i].target[rows]
+            e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
+                              normals[t], diameter_mm / 2000.0)
+            e = np.where(np.isfinite(e), e, 0.0)
+            uv = uv_all.copy()
+            uv[rows] = uv_all[rows] - e
+            uv_override[i] = uv
+            norm = np.hypot(e[:, 0], e[:, 1])
+            ecc_max[i] = float(norm.max()) if len(norm) else 0.0
+            all_e.append(norm)
+        all_e = np.concatenate(all_e) if all_e else np.zeros(0)
+        if len(all_e):
+            say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
+                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
+
+    # 5: the final adjustment
+    factor = _marker_factor(res1, marker1)
+    if factor > 1.0:
+        say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
+            "to the discs: their sigmas are scaled by that")
+    data, _, keep2, dropped2 = _build(session, targets, images, keep2, second, measurements, names,
+                                      uv_override=uv_override, marker_factor=factor, single_view=single_view)
+    for i, why in dropped2.items():
+        second[i].reason = why
+    _check_enough(keep2, names, second, measurements, "calibrated camera")
+    n_first = int(sum(first[i].n_identified for i in keep1))
+    say(f"identification with the calibrated camera: {len(keep2)} of {len(names)} images, "
+        f"{len(data.obs)} points (first pass {n_first})")
+    result = adjust_field(data, options, progress=progress)
+    data.meta["marker_sigma_factor"] = factor
+    data.meta["identifications"] = {names[i]: second[i] for i in second}
+    if ecc_max:
+        data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
+
+    used = np.bincount(data.obs.image, minlength=len(keep2))
+    n_used = {i: int(used[n]) for n, i in enumerate(keep2)}
+    report = []
+    for i, name in enumerate(names):
+        table = measurements.get(name)
+        entry = {"image": name, "n_measured": 0 if table is None else int(table.num_rows),
+                 "n_coded": 0, "n_identified": 0, "n_identified_first": 0,
+                 "n_marks": int(len(marks[i][0])) if i in marks else 0,
+                 "n_used": n_used.get(i, 0), "wrong_marks": [], "wrong_codes": [], "rms_px": None,
+                 "eccentricity_max_px": None}
+        if table is None:
+            entry.update(status="left out", reason="not measured (the image could not be read or measured)")
+            report.append(entry)
+            continue
+        a, b = first.get(i), second.get(i)
+        entry["n_identified_first"] = int(a.n_identified) if a is not None and a.ok else 0
+        ident = b if b is not None else a
+        entry.update(n_coded=int(ident.n_coded), n_identified=int(ident.n_identified) if i in keep2 else 0,
+                     wrong_marks=[str(targets.ids[t]) for t in ident.wrong_marks],
+                     wrong_codes=[int(c) for c in ident.wrong_codes],
+                     rms_px=None if not np.isfinite(ident.rms_px) else float(ident.rms_px),
+                     eccentricity_max_px=ecc_max.get(i))
+        if i in keep2:
+            notes = []
+            if entry["wrong_marks"]:
+                notes.append(f"mark(s) {', '.join(entry['wrong_marks'])} disagree with the identification "
+                             "(not used)")
+            if entry["wrong_codes"]:
+                notes.append(f"marker code(s) {', '.join(map(str, entry['wrong_codes']))} disagree with "
+                             "the identification (not used)")
+            entry.update(status="ok", reason="; ".join(notes))
+        else:
+            entry.update(status="left out", reason=ident.reason)
+        report.append(entry)
+    return data, result, report

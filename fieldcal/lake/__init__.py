@@ -1,0 +1,2 @@
+"""The versioned data lake: storage, commits and history queries.
+"""

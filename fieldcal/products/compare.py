@@ -1,0 +1,353 @@
+"""Comparing two calibrations of one sensor: where the same ray lands.
+
+For a pixel ``uv`` the calibration B gives a ray in its camera frame
+(:func:`fieldcal.model.camera.unproject`); projecting that ray through calibration A gives the
+pixel where A would have seen it. The difference ``uv_A(ray_B(uv)) - uv`` [px] over a grid
+on the sensor is the correction-field difference of the two calibrations, in pixels,
+independent of how the parameters are split between principal point and distortion.
+
+Where the camera frame itself is not observable (a narrow field of view: a principal-
+point shift and a small rotation of the camera are nearly indistinguishable), the best
+common rotation of B's rays onto A's (Wahba's problem, solved by SVD) is removed first.
+
+Is the change real? (:func:`compare_calibrations`)
+--------------------------------------------------
+Stack the difference map over an ``n``-point grid as ``d`` (2n,). To first order
+``d = J (theta_A - theta_B)`` with the landing Jacobian ``J`` (2n, p) of
+:func:`fieldcal.products.uncertainty.landing_jacobian` (a ray fixed in the camera frame: where it
+lands moves with the parameters), evaluated once, at A, over the union of the parameters
+either calibration estimated. If both measured the same camera with independent errors,
+``d ~ N(0, C)`` with
+
+    C = J (Sigma_A + Sigma_B) J^T = M M^T,    M = J L,   L L^T = Sigma_A + Sigma_B
+
+(the interior covariances, zero-padded to the union). ``C`` has rank ``r`` <= p, far
+below 2n: the map is the parameter difference projected onto the sensor. (One Jacobian
+for both matters: ``J_A`` and ``J_B`` differ slightly, and stacking both would add
+spurious tiny singular values that a pseudo-inverse blows up.) With the SVD
+``M = U S V^T`` truncated to the ``r`` singular values above ``rcond * s_max``, the
+pseudo-inverse gives the test statistic
+
+    chi2 = d^T C^+ d = |S_r^-1 U_r^T d|^2    ~  chi-square with r degrees of freedom
+
+and its p-value. A part of ``d`` outside the range of ``C`` (``(I - U_r U_r^T) d``) is a
+change that neither calibration's uncertainty allows for at all; it is reported as
+``outside_px`` and makes the change significant when it exceeds ``outside_tol_px``. With
+``remove_rotation`` both ``d`` and ``M`` are first projected onto the fields that no
+common rotation explains (:func:`fieldcal.products.uncertainty.remove_rotation_part`).
+
+The verdict combines the test (significant at level ``alpha``) with the size of the change
+against a tolerance in the image plane (``tolerance_um``, largest ``|d|`` over the grid
+times the pixel pitch): a camera is *flagged* when its change is both significant and
+larger than the tolerance.
+
+A goniometer calibration observes only the two scanned axes of the sensor, and there only
+the component along each axis, and not where the optical axis points (the arm's zero is
+aligned on the sensor centre): its model off the axes is an extrapolation, and its split
+between principal point and decentering is a convention of the method. When either
+calibration is a goniometer's (``region="auto"``), the test and the size of the change use
+the points of the centre row (their u component) and of the centre column (their v
+component) only, at the spot positions the goniometer measured (its sweeps do not reach
+the sensor's edges), with the best common rotation removed; the map over the sensor is
+kept for display.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import stats
+
+from fieldcal.errors import InputError
+from fieldcal.model.camera import PARAM_NAMES, Camera, project, unproject
+from fieldcal.products.uncertainty import (
+    Calibration,
+    landing_jacobian,
+    remove_rotation_part,
+    rotation_jacobian,
+    summarise_2x2,
+)
+
+__all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations",
+           "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA"]
+
+DEFAULT_TOLERANCE_UM = 2.0
+"""Default tolerance of a change in the image plane [um] (about 0.4 px at 5.3 um pixels)."""
+DEFAULT_ALPHA = 0.01
+"""Default significance level of the change test."""
+
+
+def best_rotation(a, b):
+    """The rotation ``R`` (3, 3) minimising ``sum |R b_i - a_i|^2`` for unit vectors (n, 3)."""
+    H = np.asarray(b, float).T @ np.asarray(a, float)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+def ray_difference_px(cam_a: Camera, cam_b: Camera, uv_px=None, *, remove_rotation: bool = False,
+                      grid: tuple[int, int] = (41, 31)):
+    """Pixel displacement (n, 2) between where A and B map the same rays, over the sensor.
+
+    Parameters
+    ----------
+    cam_a, cam_b : Camera
+        Two calibrations of the same sensor.
+    uv_px : (n, 2) array_like, optional
+        Pixels to evaluate; default a ``grid`` (columns, rows) spanning the sensor.
+    remove_rotation : bool
+        Remove the best common rotation of B's camera frame onto A's first.
+
+    Returns
+    -------
+    uv_px : (n, 2) ndarray
+        The pixels evaluated.
+    diff_px : (n, 2) ndarray
+        ``uv_A(ray_B(uv)) - uv`` [px].
+    """
+    sa, sb = cam_a.sensor, cam_b.sensor
+    if (sa.width_px, sa.height_px) != (sb.width_px, sb.height_px):
+        raise InputError(f"the calibrations are of different sensors ({sa.width_px} x {sa.height_px} "
+                         f"and {sb.width_px} x {sb.height_px} px)")
+    uv = sa.grid_px(*grid) if uv_px is None else np.asarray(uv_px, float)
+    ray_b = unproject(uv, cam_b)
+    if remove_rotation:
+        R = best_rotation(unproject(uv, cam_a), ray_b)
+        ray_b = ray_b @ R.T
+    uv_a = project(ray_b, np.eye(3), np.zeros(3), cam_a)
+    return uv, uv_a - uv
+
+
+# --------------------------------------------------------------------------------------
+# the change test
+# --------------------------------------------------------------------------------------
+@dataclass
+class Comparison:
+    """Two calibrations of one sensor compared (see the module docstring).
+
+    Attributes
+    ----------
+    version_a, version_b : str
+        ``a`` is the reference (e.g. the older), ``b`` the other.
+    grid : (nx, ny)
+    uv_px : (n, 2) ndarray
+        The grid pixels, row by row.
+    diff_px : (n, 2) ndarray
+        ``uv_A(ray_B(uv)) - uv`` [px].
+    sigma_px : (n,) ndarray
+        1-sigma (semi-major axis) of the difference at each pixel that the two
+        calibrations' uncertainties explain [px].
+    chi2, dof, p_value : float, int, float
+        The test of the module docstring.
+    outside_px : float
+        Largest norm of the part of the map outside the range of its covariance [px].
+    pixel_size_um, tolerance_um, alpha : float
+    remove_rotation : bool
+    """
+
+    version_a: str
+    version_b: str
+    method_a: str
+    method_b: str
+    grid: tuple[int, int]
+    uv_px: np.ndarray
+    diff_px: np.ndarray
+    sigma_px: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    outside_px: float
+    pixel_size_um: float
+    tolerance_um: float
+    alpha: float
+    outside_tol_px: float
+    remove_rotation: bool
+    region: str = "sensor"
+    test_max_px: float | None = None
+
+    @property
+    def norm_px(self) -> np.ndarray:
+        """``|d|`` (n,) [px]."""
+        return np.hypot(self.diff_px[:, 0], self.diff_px[:, 1])
+
+    @property
+    def max_px(self) -> float:
+        return float(self.norm_px.max())
+
+    @property
+    def rms_px(self) -> float:
+        return float(np.sqrt(np.mean(self.norm_px ** 2)))
+
+    @property
+    def max_um(self) -> float:
+        """The largest change where it was tested [um] (the axes for a goniometer comparison)."""
+        top = self.max_px if self.test_max_px is None else self.test_max_px
+        return top * self.pixel_size_um
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.p_value < self.alpha or self.outside_px > self.outside_tol_px)
+
+    @property
+    def exceeds_tolerance(self) -> bool:
+        return bool(self.max_um > self.tolerance_um)
+
+    @property
+    def flagged(self) -> bool:
+        """Significant and larger than the tolerance."""
+        return self.significant and self.exceeds_tolerance
+
+    @property
+    def verdict(self) -> str:
+        where = " along the scanned axes" if self.region == "axes" else ""
+        size = (f"largest change{where} {self.max_um:.2f} um ({self.max_um / self.pixel_size_um:.3f} px) "
+                f"{'>' if self.exceeds_tolerance else '<='} tolerance {self.tolerance_um:g} um")
+        if self.outside_px > self.outside_tol_px:
+            why = (f"changed where neither calibration has any uncertainty "
+                   f"({self.outside_px:.3f} px outside the explained range)")
+        elif self.significant:
+            why = f"significant change (p = {self.p_value:.2g} < {self.alpha:g})"
+        else:
+            why = f"no significant change (p = {self.p_value:.2g} >= {self.alpha:g})"
+        return f"{why}; {size}" + ("; FLAGGED" if self.flagged else "")
+
+    def summary(self) -> dict:
+        """Scalars for tables and JSON."""
+        d = {k: v for k, v in asdict(self).items() if k not in ("uv_px", "diff_px", "sigma_px")}
+        d.update(grid=list(self.grid), max_px=self.max_px, max_um=self.max_um, rms_px=self.rms_px,
+                 max_sigma_px=float(self.sigma_px.max()), significant=self.significant,
+                 exceeds_tolerance=self.exceeds_tolerance, flagged=self.flagged,
+                 verdict=self.verdict)
+        return d
+
+
+def _sqrt_psd(cov):
+    """``L`` with ``L L^T = cov`` for a symmetric positive semi-definite matrix."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def _combined_covariance(a: Calibration, b: Calibration):
+    """``Sigma_A + Sigma_B`` over the union of their estimated parameters (PARAM_NAMES order)."""
+    names = [n for n in PARAM_NAMES if n in a.names or n in b.names]
+    pos = {n: i for i, n in enumerate(names)}
+    cov = np.zeros((len(names), len(names)))
+    for c in (a, b):
+        idx = [pos[n] for n in c.names]
+        cov[np.ix_(idx, idx)] += c.covariance
+    return names, cov
+
+
+def _swept_points(*cals):
+    """The spot positions of a goniometer calibration's frames and the component each tests.
+
+    Returns ``(uv (n, 2), rows)`` with ``rows`` indexing the stacked ``(du, dv)`` vector: the
+    u component of the x sweep's points, the v component of the y sweep's; None if no
+    calibration lists its frames.
+    """
+    for cal in cals:
+        if cal.method != "goniometer":
+            continue
+        frames = [im for im in cal.document.get("images", [])
+                  if im.get("axis") in ("x", "y") and im.get("u_px") is not None and im.get("v_px") is not None]
+        if len(frames) >= 3:
+            uv = np.array([(im["u_px"], im["v_px"]) for im in frames], dtype=float)
+            uv, first = np.unique(uv, axis=0, return_index=True)
+            comp = np.array([0 if frames[i]["axis"] == "x" else 1 for i in first])
+            return uv, 2 * np.arange(len(uv)) + comp
+    return None
+
+
+def _axis_points(sensor, grid):
+    """Pixels of the centre row (nx) and centre column (ny), and the stacked rows tested."""
+    nx, ny = grid
+    u = np.linspace(0.0, sensor.width_px - 1.0, nx)
+    v = np.linspace(0.0, sensor.height_px - 1.0, ny)
+    uv = np.concatenate([np.stack([u, np.full(nx, (sensor.height_px - 1) / 2.0)], axis=1),
+                         np.stack([np.full(ny, (sensor.width_px - 1) / 2.0), v], axis=1)])
+    rows = np.concatenate([2 * np.arange(nx), 2 * (nx + np.arange(ny)) + 1])
+    return uv, rows
+
+
+def _project_out(basis, X):
+    """``X`` without its least-squares part in the span of ``basis`` (columns)."""
+    Q, _ = np.linalg.qr(basis)
+    return X - Q @ (Q.T @ X)
+
+
+def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int] = (41, 31),
+                         tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
+                         remove_rotation: bool = False, rcond: float = 1e-7,
+                         outside_tol_px: float = 0.01, region: str = "auto") -> Comparison:
+    """Where the same rays land in two calibrations, and whether the change is real.
+
+    Parameters
+    ----------
+    a, b : Calibration
+        Two calibrations of the same sensor (``a`` the reference). Either method.
+    grid : (nx, ny)
+        Grid of pixels spanning the sensor corner to corner.
+    tolerance_um : float
+        Largest acceptable change in the image plane [um].
+    alpha : float
+        Significance level of the test.
+    remove_rotation : bool
+        Remove the best common rotation first (:func:`ray_difference_px`).
+    rcond : float
+        Singular values of ``M`` below ``rcond * s_max`` count as zero (rank).
+    outside_tol_px : float
+        A change outside the range of the covariance larger than this [px] is significant.
+    region : {"auto", "sensor", "axes"}
+        Where the change is tested: the whole grid, or the scanned axes of a goniometer
+        (module docstring); ``"auto"`` picks ``"axes"`` when either is a goniometer's.
+
+    Returns
+    -------
+    Comparison
+    """
+    if not (tolerance_um > 0):
+        raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
+    if not (0 < alpha < 1):
+        raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
+    if region not in ("auto", "sensor", "axes"):
+        raise InputError(f"region must be 'auto', 'sensor' or 'axes', got {region!r}", "compare")
+    if region == "auto":
+        region = "axes" if "goniometer" in (a.method, b.method) else "sensor"
+    if region == "axes":
+        remove_rotation = True
+    uv, d = ray_difference_px(a.camera, b.camera, remove_rotation=remove_rotation, grid=grid)
+    n = len(uv)
+    names, cov = _combined_covariance(a, b)
+    L = _sqrt_psd(cov)
+    J = landing_jacobian(a.camera, uv, names).reshape(2 * n, len(names))
+    M = J @ L
+    dv = d.reshape(2 * n)
+    if remove_rotation:
+        M = remove_rotation_part(a.camera, uv, M)
+        dv = remove_rotation_part(a.camera, uv, dv)
+    Mp = M.reshape(n, 2, -1)
+    sigma = summarise_2x2(np.einsum("nik,njk->nij", Mp, Mp))
+    test_max = None
+    if region == "axes":
+        uv_t, rows = _swept_points(a, b) or _axis_points(a.sensor, grid)
+        _, d_t = ray_difference_px(a.camera, b.camera, uv_t)
+        R = rotation_jacobian(a.camera, uv_t).reshape(-1, 3)[rows]
+        dv_t = _project_out(R, d_t.reshape(-1)[rows])
+        M_t = _project_out(R, (landing_jacobian(a.camera, uv_t, names).reshape(-1, len(names)) @ L)[rows])
+        test_max = float(np.abs(dv_t).max())
+    else:
+        dv_t, M_t = dv, M
+    U, s, _ = np.linalg.svd(M_t, full_matrices=False)
+    keep = s > rcond * (s[0] if s.size and s[0] > 0 else 1.0)
+    r = int(keep.sum())
+    z = (U[:, keep].T @ dv_t) / s[keep]
+    chi2 = float(z @ z)
+    outside = dv_t - U[:, keep] @ (U[:, keep].T @ dv_t)
+    outside_px = (float(np.abs(outside).max()) if region == "axes"
+                  else float(np.hypot(*outside.reshape(-1, 2).T).max()) if n else 0.0)
+    p_value = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
+    return Comparison(a.version, b.version, a.method, b.method, tuple(grid), uv,
+                      dv.reshape(n, 2) if remove_rotation else d, sigma, chi2, r, p_value,
+                      outside_px, float(a.sensor.pixel_size_um), float(tolerance_um),
+                      float(alpha), float(outside_tol_px), bool(remove_rotation), region, test_max)

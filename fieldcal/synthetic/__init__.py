@@ -1,0 +1,2 @@
+"""Exact synthetic sessions: field geometries, the image renderer, goniometer sessions.
+"""

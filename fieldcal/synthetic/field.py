@@ -1,0 +1,293 @@
+"""Synthetic field-calibration problems with exact truth.
+
+Two scenarios, both in a world frame with X along the facade (east), Y towards it
+(north) and Z up; the cameras stand south of the facade and look north:
+
+``paper_field``
+    The geometry of the field paper (METHODS part A): a Phase One iXU150-like camera
+    (8208 x 6280 px, 5.3 um, the paper's Table 1 parameters), an 80 m x 30 m facade with
+    ~2000 targets of 60 mm on a 1 m grid and up to 1.8 m of depth relief (pilasters
+    and balconies), 6 stations (3 on the ground, 3 on a roof) at ~60 m, 12 attitudes
+    each (aimed across the facade, rolled by multiples of 90 degrees): 72 images seeing
+    100-300 targets each.
+``wide_field``
+    A wide-angle non-metric camera (6000 x 4000 px, 3.9 um, 24 mm, about 20 px of
+    barrel distortion in the corners) in front of a 10 m x 4 m wall with up to 1 m of
+    relief, 8 stations x 3 rolls = 24 convergent images from 5-7 m.
+
+Every problem carries the truth (camera, poses, exact targets and exact image points)
+and what a user would have: surveyed targets with survey noise and measured image
+points with image noise. Noise is seeded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
+from fieldcal.model.camera import Camera, Sensor
+
+__all__ = [
+    "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
+    "add_blunders", "Blunders",
+]
+
+IXU150_TABLE1 = {
+    "f_mm": 146.39, "xp_mm": 0.27555, "yp_mm": 0.040671,
+    "k1": -1.1177e-5, "k2": 1.9235e-9, "k3": -1.5038e-12,
+    "p1": -8.1256e-7, "p2": -4.2276e-6, "a1": 1.2759e-6, "a2": 3.8587e-5,
+}
+"""The paper's Table 1 (the k3 of its initial-value column is a typo; this is the adjusted one)."""
+
+WIDE_ANGLE = {
+    "f_mm": 24.0, "xp_mm": 0.05, "yp_mm": -0.03,
+    "k1": 3.5e-5, "k2": -3.0e-8, "k3": 1.0e-11,
+    "p1": 1.0e-5, "p2": -8.0e-6, "a1": 0.0, "a2": 5.0e-5,
+}
+"""A non-metric 24 mm camera: about 20 px of barrel distortion in the corners of a 6000 x 4000 sensor."""
+
+
+@dataclass
+class SyntheticField:
+    """A synthetic field problem: truth plus what a user would measure.
+
+    Attributes
+    ----------
+    name : str
+    camera : Camera
+        The true camera.
+    targets_true : TargetField
+        Exact target coordinates (and plane normals).
+    R_world_to_camera : (n_images, 3, 3) ndarray
+    center_m : (n_images, 3) ndarray
+        True exterior orientations.
+    uv_true_px : (m, 2) ndarray
+        Exact images of the target centres, aligned with ``data.obs``.
+    data : FieldData
+        Surveyed (noisy) targets and measured (noisy) image points.
+    target_diameter_mm, marker_size_mm : float
+        Physical sizes for the renderer.
+    """
+
+    name: str
+    camera: Camera
+    targets_true: TargetField
+    R_world_to_camera: np.ndarray
+    center_m: np.ndarray
+    uv_true_px: np.ndarray
+    data: FieldData
+    target_diameter_mm: float
+    marker_size_mm: float
+    settings: dict = field(default_factory=dict)
+
+
+def look_at(center_m, aim_m, roll_rad=0.0, up=(0.0, 0.0, 1.0)):
+    """``R_world_to_camera`` of a camera at ``center_m`` looking at ``aim_m``, rolled about its axis.
+
+    The camera frame is x right, y up, z backwards (CONTRACT section 1); with
+    ``roll_rad = 0`` the image's y axis is as close to the world ``up`` as possible.
+    """
+    forward = np.asarray(aim_m, float) - np.asarray(center_m, float)
+    z = -forward / np.linalg.norm(forward)
+    x = np.cross(np.asarray(up, float), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    c, s = np.cos(roll_rad), np.sin(roll_rad)
+    roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return roll @ R
+
+
+def _visible_all(camera: Camera, Rs, Cs, X, normals, margin_px, max_incidence_deg):
+    """Which targets each image sees, and their exact image points (vectorised over images).
+
+    Returns ``(image, target, uv_px)`` for the usable pairs: in front of the camera, inside
+    the sensor by ``margin_px``, and seen at less than ``max_incidence_deg`` from the normal.
+    """
+    s = camera.sensor
+    Xc = np.einsum("iab,ijb->ija", Rs, X[None, :, :] - Cs[:, None, :])
+    view = Cs[:, None, :] - X[None, :, :]
+    cos_inc = np.einsum("ijk,jk->ij", view, normals) / np.linalg.norm(view, axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -camera.f_mm * Xc[..., :2] / Xc[..., 2:3]
+    # cheap pre-selection on the ideal image (distortion is far below 10 % of the half size)
+    half = 0.55 * np.array([s.width_px, s.height_px]) * s.pixel_mm
+    cand = (Xc[..., 2] < 0) & (np.abs(q) < half).all(axis=-1) & (cos_inc > np.cos(np.radians(max_incidence_deg)))
+    img, tgt = np.nonzero(cand)
+    uv = s.mm_to_pixel(camera.distort(q[img, tgt], check=False))
+    inside = (
+        np.isfinite(uv).all(axis=1)
+        & (uv[:, 0] >= margin_px) & (uv[:, 0] <= s.width_px - 1 - margin_px)
+        & (uv[:, 1] >= margin_px) & (uv[:, 1] <= s.height_px - 1 - margin_px)
+    )
+    return img[inside], tgt[inside], uv[inside]
+
+
+def _simulate(name, camera, targets, poses, stations, *, image_noise_px, survey_noise_mm, seed,
+              margin_px, target_diameter_mm, marker_size_mm, max_incidence_deg=70.0,
+              settings=None, nominal_focal_mm=None) -> SyntheticField:
+    rng = np.random.default_rng(seed)
+    Rs = np.stack([p[0] for p in poses])
+    Cs = np.stack([p[1] for p in poses])
+    img, tgt, uv_true = _visible_all(camera, Rs, Cs, targets.xyz_m, targets.normals, margin_px,
+                                     max_incidence_deg)
+    uv_meas = uv_true + rng.normal(0.0, image_noise_px, uv_true.shape)
+    surveyed = targets.xyz_m + rng.normal(0.0, survey_noise_mm / 1000.0, targets.xyz_m.shape)
+    images = [FieldImage(f"images/{name}_{i + 1:03d}.tif", stations[i]) for i in range(len(poses))]
+    data = FieldData(
+        sensor=camera.sensor,
+        targets=TargetField(targets.ids, surveyed, np.full(len(targets), max(survey_noise_mm, 1e-3)),
+                            targets.codes, targets.normals),
+        images=images,
+        obs=FieldObservations(img, tgt, uv_meas, np.full(len(img), max(image_noise_px, 1e-3))),
+        nominal_focal_mm=nominal_focal_mm,
+        default_sigma_px=max(image_noise_px, 1e-3),
+    )
+    return SyntheticField(name, camera, targets, Rs, Cs, uv_true, data, target_diameter_mm,
+                          marker_size_mm, dict(settings or {}, image_noise_px=image_noise_px,
+                                               survey_noise_mm=survey_noise_mm, seed=seed))
+
+
+def _grid_targets(xs, zs, depth_fn, keep_fraction, code_rule, rng, prefix):
+    xx, zz = np.meshgrid(xs, zs)
+    xx, zz = xx.ravel(), zz.ravel()
+    ix, iz = np.meshgrid(np.arange(len(xs)), np.arange(len(zs)))
+    ix, iz = ix.ravel(), iz.ravel()
+    coded = code_rule(ix, iz)
+    keep = coded | (rng.random(xx.size) < keep_fraction)
+    xx, zz, ix, iz, coded = xx[keep], zz[keep], ix[keep], iz[keep], coded[keep]
+    yy = depth_fn(xx, zz)
+    xyz = np.stack([xx, yy, zz], axis=1)
+    codes = np.full(xx.size, -1, dtype=np.int64)
+    codes[coded] = np.arange(coded.sum())
+    ids = np.array([f"{prefix}{i + 1:04d}" for i in range(xx.size)])
+    normals = np.tile([0.0, -1.0, 0.0], (xx.size, 1))
+    return TargetField(ids, xyz, 0.0, codes, normals)
+
+
+def paper_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 5.0,
+                n_attitudes: int = 12, distance_m: float = 60.0, camera: Camera | None = None,
+                recess_m: float = 0.0, station_spread_m: float = 25.0) -> SyntheticField:
+    """The field paper's geometry (see the module docstring); ~72 images, ~2000 targets.
+
+    Parameters
+    ----------
+    seed : int
+        Seeds the target selection jitter, the noise and the attitude jitter.
+    image_noise_px : float
+        One-sigma Gaussian noise of u and v [px].
+    survey_noise_mm : float
+        One-sigma Gaussian noise of each surveyed coordinate [mm]; also the sigma written
+        to the targets.
+    n_attitudes : int
+        Attitudes per station (at most 12).
+    """
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)
+
+    def relief(x, z):
+        pilaster = (np.mod(x + 40.0, 8.0) < 2.0) * 0.6
+        balcony = ((np.mod(z, 6.0) > 4.4) & (np.abs(x) < 30.0)) * 1.2
+        recess = (np.abs(x) < 14.0) * recess_m
+        return -(pilaster + balcony) + recess
+
+    def code_rule(ix, iz):
+        return (ix % 6 == 3) & (iz % 5 == 2)
+
+    targets = _grid_targets(np.arange(-39.5, 40.0, 1.0), np.arange(1.0, 30.5, 1.0), relief,
+                            0.80, code_rule, rng, "T")
+    a = station_spread_m
+    stations = [("G1", (-a, -distance_m, 1.5)), ("G2", (0.0, -distance_m, 1.5)),
+                ("G3", (a, -distance_m, 1.5)), ("R1", (-a, -distance_m + 2, 30.0)),
+                ("R2", (0.0, -distance_m + 2, 30.0)), ("R3", (a, -distance_m + 2, 30.0))]
+    poses, names = [], []
+    for name, C in stations:
+        C = np.asarray(C)
+        aims = [(C[0] + dx, 0.0, z) for z in (6.0, 15.0, 24.0) for dx in (-21.0, -7.0, 7.0, 21.0)]
+        for a in range(n_attitudes):
+            aim = np.array(aims[a])
+            aim[0] = np.clip(aim[0], -33.0, 33.0) + rng.normal(0, 1.0)
+            roll = np.radians(90.0 * (a % 4) + rng.normal(0, 2.0))
+            poses.append((look_at(C, aim, roll), C + rng.normal(0, 0.3, 3)))
+            names.append(name)
+    return _simulate("paper", cam, targets, poses, names, image_noise_px=image_noise_px,
+                     survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=20.0,
+                     target_diameter_mm=60.0, marker_size_mm=400.0, nominal_focal_mm=150.0,
+                     settings={"scenario": "paper", "distance_m": distance_m})
+
+
+def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 5.0,
+               camera: Camera | None = None) -> SyntheticField:
+    """A wide-angle non-metric camera in front of a wall with relief (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(6000, 4000, 3.9), WIDE_ANGLE)
+
+    def relief(x, z):
+        pillar = (np.mod(x + 5.0, 2.5) < 0.8) * 0.5
+        shelf = ((z > 1.2) & (z < 2.2) & (np.abs(x) < 3.0)) * 0.5
+        return -(pillar + shelf)
+
+    def code_rule(ix, iz):
+        return (ix % 4 == 2) & (iz % 3 == 1)
+
+    targets = _grid_targets(np.arange(-4.9, 5.0, 0.35), np.arange(0.2, 4.1, 0.35), relief,
+                            0.92, code_rule, rng, "W")
+    poses, names = [], []
+    station_xy = [(-4.0, -5.5), (-1.5, -6.5), (1.5, -6.5), (4.0, -5.5),
+                  (-3.0, -5.0), (0.0, -5.5), (3.0, -5.0), (0.0, -7.0)]
+    heights = [0.8, 2.0, 3.2, 1.2, 3.0, 1.0, 2.5, 2.0]
+    for s, ((x, y), h) in enumerate(zip(station_xy, heights, strict=True)):
+        C = np.array([x, y, h])
+        for roll_deg in (0.0, 90.0, 270.0):
+            aim = np.array([0.35 * x + rng.normal(0, 0.4), 0.0, 2.0 + rng.normal(0, 0.3)])
+            poses.append((look_at(C, aim, np.radians(roll_deg + rng.normal(0, 3.0))), C))
+            names.append(f"S{s + 1}")
+    return _simulate("wide", cam, targets, poses, names, image_noise_px=image_noise_px,
+                     survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=15.0,
+                     target_diameter_mm=20.0, marker_size_mm=120.0, nominal_focal_mm=24.0,
+                     settings={"scenario": "wide"})
+
+
+@dataclass
+class Blunders:
+    """What :func:`add_blunders` did: indices of corrupted survey rows and observations."""
+
+    survey_targets: np.ndarray
+    swapped_observations: np.ndarray
+
+
+def add_blunders(sf: SyntheticField, *, fraction: float = 0.01, survey_offset_m: float = 0.10,
+                 seed: int = 0) -> tuple[SyntheticField, Blunders]:
+    """Corrupt a copy of the data with two kinds of blunders.
+
+    ``fraction`` of the targets get their surveyed coordinates moved by
+    ``survey_offset_m`` in a random direction, and ``fraction`` of the image observations
+    are given wrong identities by swapping the target ids of pairs of observations in the
+    same image.
+    """
+    rng = np.random.default_rng(seed)
+    data = sf.data
+    xyz = data.targets.xyz_m.copy()
+    n_t = max(1, int(round(fraction * len(xyz))))
+    bad_t = rng.choice(len(xyz), n_t, replace=False)
+    d = rng.normal(size=(n_t, 3))
+    xyz[bad_t] += survey_offset_m * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    target = data.obs.target.copy()
+    n_pairs = max(1, int(round(fraction * len(target) / 2)))
+    swapped = []
+    images = rng.choice(np.unique(data.obs.image), n_pairs)
+    for i in images:
+        k = np.flatnonzero(data.obs.image == i)
+        k = k[~np.isin(k, swapped)]
+        if k.size < 2:
+            continue
+        a, b = rng.choice(k, 2, replace=False)
+        target[a], target[b] = target[b], target[a]
+        swapped += [a, b]
+    obs = replace(data.obs, target=target)
+    targets = replace(data.targets, xyz_m=xyz)
+    new = replace(sf, data=replace(data, targets=targets, obs=obs))
+    return new, Blunders(np.sort(bad_t), np.sort(np.array(swapped, dtype=np.int64)))

@@ -1,0 +1,382 @@
+"""Command-line commands for reports, comparisons and exports (issue 6).
+
+:func:`add_commands` is called by :mod:`flows.cli` with its ``argparse`` sub-parsers;
+each command registered here sets ``func`` (called with the parsed arguments, returns
+the exit status). Every command takes ``--lake LAKE`` (default: the ``FIELDCAL_LAKE``
+environment variable) and names a calibration by its version, or ``latest --camera ID``
+(``compare`` also takes ``previous``: the version before the latest of that camera's
+sessions).
+
+- ``fieldcal report VERSION [--out DIR]``: ``DIR/report.html`` (self-contained) and the
+  plots as PNG (:mod:`fieldcal.products.report`); prints the HTML's path.
+- ``fieldcal compare V1 V2 [--plot PNG] [--format text|json] [--out FILE]``: where the same
+  ray lands in both, what their uncertainties explain, and the change test
+  (:mod:`fieldcal.products.compare`).
+- ``fieldcal export VERSION --format opencv|colmap|metashape|json [--out FILE]``: to standard
+  output unless ``--out``; the fit's residual and round trip on standard error
+  (:mod:`fieldcal.products.export`). ``--strict`` refuses (exit 3) an export that cannot be exact.
+- ``fieldcal undistort VERSION IMAGE.tif OUT.tif``: the corrected image by ``cv2.remap``
+  (:mod:`fieldcal.products.undistort`).
+
+``fieldcal history`` belongs to :mod:`flows.cli`; :func:`history_extras` adds its
+``--plot FILE.png`` and ``--fleet`` options and :func:`history_handler` runs them (it
+returns None when neither was asked for, so the plain history runs as usual).
+
+Exit status (as :func:`flows.cli.main`): 0 on success; 2 with a one-line reason on
+standard error for bad input (an argument, a version id, a file); 1 for other fieldcal
+errors (an unreadable lake, a version that is not committed); 3 for ``export --strict``
+when the export cannot be exact.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from fieldcal.errors import FieldcalError, InputError
+
+__all__ = ["add_commands", "history_extras", "history_handler", "resolve_version",
+           "open_lake", "EXIT_ERROR", "EXIT_USAGE", "EXIT_NOT_EXACT"]
+
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_NOT_EXACT = 3
+LAKE_ENV = "FIELDCAL_LAKE"
+OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
+
+
+# --------------------------------------------------------------------------------------
+# shared arguments
+# --------------------------------------------------------------------------------------
+def _add_lake(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--lake", default=None,
+                   help=f"the lake: a path or fsspec URL (default: ${LAKE_ENV})")
+    p.add_argument("--storage-options", metavar="JSON", default=None,
+                   help=f"fsspec options of the lake as JSON (default: ${OPTIONS_ENV})")
+
+
+def _add_camera(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--camera", default=None, metavar="ID",
+                   help="camera id, to name a version as 'latest' (or 'previous')")
+
+
+def open_lake(args):
+    """The lake of ``--lake`` or ``$FIELDCAL_LAKE``."""
+    from fieldcal.lake.store import Lake
+
+    url = getattr(args, "lake", None) or os.environ.get(LAKE_ENV)
+    if not url:
+        raise InputError(f"no lake given: use --lake LAKE or set {LAKE_ENV}", "fieldcal")
+    text = getattr(args, "storage_options", None) or os.environ.get(OPTIONS_ENV)
+    options = None
+    if text:
+        try:
+            options = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"--storage-options is not JSON: {e.msg}", "fieldcal") from None
+        if not isinstance(options, dict):
+            raise InputError("--storage-options must be a JSON object", "fieldcal")
+    return Lake(url, options)
+
+
+def _lake_and_version(args):
+    """``(lake, version)`` named by ``--lake``, ``--version`` and ``--camera``."""
+    lake = open_lake(args)
+    return lake, resolve_version(lake, args.version, args.camera)
+
+
+def resolve_version(lake, name: str, camera: str | None) -> str:
+    """A version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``)."""
+    if name not in ("latest", "previous"):
+        lake.row(name)                                  # checks it is committed
+        return name
+    if not camera:
+        raise InputError(f"'{name}' needs --camera ID", "fieldcal")
+    if name == "latest":
+        v = lake.latest(camera)
+        if v is None:
+            raise InputError(f"camera {camera!r} has no calibration in {lake.url}", "fieldcal")
+        return v
+    from fieldcal.lake import history
+
+    hist = history.camera_history(lake, camera).to_pylist()
+    latest = lake.latest(camera)
+    versions = [h["version"] for h in hist]
+    if latest in versions:
+        i = versions.index(latest)
+        if i > 0:
+            return versions[i - 1]
+    elif len(versions) >= 2:
+        return versions[-2]
+    raise InputError(f"camera {camera!r} has no calibration before its latest in {lake.url}",
+                     "fieldcal")
+
+
+def _run(fn):
+    """Wrap a command: fieldcal errors become one line on stderr and exit status 2 or 1."""
+    def run(args) -> int:
+        name = f"fieldcal {getattr(args, 'command', '') or ''}".rstrip()
+        try:
+            return int(fn(args) or 0)
+        except FieldcalError as e:
+            print(f"{name}: {' '.join(str(e).split())}", file=sys.stderr)
+            return EXIT_USAGE if isinstance(e, InputError) else EXIT_ERROR
+        except OSError as e:
+            print(f"{name}: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
+            return EXIT_ERROR
+    run.__doc__ = fn.__doc__
+    run.__name__ = fn.__name__
+    return run
+
+
+def _write_text(text: str, out: str | None) -> None:
+    if out:
+        Path(out).write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+
+
+# --------------------------------------------------------------------------------------
+# commands
+# --------------------------------------------------------------------------------------
+@_run
+def _report(args) -> int:
+    from fieldcal.products.report import write_report
+
+    lake = open_lake(args)
+    version = resolve_version(lake, args.version, args.camera)
+    out = args.out or f"fieldcal-report-{version}"
+    files = write_report(lake, version, out)
+    print(files.html)
+    return 0
+
+
+def _comparison_text(c, a, b) -> str:
+    lines = [f"A: {a.label()}", f"B: {b.label()}",
+             f"grid {c.grid[0]} x {c.grid[1]} over the sensor"
+             + (", best common rotation removed" if c.remove_rotation else ""),
+             f"difference |uv_A(ray_B(uv)) - uv|: max {c.max_px:.4g} px ({c.max_um:.4g} um), "
+             f"RMS {c.rms_px:.4g} px",
+             f"explained by the two calibrations' uncertainties (1 sigma): up to "
+             f"{float(c.sigma_px.max()):.4g} px",
+             f"chi-square {c.chi2:.4g} with {c.dof} degrees of freedom, p = {c.p_value:.3g}; "
+             f"outside the explained range {c.outside_px:.2g} px",
+             f"verdict: {c.verdict}"]
+    return "\n".join(lines) + "\n"
+
+
+@_run
+def _compare(args) -> int:
+    from fieldcal.products.compare import compare_calibrations
+    from fieldcal.products.uncertainty import Calibration
+
+    lake = open_lake(args)
+    va = resolve_version(lake, args.v1, args.camera)
+    vb = resolve_version(lake, args.v2, args.camera)
+    a, b = Calibration.from_lake(lake, va), Calibration.from_lake(lake, vb)
+    c = compare_calibrations(a, b, grid=tuple(args.grid), tolerance_um=args.tolerance_um,
+                             alpha=args.alpha, remove_rotation=args.remove_rotation)
+    if args.plot:
+        from fieldcal.products.plots import compare_figure, to_png
+
+        Path(args.plot).write_bytes(to_png(compare_figure(c, a.sensor)))
+    if args.format == "json":
+        text = json.dumps(c.summary(), indent=2) + "\n"
+    else:
+        text = _comparison_text(c, a, b)
+    _write_text(text, args.out)
+    return 0
+
+
+@_run
+def _export(args) -> int:
+    from fieldcal.products.export import export_text
+    from fieldcal.products.uncertainty import Calibration
+
+    cal = Calibration.from_lake(*_lake_and_version(args))
+    exp = export_text(cal, args.format, model=args.model)
+    for line in exp.report_lines():
+        print(line, file=sys.stderr)
+    if args.strict and not exp.exact:
+        print(f"fieldcal export: refused (--strict): the {args.format} export cannot round-trip "
+              "within 0.01 px", file=sys.stderr)
+        return EXIT_NOT_EXACT
+    _write_text(exp.text, args.out)
+    return 0
+
+
+@_run
+def _undistort(args) -> int:
+    from fieldcal.products.uncertainty import Calibration
+    from fieldcal.products.undistort import undistort_file
+
+    cal = Calibration.from_lake(*_lake_and_version(args))
+    doc = cal.document
+    info = undistort_file(cal.camera, args.image, args.output, f_px=args.f_px,
+                          interpolation=args.interpolation,
+                          provenance={"camera_id": doc.get("camera_id"),
+                                      "session_id": doc.get("session_id"), "version": doc.get("version")})
+    k = info["K"]
+    print(f"{args.output}: corrected image {info['width_px']} x {info['height_px']} px, pinhole "
+          f"fx = fy = {k[0][0]:.6g} px, cx = {k[0][2]:.6g}, cy = {k[1][2]:.6g} (OpenCV convention), "
+          "no distortion")
+    return 0
+
+
+def add_commands(subparsers) -> None:
+    """Register ``report``, ``compare``, ``export`` and ``undistort`` (module docstring)."""
+    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
+    from fieldcal.products.export import FORMATS, OPENCV_MODELS
+    from fieldcal.products.undistort import INTERPOLATION
+
+    p = subparsers.add_parser("report", help="write the HTML report of a calibration",
+                              description="Write DIR/report.html (self-contained, plots embedded) "
+                                          "and the plots as PNG.")
+    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output folder (default ./fieldcal-report-VERSION)")
+    p.set_defaults(func=_report, command="report")
+
+    p = subparsers.add_parser("compare", help="compare two calibrations of one camera",
+                              description="Where the same ray lands in V1 and V2 over the sensor, "
+                                          "what their uncertainties explain, and a chi-square test "
+                                          "of the change.")
+    p.add_argument("v1", metavar="V1", help="reference version (or 'latest' / 'previous')")
+    p.add_argument("v2", metavar="V2", help="other version (or 'latest' / 'previous')")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--tolerance-um", type=float, default=DEFAULT_TOLERANCE_UM,
+                   help=f"tolerance of a change in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+                   help=f"significance level (default {DEFAULT_ALPHA:g})")
+    p.add_argument("--remove-rotation", action="store_true",
+                   help="remove the best common rotation of the camera frames first")
+    p.add_argument("--grid", type=int, nargs=2, default=(41, 31), metavar=("NX", "NY"),
+                   help="grid over the sensor (default 41 31)")
+    p.add_argument("--plot", metavar="PNG", default=None, help="also draw the maps into PNG")
+    p.add_argument("--format", choices=("text", "json"), default="text")
+    p.add_argument("--out", metavar="FILE", default=None, help="write here instead of stdout")
+    p.set_defaults(func=_compare, command="compare")
+
+    p = subparsers.add_parser("export", help="export a calibration to OpenCV, COLMAP, Metashape "
+                                             "or JSON",
+                              description="Fit the target model to the calibration and write it; "
+                                          "the fit residual and round trip go to stderr.")
+    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--model", default="auto", choices=("auto",) + tuple(OPENCV_MODELS),
+                   help="OpenCV / COLMAP distortion model (default: the simplest exact one)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 3) when the export cannot round-trip within 0.01 px")
+    p.add_argument("--out", metavar="FILE", default=None, help="write here instead of stdout")
+    p.set_defaults(func=_export, command="export")
+
+    p = subparsers.add_parser("undistort", help="write the distortion-free image of a photograph",
+                              description="Resample IMAGE.tif with cv2.remap into the image of a "
+                                          "distortion-free pinhole camera (same size, principal "
+                                          "point at the centre).")
+    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
+    p.add_argument("image", metavar="IMAGE.tif")
+    p.add_argument("output", metavar="OUT.tif")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--interpolation", choices=tuple(INTERPOLATION), default="linear")
+    p.add_argument("--f-px", type=float, default=None,
+                   help="principal distance of the output [px] (default f / pixel pitch)")
+    p.set_defaults(func=_undistort, command="undistort")
+
+
+# --------------------------------------------------------------------------------------
+# history --plot / --fleet
+# --------------------------------------------------------------------------------------
+def history_extras(parser: argparse.ArgumentParser):
+    """Add ``--plot FILE.png``, ``--fleet``, ``--tolerance-um``, ``--alpha`` and ``--param``
+    to ``fieldcal history``'s parser (options it does not already have); returns
+    :func:`history_handler`, which :func:`flows.cli.cmd_history` calls first."""
+    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
+
+    have = set(parser._option_string_actions)            # noqa: SLF001 - argparse has no API
+    if "--plot" not in have:
+        parser.add_argument("--plot", metavar="PNG", default=None,
+                            help="draw the parameters over time (or, with --fleet, the fleet) "
+                                 "into PNG")
+    if "--fleet" not in have:
+        parser.add_argument("--fleet", action="store_true",
+                            help="every camera's latest calibration against its previous one, "
+                                 "flagged when it moved significantly and by more than the "
+                                 "tolerance")
+    if "--tolerance-um" not in have:
+        parser.add_argument("--tolerance-um", type=float, default=DEFAULT_TOLERANCE_UM,
+                            help=f"tolerance in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
+    if "--alpha" not in have:
+        parser.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+                            help=f"significance level of the change test (default {DEFAULT_ALPHA:g})")
+    if "--param" not in have:
+        parser.add_argument("--param", action="append", default=None, metavar="NAME",
+                            help="another parameter to plot (repeatable)")
+    return history_handler
+
+
+def _history_parameters(args) -> list[str]:
+    names = ["f_mm", "xp_mm", "yp_mm"]
+    for attr in ("parameters", "param"):
+        extra = getattr(args, attr, None)
+        if isinstance(extra, str):
+            extra = [x for x in extra.replace(",", " ").split() if x]
+        for n in extra or []:
+            if n not in names:
+                names.append(n)
+    return names
+
+
+def history_handler(args) -> int | None:
+    """Run ``history --plot`` / ``--fleet``; None when neither was asked for."""
+    if not (getattr(args, "plot", None) or getattr(args, "fleet", False)):
+        return None
+    return _history(args)
+
+
+@_run
+def _history(args) -> int:
+    from fieldcal.lake import history
+    from fieldcal.products import plots
+    from fieldcal.products.report import fleet_summary, parameter_tolerance
+
+    lake = open_lake(args)
+    if args.fleet:
+        table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
+                              start=getattr(args, "start", None), end=getattr(args, "end", None))
+        fmt = getattr(args, "format", None) or "text"
+        text = history.format_table(table, fmt if fmt in history.FORMATS else "text")
+        _write_text(text, getattr(args, "out", None))
+        if args.plot:
+            Path(args.plot).write_bytes(plots.to_png(plots.fleet_plot(table,
+                                                                      tolerance_um=args.tolerance_um)))
+        return 0
+    camera = getattr(args, "camera", None)
+    if not camera:
+        raise InputError("history --plot needs --camera ID (or --fleet)", "fieldcal history")
+    names = _history_parameters(args)
+    table = history.camera_history(lake, camera, names)
+    if table.num_rows == 0:
+        raise InputError(f"camera {camera!r} has no calibration in {lake.url}", "fieldcal history")
+    from fieldcal.model.camera import Sensor
+
+    row = lake.row(table["version"][0].as_py())
+    sensor = Sensor(int(row["width_px"]), int(row["height_px"]), float(row["pixel_size_um"]))
+    tol = {n: parameter_tolerance(n, args.tolerance_um, sensor) for n in names
+           if n in ("f_mm", "xp_mm", "yp_mm", "k0", "k1", "k2", "k3", "p1", "p2", "a1", "a2",
+                    "b1", "b2")}
+    fig = plots.history_plot(table, names, tolerance=tol,
+                             title=f"{camera}: {table.num_rows} calibration(s); band: "
+                                   f"+-{args.tolerance_um:g} um around the first")
+    Path(args.plot).write_bytes(plots.to_png(fig))
+    print(args.plot)
+    return 0

@@ -1,0 +1,171 @@
+"""The real photos of DBAT's calibration sheet, from JPEG to calibration (../shared/data/dbat-camcal).
+
+21 JPEGs (2272 x 1704, RGB) of a planar sheet with 96 dark discs and 4 PhotoModeler ring-coded
+targets (not ArUco), on a wooden floor with books beside it. They are converted to 8-bit
+single-channel TIFF, written as a session (targets from PhotoModeler's bundle, the sheet's
+units used as metres, sigma from the file; nominal 7.5 mm; dark targets; no coded block) with
+a marks.csv of 5 of PhotoModeler's measured points per image, then measured, identified and
+calibrated by fieldcal. PhotoModeler's own marks of the same photos are the reference: for the
+centroids (same points) and for the calibration (tests/realdata.py: dbat_field_data()).
+"""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
+from fieldcal.field.from_images import calibrate_from_measurements
+from fieldcal.pipeline import measure, prepare
+from tests.realdata import DBAT, dbat_field_data
+
+MARKS_PER_IMAGE = 5
+
+
+def _spread(uv, n):
+    """Indices of ``n`` well-spread points of ``uv`` (farthest-point choice, deterministic)."""
+    chosen = [int(np.argmax(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))]
+    dmin = np.linalg.norm(uv - uv[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(dmin)))
+        dmin = np.minimum(dmin, np.linalg.norm(uv - uv[chosen[-1]], axis=1))
+    return np.array(chosen)
+
+
+def _rows(path):
+    return [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+
+
+@pytest.fixture(scope="module")
+def dbat(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("dbat")
+    (folder / "images").mkdir()
+    names = {}
+    for line in _rows(DBAT / "images.txt"):
+        i, path = line.split(",")
+        jpg = path.strip().rsplit("/", 1)[-1]
+        names[int(i)] = "images/" + jpg.replace(".JPG", ".tif")
+        gray = cv2.imread(str(DBAT / "images" / jpg), cv2.IMREAD_GRAYSCALE)     # BT.601 luminance
+        assert gray is not None and gray.shape == (1704, 2272)
+        tifffile.imwrite(folder / names[int(i)], gray, photometric="minisblack")
+    targets = ["id,X,Y,Z,sigma_mm,code"]
+    for line in _rows(DBAT / "objpts-pm.txt"):
+        t = line.split()
+        targets.append(f"{t[0]},{t[1]},{t[2]},{t[3]},{max(float(v) for v in t[4:7]) * 1000.0:.4f},")
+    (folder / "targets.csv").write_text("\n".join(targets) + "\n")
+    # marks: 5 spread plain targets per image, PhotoModeler's centre minus 0.5 px (its pixel
+    # convention puts the centre of the top-left pixel at (0.5, 0.5))
+    pm = np.array([[float(v) for v in line.split(",")] for line in _rows(DBAT / "markpts.txt")])
+    marks = ["image,target_id,u,v"]
+    for i, name in names.items():
+        m = pm[(pm[:, 0] == i) & (pm[:, 1] < 1000)]
+        for k in _spread(m[:, 2:4], MARKS_PER_IMAGE):
+            marks.append(f"{name},{int(m[k, 1])},{m[k, 2] - 0.5:.4f},{m[k, 3] - 0.5:.4f}")
+    (folder / "marks.csv").write_text("\n".join(marks) + "\n")
+    manifest = {
+        "schema": "fieldcal.session/1", "method": "field", "camera_id": "olympus-c4040z",
+        "session_id": "dbat-camcal", "acquired": "2003-08-25",
+        "sensor": {"width_px": 2272, "height_px": 1704, "pixel_size_um": 3.1911},
+        "lens": {"nominal_focal_mm": 7.5},
+        "field": {"targets": "targets.csv", "target_polarity": "dark"},
+        "images": "images/*.tif", "default_sigma_px": 0.1,
+    }
+    (folder / "session.json").write_text(json.dumps(manifest, indent=2))
+
+    prepared = prepare(folder)
+    measurements = {name: measure(prepared, name) for name in prepared.to_measure}
+    lines = []
+    data, result, report = calibrate_from_measurements(prepared.session, measurements, AdjustmentOptions(),
+                                                       progress=lines.append)
+    print("\n" + "\n".join(ln for ln in lines if not ln.startswith(("adjustment", "re-adj"))))
+    reference = dbat_field_data()
+    return dict(prepared=prepared, measurements=measurements, data=data, result=result, report=report,
+                reference=reference, ref_result=adjust_field(reference), pm=pm, names=names)
+
+
+def _pm_lookup(ref):
+    return {(ref.images[i].file, str(ref.targets.ids[t])): uv
+            for i, t, uv in zip(ref.obs.image, ref.obs.target, ref.obs.uv_px, strict=True)}
+
+
+def test_every_photo_is_identified_without_a_wrong_identity(dbat):
+    """Every measured blob we identify is the target PhotoModeler says is there; the ring-coded
+    targets, the books and the wood grain give no identity."""
+    ref, pm = dbat["reference"], _pm_lookup(dbat["reference"])
+    assert all(r["status"] == "ok" for r in dbat["report"]), [r["reason"] for r in dbat["report"]]
+    n_same = n_elsewhere = n_pm_measured = n_pm_identified = 0
+    res = dbat["result"]
+    for name, ident in dbat["data"].meta["identifications"].items():
+        table = dbat["measurements"][name]
+        uv = np.stack([table["u_px"].to_numpy(), table["v_px"].to_numpy()], axis=1)
+        i = [im.file for im in ref.images].index(name)
+        k = ref.obs.image == i
+        pm_uv, pm_id = ref.obs.uv_px[k], ref.targets.ids[ref.obs.target[k]]
+        # the blob nearest each of PhotoModeler's marks (within 1 px: the same blob measured)
+        d = np.linalg.norm(uv[:, None] - pm_uv[None], axis=2)
+        for row in np.flatnonzero(ident.target >= 0):
+            tid = str(dbat["data"].targets.ids[ident.target[row]])
+            j = int(np.argmin(d[row]))
+            if d[row, j] < 1.0:
+                assert pm_id[j] == tid, f"{name}: blob at {uv[row]} is {pm_id[j]}, identified as {tid}"
+                n_same += 1
+            else:
+                # a target PhotoModeler did not mark in this image: it must still be where the
+                # calibration puts it, and no PhotoModeler mark may be near it
+                assert (name, tid) not in pm
+                assert d[row].min() > 20.0
+                n = [im.file for im in dbat["data"].images].index(name)
+                proj = res.camera.project(res.targets_m[ident.target[row]], res.R_world_to_camera[n],
+                                          res.center_m[n])
+                assert np.hypot(*(proj - uv[row])) < 1.0      # [px] where the calibration puts it
+                n_elsewhere += 1
+        measured = d.min(axis=0) < 1.0
+        n_pm_measured += int(measured.sum())
+        ids_found = {str(dbat["data"].targets.ids[t]) for t in ident.target[ident.target >= 0]}
+        n_pm_identified += int(sum(pid in ids_found for pid in pm_id[measured]))
+    print(f"\nidentified {n_same} blobs that PhotoModeler marked (all with its id) and {n_elsewhere} it did "
+          f"not mark; of PhotoModeler's {len(ref.obs)} marks our detector measured {n_pm_measured}, "
+          f"of which {n_pm_identified} were identified")
+    assert n_pm_identified >= 0.99 * n_pm_measured
+    assert n_elsewhere <= 5
+    assert res.stats()["n_images"] == 21
+
+
+def test_centroids_agree_with_photomodeler(dbat):
+    pm = _pm_lookup(dbat["reference"])
+    data = dbat["data"]
+    d = []
+    for k in range(len(data.obs)):
+        key = (data.images[data.obs.image[k]].file, str(data.targets.ids[data.obs.target[k]]))
+        if key in pm:
+            d.append(data.obs.uv_px[k] - pm[key])
+    d = np.asarray(d)
+    norm = np.hypot(d[:, 0], d[:, 1])
+    rms = float(np.sqrt(np.mean(norm**2)))
+    print(f"\nour centroids - PhotoModeler's: {len(d)} points, RMS {rms:.3f} px, median {np.median(norm):.3f} px, "
+          f"max {norm.max():.3f} px, mean ({d[:, 0].mean():+.3f}, {d[:, 1].mean():+.3f}) px")
+    # strongly compressed JPEGs, two different centroid operators: a few tenths of a pixel
+    assert rms < 0.3
+    assert norm.max() < 1.0
+    assert np.all(np.abs(d.mean(axis=0)) < 0.05)    # no convention offset (the 0.5 px is handled)
+
+
+def test_calibration_agrees_with_the_one_from_photomodelers_marks(dbat):
+    ours, ref = dbat["result"], dbat["ref_result"]
+    print(f"\n{'':6s} {'from the photos':>24s} {'from PhotoModeler marks':>24s}  diff / combined sigma")
+    for j, n in enumerate(("f_mm", "xp_mm", "yp_mm", "k1", "k2")):
+        a, b = ours.params[j if j < 3 else j + 1], ref.params[j if j < 3 else j + 1]
+        sa, sb = ours.sigma.get(n, np.nan), ref.sigma.get(n, np.nan)
+        print(f"{n:6s} {a:14.6g} +- {sa:.2g} {b:14.6g} +- {sb:.2g}  {(a - b) / np.hypot(sa, sb):+.1f}")
+    so, sr = ours.stats(), ref.stats()
+    print(f"photos: {so['n_observations']} points, rmse {so['rmse_px']:.3f} px, sigma0 {so['sigma0']:.1f} "
+          f"(a-priori: the detector's sigma_px); PhotoModeler: {sr['n_observations']} points, rmse "
+          f"{sr['rmse_px']:.3f} px, sigma0 {sr['sigma0']:.2f} (a-priori 0.1 px)")
+    for j, n in enumerate(("f_mm", "xp_mm", "yp_mm")):
+        diff = abs(ours.params[j] - ref.params[j])
+        # two measurements of the same photos: within 3 combined (a-posteriori) sigmas
+        assert diff <= 3.0 * np.hypot(ours.sigma[n], ref.sigma[n])
+    assert abs(ours.params[0] / ref.params[0] - 1.0) < 1e-3       # f to 0.1 %
+    assert so["rmse_px"] < 0.2                                    # the JPEGs' centroid noise
