@@ -42,3 +42,15 @@ class ImageError(InputError):
 
 class LakeError(FieldcalError):
     """The lake cannot be read or written consistently."""
+
+
+def one_line(error) -> str:
+    """One line describing an exception (its text, else its class name) or a text.
+
+    White space, newlines included, is folded to single spaces.
+    """
+    if isinstance(error, BaseException):
+        text = str(error) or type(error).__name__
+    else:
+        text = str(error)
+    return " ".join(text.split())

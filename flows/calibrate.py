@@ -63,7 +63,7 @@ from prefect.context import FlowRunContext
 from prefect.futures import as_completed
 
 from fieldcal import pipeline, progress
-from fieldcal.errors import ImageError, InputError, LakeError
+from fieldcal.errors import ImageError, InputError, LakeError, one_line
 from fieldcal.lake.store import Lake
 from fieldcal.session.fingerprint import canonical_json, sha256_bytes, sha256_file
 
@@ -149,9 +149,6 @@ def _settings(settings: dict | None) -> pipeline.Settings:
         raise InputError(f"unknown setting(s) {sorted(set(settings or {}) - set(known))}; known: "
                          f"{known}", "settings") from None
 
-
-def _one_line(err: BaseException) -> str:
-    return " ".join((str(err) or type(err).__name__).split())
 
 
 def _strip_meta(table):
@@ -261,7 +258,7 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
             try:
                 sha = sha256_file(path)
             except (InputError, OSError) as e:
-                row.update(status="bad", reason=getattr(e, "reason", None) or _one_line(e))
+                row.update(status="bad", reason=getattr(e, "reason", None) or one_line(e))
                 continue
             row["hash_s"] = time.perf_counter() - t
         key = measurement_key(sha, msettings)

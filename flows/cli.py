@@ -51,6 +51,8 @@ import os
 import sys
 import time
 
+from fieldcal.errors import one_line
+
 __all__ = ["main", "build_parser"]
 
 LAKE_ENV = "FIELDCAL_LAKE"
@@ -65,9 +67,6 @@ class UsageError(Exception):
 # --------------------------------------------------------------------------------------
 # small helpers
 # --------------------------------------------------------------------------------------
-def _one_line(text) -> str:
-    return " ".join(str(text).split())
-
 
 def _tty(stream) -> bool:
     try:
@@ -216,7 +215,7 @@ def cmd_run(args) -> int:
             result = calibrate_session(str(args.session), str(lake), storage_options=options, force=args.force,
                                        rehash=args.rehash, **_flow_kwargs(args))
     for item in result["left_out"]:
-        print(f"fieldcal run: left out {item.get('image')}: {_one_line(item.get('reason'))}", file=err)
+        print(f"fieldcal run: left out {item.get('image')}: {one_line(item.get('reason'))}", file=err)
     if human:
         for line in result["summary"]:
             print(line, file=err)
@@ -241,7 +240,7 @@ def _fleet_table(summary: dict) -> str:
 
     rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": r["status"],
              "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
-             "reason": _one_line(r["reason"] or "")} for r in summary["sessions"]]
+             "reason": one_line(r["reason"] or "")} for r in summary["sessions"]]
     schema = pa.schema([("camera_id", pa.string()), ("session_id", pa.string()), ("status", pa.string()),
                         ("version", pa.string()), ("seconds", pa.float64()), ("reason", pa.string())])
     return to_text(pa.Table.from_pylist(rows, schema=schema))
@@ -578,7 +577,7 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except UsageError as e:
-        print(f"{name}: {_one_line(e)}", file=sys.stderr)
+        print(f"{name}: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)
@@ -590,7 +589,7 @@ def main(argv=None) -> int:
             import traceback
 
             traceback.print_exc()
-        text = _one_line(e)
+        text = one_line(e)
         if not isinstance(e, FieldcalError):
             text = f"{type(e).__name__}: {text}" + ("" if getattr(args, "verbose", False) else
                                                    " (--verbose for details)")

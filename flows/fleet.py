@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
+from fieldcal.errors import one_line
 from fieldcal.lake.store import Lake
 
 from . import cluster
@@ -69,9 +70,6 @@ def _filesystem(root: str, storage_options: dict | None):
     return None, os.path.abspath(text)
 
 
-def _one_line(err: BaseException) -> str:
-    return " ".join((str(err) or type(err).__name__).split())
-
 
 @task(name="scan-sessions", cache_policy=NO_CACHE, persist_result=False)
 def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundSession]:
@@ -108,7 +106,7 @@ def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundS
             has_images = manifest.get("method") == "goniometer" or not has_obs
             found.append(FoundSession(url, camera_id, str(session_id), has_images))
         except (OSError, ValueError) as e:
-            found.append(FoundSession(url, None, None, error=f"{m}: {_one_line(e)}"))
+            found.append(FoundSession(url, None, None, error=f"{m}: {one_line(e)}"))
     return found
 
 
@@ -193,7 +191,7 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
                 outcome = e
             entry["seconds"] = round(time.perf_counter() - t, 3)
             if isinstance(outcome, BaseException):
-                entry.update(status="failed", reason=_one_line(outcome))
+                entry.update(status="failed", reason=one_line(outcome))
                 logger.error(f"{s.camera_id} / {s.session_id}: failed: {entry['reason']}")
             else:
                 entry.update(status=outcome["status"], version=outcome["version"])

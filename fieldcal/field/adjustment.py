@@ -44,9 +44,11 @@ from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
-from fieldcal.field.dlt import dlt_robust, is_coplanar, planar_pose, zhang_focal
-from fieldcal.field.resection import resect
+from fieldcal.field.dlt import dlt_robust, zhang_focal
+from fieldcal.field.geometry import is_coplanar
+from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera
+from fieldcal.robust import robust_sigma
 from fieldcal.solver.blocksparse import BlockSparseJacobian, ResidualBlock, SingularSystemError
 from fieldcal.solver.lsq import LsqResult, solve
 
@@ -430,7 +432,7 @@ class _Solver:
 
 
 def _robust_scale(z):
-    return max(1.4826 * float(np.median(np.abs(z))), 1e-12)
+    return max(float(robust_sigma(z)), 1e-12)
 
 
 def _drop_undetermined_targets(data, obs_active, survey_active, reason):

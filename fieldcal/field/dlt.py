@@ -52,170 +52,26 @@ import numpy as np
 import scipy.linalg
 import scipy.spatial
 
-from fieldcal.errors import GeometryError, InputError
-from fieldcal.model.camera import Camera, Sensor
+from fieldcal.errors import GeometryError
+from fieldcal.field.geometry import (
+    COPLANAR_TOL_REL,
+    at,
+    check_points,
+    is_collinear,
+    is_coplanar,
+    plane_frame,
+    singular_values_centred,
+)
+from fieldcal.model.camera import Sensor
+from fieldcal.model.opencv_frames import FLIP_YZ
+from fieldcal.robust import robust_sigma
 
 __all__ = [
     "DltResult",
     "dlt",
     "dlt_robust",
-    "planar_pose",
     "zhang_focal",
-    "is_coplanar",
-    "is_collinear",
-    "plane_frame",
-    "opencv_camera_matrix",
-    "ideal_pixels",
-    "pose_to_opencv",
-    "pose_from_opencv",
-    "COPLANAR_TOL_REL",
 ]
-
-FLIP_YZ = np.diag([1.0, -1.0, -1.0])
-"""fieldcal camera frame <-> OpenCV camera frame: ``R_cv = FLIP_YZ @ R_world_to_camera``."""
-
-COPLANAR_TOL_REL = 1e-3
-"""Relative thickness below which a point set counts as coplanar (:func:`is_coplanar`)."""
-
-
-def _at(where: str, message: str) -> str:
-    return f"{where}: {message}" if where else message
-
-
-# ---------------------------------------------------------------------------------------
-# point-set geometry
-# ---------------------------------------------------------------------------------------
-def _singular_values_centred(X):
-    X = np.asarray(X, dtype=float)
-    if X.ndim != 2 or X.shape[1] != 3:
-        raise InputError(f"points must have shape (n, 3), got {X.shape}")
-    if len(X) < 2:
-        return np.zeros(3)
-    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
-    return np.concatenate([s, np.zeros(3 - len(s))])
-
-
-def is_coplanar(X, tol_rel: float = COPLANAR_TOL_REL) -> bool:
-    """Whether 3-D points lie (nearly) in one plane.
-
-    Parameters
-    ----------
-    X : (n, 3) array_like
-        Points [any length unit].
-    tol_rel : float
-        The points are coplanar when the smallest singular value of the centred points is at
-        most ``tol_rel`` times the largest (the RMS distance from the best-fit plane relative
-        to the RMS extent along the main axis). The default 1e-3 is 2 cm of relief on a
-        20 m wide field; a DLT on such points is useless anyway.
-
-    Returns
-    -------
-    bool
-        True also for fewer than 4 points and for collinear points.
-    """
-    s = _singular_values_centred(X)
-    return bool(len(np.asarray(X)) < 4 or s[2] <= tol_rel * s[0])
-
-
-def is_collinear(X, tol_rel: float = COPLANAR_TOL_REL) -> bool:
-    """Whether 3-D points (n, 3) lie (nearly) on a line: 2nd singular value <= ``tol_rel`` x 1st."""
-    s = _singular_values_centred(X)
-    return bool(len(np.asarray(X)) < 3 or s[1] <= tol_rel * s[0])
-
-
-def plane_frame(X):
-    """The best-fit plane of points (n, 3) as an origin and a right-handed orthonormal basis.
-
-    Returns
-    -------
-    origin : (3,) ndarray
-        The centroid of the points.
-    B : (3, 3) ndarray
-        Columns ``e1, e2, n``: two in-plane axes (the main directions of the points) and the
-        normal, ``det B = +1``. Plane coordinates are ``(X - origin) @ B`` (third ~ 0).
-    """
-    X = np.asarray(X, dtype=float)
-    origin = X.mean(axis=0)
-    _, _, Vt = np.linalg.svd(X - origin, full_matrices=True)
-    B = Vt.T.copy()
-    if np.linalg.det(B) < 0:
-        B[:, 2] = -B[:, 2]
-    return origin, B
-
-
-def _check_points(X_world_m, uv_px, where: str, what: str):
-    X = np.asarray(X_world_m, dtype=float)
-    uv = np.asarray(uv_px, dtype=float)
-    if X.ndim != 2 or X.shape[1] != 3:
-        raise InputError(
-            f"{what}: world points must have shape (n, 3), got {X.shape}", where or None
-        )
-    if uv.ndim != 2 or uv.shape[1] != 2:
-        raise InputError(
-            f"{what}: image points must have shape (n, 2), got {uv.shape}", where or None
-        )
-    if len(X) != len(uv):
-        raise InputError(f"{what}: {len(X)} world points but {len(uv)} image points", where or None)
-    bad = ~(np.isfinite(X).all(axis=1) & np.isfinite(uv).all(axis=1))
-    if bad.any():
-        rows = np.flatnonzero(bad)
-        raise InputError(
-            f"{what}: {bad.sum()} point(s) with NaN or infinite coordinates "
-            f"(rows {rows[:5].tolist()}{'...' if len(rows) > 5 else ''})",
-            where or None,
-        )
-    return X, uv
-
-
-# ---------------------------------------------------------------------------------------
-# OpenCV interop
-# ---------------------------------------------------------------------------------------
-def opencv_camera_matrix(camera: Camera) -> np.ndarray:
-    """OpenCV's 3x3 intrinsic matrix [px] of the *ideal* (distortion-free) image of ``camera``.
-
-    ``fx = fy = f/d``, ``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (CONTRACT section 1).
-    Use it with :func:`ideal_pixels` and no distortion coefficients.
-    """
-    s = camera.sensor
-    d = s.pixel_mm
-    xp, yp = camera.params[1], camera.params[2]
-    fx = camera.f_mm / d
-    return np.array(
-        [
-            [fx, 0.0, (s.width_px - 1) / 2.0 + xp / d],
-            [0.0, fx, (s.height_px - 1) / 2.0 - yp / d],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-
-
-def ideal_pixels(uv_px, camera: Camera) -> np.ndarray:
-    """Measured pixels (..., 2) -> distortion-free pixels (..., 2) of :func:`opencv_camera_matrix`.
-
-    The measured points are corrected with :func:`fieldcal.model.camera.correct` to ideal points
-    ``q`` [mm] (relative to the principal point) and mapped with ``u = cx + qx/d``,
-    ``v = cy - qy/d``. Without distortion this is the identity.
-    """
-    s = camera.sensor
-    q = camera.correct(s.pixel_to_mm(uv_px))
-    K = opencv_camera_matrix(camera)
-    d = s.pixel_mm
-    return np.stack([K[0, 2] + q[..., 0] / d, K[1, 2] - q[..., 1] / d], axis=-1)
-
-
-def pose_to_opencv(R_world_to_camera, center_m):
-    """fieldcal pose -> OpenCV ``(rvec (3,), tvec (3,))`` with ``x_cv = R_cv X + tvec``."""
-    R_cv = FLIP_YZ @ np.asarray(R_world_to_camera, dtype=float)
-    rvec, _ = cv2.Rodrigues(R_cv)
-    return rvec.ravel(), -R_cv @ np.asarray(center_m, dtype=float)
-
-
-def pose_from_opencv(rvec, tvec):
-    """OpenCV ``(rvec, tvec)`` -> fieldcal ``(R_world_to_camera (3, 3), center_m (3,))``."""
-    R_cv, _ = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))
-    C = -R_cv.T @ np.asarray(tvec, dtype=float).ravel()
-    return FLIP_YZ @ R_cv, C
-
 
 # ---------------------------------------------------------------------------------------
 # DLT
@@ -314,7 +170,7 @@ def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
     det = np.linalg.det(M)
     if not np.isfinite(det) or abs(det) < 1e-300:
         raise GeometryError(
-            _at(where, "DLT: the 3x3 part of P is singular (degenerate point configuration)")
+            at(where, "DLT: the 3x3 part of P is singular (degenerate point configuration)")
         )
     P = P * (np.sign(det) / np.linalg.norm(P[2, :3]))
     K, R_cv = scipy.linalg.rq(P[:, :3])
@@ -325,7 +181,7 @@ def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
     c_h = Vt[-1]
     if abs(c_h[3]) < 1e-12 * np.linalg.norm(c_h[:3]):
         raise GeometryError(
-            _at(
+            at(
                 where,
                 "DLT: camera centre at infinity (affine camera); the points need more depth relief",
             )
@@ -334,7 +190,7 @@ def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
     uv_hat, depth = _project_P(P, X)
     if np.count_nonzero(depth[inliers] > 0) < 0.5 * np.count_nonzero(inliers):
         raise GeometryError(
-            _at(
+            at(
                 where,
                 "DLT: the points come out behind the camera: blunders "
                 "in the data, a left-handed world frame or a mirrored image",
@@ -363,18 +219,18 @@ def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
 def _check_dlt_geometry(X, where: str, what: str, tol_rel: float):
     n = len(X)
     if n < 6:
-        raise GeometryError(_at(where, f"{what} needs at least 6 points, got {n}"))
+        raise GeometryError(at(where, f"{what} needs at least 6 points, got {n}"))
     if is_collinear(X, tol_rel):
         raise GeometryError(
-            _at(
+            at(
                 where,
                 f"{what}: the {n} world points are collinear; the DLT needs points spread in 3-D",
             )
         )
     if is_coplanar(X, tol_rel):
-        s = _singular_values_centred(X)
+        s = singular_values_centred(X)
         raise GeometryError(
-            _at(
+            at(
                 where,
                 f"{what}: the {n} world points are coplanar (relative relief "
                 f"{s[2] / s[0]:.1e} <= {tol_rel:g}); the DLT needs non-coplanar "
@@ -420,7 +276,7 @@ def dlt(
     GeometryError
         Fewer than 6 points, coplanar or collinear points, a singular or mirrored solution.
     """
-    X, uv = _check_points(X_world_m, uv_px, where, "DLT")
+    X, uv = check_points(X_world_m, uv_px, where, "DLT")
     _check_dlt_geometry(X, where, "DLT", tol_rel)
     P = _solve_P(X, uv, normalize=normalize)
     return _decompose(P, X, uv, sensor, np.ones(len(X), bool), where)
@@ -429,7 +285,7 @@ def dlt(
 def _robust_sigma(res):
     """1.4826 x MAD of the residual components (n, 2) [px]: the noise sigma of one coordinate."""
     r = res.ravel()
-    return 1.4826 * np.median(np.abs(r - np.median(r)))
+    return robust_sigma(r - np.median(r))
 
 
 def dlt_robust(
@@ -478,7 +334,7 @@ def dlt_robust(
     GeometryError
         As :func:`dlt`, or fewer than 6 inliers (or a coplanar inlier set) remain.
     """
-    X, uv = _check_points(X_world_m, uv_px, where, "robust DLT")
+    X, uv = check_points(X_world_m, uv_px, where, "robust DLT")
     _check_dlt_geometry(X, where, "robust DLT", tol_rel)
     n = len(X)
     if n_trials is None:
@@ -531,7 +387,7 @@ def dlt_robust(
         new = finite & (e <= max(k_sigma * sigma, floor_px))
         if new.sum() < 6 or is_coplanar(X[new], tol_rel):
             raise GeometryError(
-                _at(
+                at(
                     where,
                     f"robust DLT: only {new.sum()} of {n} points fit one "
                     "projective camera in non-coplanar position",
@@ -547,54 +403,6 @@ def dlt_robust(
 # ---------------------------------------------------------------------------------------
 # flat fields
 # ---------------------------------------------------------------------------------------
-def planar_pose(
-    X_world_m, uv_px, camera: Camera, *, where: str = "", tol_rel: float = COPLANAR_TOL_REL
-):
-    """Pose of one image of a flat field with known interior orientation (the DLT's stand-in).
-
-    The measured pixels are corrected for the distortion of ``camera``
-    (:func:`fieldcal.model.camera.correct`), the points are expressed in their plane's own frame,
-    and OpenCV's IPPE (infinitesimal plane-based pose) gives the two candidate poses, of
-    which the one with the smaller reprojection error is refined by Levenberg-Marquardt
-    (this is :func:`fieldcal.field.resection.resect` restricted to coplanar points).
-
-    Parameters
-    ----------
-    X_world_m : (n, 3) array_like
-        Coplanar control points [m] (any plane, not only Z = 0), n >= 4, not collinear.
-    uv_px : (n, 2) array_like
-        Measured pixels [px].
-    camera : Camera
-        Interior orientation, e.g. the nominal focal length with the principal point at
-        the sensor centre and no distortion.
-    where : str
-        The image's name for error messages.
-
-    Returns
-    -------
-    R_world_to_camera : (3, 3) ndarray
-    center_m : (3,) ndarray
-    rms_px : float
-        Reprojection RMS through :func:`fieldcal.model.camera.project` [px].
-    """
-    X, uv = _check_points(X_world_m, uv_px, where, "planar pose")
-    if len(X) < 4:
-        raise GeometryError(_at(where, f"planar pose needs at least 4 points, got {len(X)}"))
-    if is_collinear(X, tol_rel):
-        raise GeometryError(_at(where, f"planar pose: the {len(X)} world points are collinear"))
-    if not is_coplanar(X, tol_rel):
-        raise GeometryError(
-            _at(
-                where,
-                "planar pose: the world points are not coplanar; use dlt() or resection.resect()",
-            )
-        )
-    from fieldcal.field.resection import resect  # resection builds on this module; imported here, no cycle
-
-    res = resect(X, uv, camera, where=where, tol_rel=tol_rel)
-    return res.R_world_to_camera, res.center_m, res.rms_px
-
-
 def zhang_focal(
     views, sensor: Sensor, *, where: str = "", tol_rel: float = COPLANAR_TOL_REL
 ) -> float:
@@ -640,21 +448,21 @@ def zhang_focal(
     views = list(views)
     if len(views) < 2:
         raise GeometryError(
-            _at(where, f"zhang_focal needs at least 2 views of the plane, got {len(views)}")
+            at(where, f"zhang_focal needs at least 2 views of the plane, got {len(views)}")
         )
     centre = np.array([(sensor.width_px - 1) / 2.0, (sensor.height_px - 1) / 2.0])
     s = max(sensor.width_px, sensor.height_px) / 2.0
     A, b, persp = [], [], []
     for i, (Xv, uvv) in enumerate(views):
         label = f"zhang_focal view {i}"
-        X, uv = _check_points(Xv, uvv, where, label)
+        X, uv = check_points(Xv, uvv, where, label)
         if len(X) < 4 or is_collinear(X, tol_rel) or not is_coplanar(X, tol_rel):
-            raise GeometryError(_at(where, f"{label}: needs >= 4 coplanar, non-collinear points"))
+            raise GeometryError(at(where, f"{label}: needs >= 4 coplanar, non-collinear points"))
         origin, B = plane_frame(X)
         p2 = np.ascontiguousarray(((X - origin) @ B)[:, :2])
         H, _ = cv2.findHomography(p2, np.ascontiguousarray((uv - centre) / s), 0)
         if H is None or not np.all(np.isfinite(H)):
-            raise GeometryError(_at(where, f"{label}: no homography could be estimated"))
+            raise GeometryError(at(where, f"{label}: no homography could be estimated"))
         H = H / np.linalg.norm(H[:, :2])
         h1, h2 = H[:, 0], H[:, 1]
         persp.append(np.hypot(h1[2], h2[2]))
@@ -665,7 +473,7 @@ def zhang_focal(
     # about the tilt of the plane [rad] divided by sqrt(2 + 2 a^2))
     if max(persp) < 1e-4:
         raise GeometryError(
-            _at(
+            at(
                 where,
                 "zhang_focal: the views are fronto-parallel; tilt the plane relative to the camera",
             )
@@ -673,7 +481,7 @@ def zhang_focal(
     w = float(A @ b / (A @ A))
     if not w > 0:
         raise GeometryError(
-            _at(
+            at(
                 where,
                 f"zhang_focal: no real focal length fits these views "
                 f"(w = {w:.3g}); the views are nearly degenerate",

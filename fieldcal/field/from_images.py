@@ -55,8 +55,8 @@ import pyarrow as pa
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, adjust_field
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
-from fieldcal.field.dlt import is_coplanar, plane_frame
 from fieldcal.field.eccentricity import correction_px
+from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv

@@ -65,9 +65,11 @@ from scipy.spatial import cKDTree
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.data import TargetField
-from fieldcal.field.dlt import FLIP_YZ, ideal_pixels, is_collinear, opencv_camera_matrix, pose_from_opencv
+from fieldcal.field.geometry import is_collinear
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
+from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
+from fieldcal.robust import robust_sigma
 
 __all__ = ["ImageIdentification", "identify_image", "mutual_nearest", "local_correction",
            "measured_points", "DEFAULT_MIN_IDENTIFIED"]
@@ -237,7 +239,7 @@ def local_correction(at_px, matched_px, residual_px, self_index=None, *, neighbo
     keep[np.arange(m), drop] = False
     nb = r[idx[keep].reshape(m, K)]                                  # (m, K, 2)
     corr = np.median(nb, axis=1)
-    spread = 1.4826 * np.median(np.abs(nb - corr[:, None, :]), axis=1).max(axis=1)
+    spread = robust_sigma(nb - corr[:, None, :], axis=1).max(axis=1)
     return corr, spread
 
 
@@ -375,7 +377,7 @@ class _Matcher:
         k = np.flatnonzero(inside)
         corr[k], spread[k] = local_correction(uv[k], uv[tm], res, self_index[k], neighbours=self.neighbours)
         e = res - corr[tm]                                     # leave-one-out corrected residuals
-        s = max(1.4826 * float(np.median(np.abs(e))), 1e-3)
+        s = max(float(robust_sigma(e)), 1e-3)
         gate = np.clip(self.factor * np.sqrt(s**2 + spread**2 + self.prior_px**2), self.min_gate, first)
         return corr, spread, gate, s, np.hypot(e[:, 0], e[:, 1])
 

@@ -6,7 +6,7 @@ With the interior orientation known (a full :class:`fieldcal.model.camera.Camera
 included), the measured pixels are corrected to ideal points ``q`` [mm]
 (:func:`fieldcal.model.camera.correct`) and mapped to the distortion-free pixels of OpenCV's
 intrinsic matrix ``K = [[f/d, 0, cx], [0, f/d, cy], [0, 0, 1]]`` with
-``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (:func:`fieldcal.field.dlt.ideal_pixels`).
+``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (:func:`fieldcal.model.opencv_frames.ideal_pixels`).
 On those, OpenCV solves the perspective-n-point problem in its own camera frame
 (x right, y down, z forward):
 
@@ -37,21 +37,11 @@ import cv2
 import numpy as np
 
 from fieldcal.errors import GeometryError
-from fieldcal.field.dlt import (
-    COPLANAR_TOL_REL,
-    FLIP_YZ,
-    _at,
-    _check_points,
-    ideal_pixels,
-    is_collinear,
-    is_coplanar,
-    opencv_camera_matrix,
-    plane_frame,
-    pose_to_opencv,
-)
+from fieldcal.field.geometry import COPLANAR_TOL_REL, at, check_points, is_collinear, is_coplanar, plane_frame
 from fieldcal.model.camera import Camera
+from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_to_opencv
 
-__all__ = ["Resection", "resect"]
+__all__ = ["Resection", "resect", "planar_pose"]
 
 
 @dataclass(frozen=True)
@@ -201,7 +191,7 @@ def resect(
     refine : bool
         Levenberg-Marquardt refinement of the pose on the (inlier) points (default).
     tol_rel : float
-        Coplanarity tolerance (:func:`fieldcal.field.dlt.is_coplanar`): IPPE for coplanar points.
+        Coplanarity tolerance (:func:`fieldcal.field.geometry.is_coplanar`): IPPE for coplanar points.
 
     Returns
     -------
@@ -215,19 +205,19 @@ def resect(
         Too few points, collinear points, no pose found, fewer than ``min_inliers``
         inliers with RANSAC, or points behind the camera.
     """
-    X, uv = _check_points(X_world_m, uv_px, where, "resection")
+    X, uv = check_points(X_world_m, uv_px, where, "resection")
     n = len(X)
     need = max(4, int(min_inliers)) if ransac else 4
     if n < need:
         raise GeometryError(
-            _at(
+            at(
                 where,
                 f"resection{' with RANSAC' if ransac else ''} needs at least "
                 f"{need} points, got {n}",
             )
         )
     if is_collinear(X, tol_rel):
-        raise GeometryError(_at(where, f"resection: the {n} world points are collinear"))
+        raise GeometryError(at(where, f"resection: the {n} world points are collinear"))
     planar = is_coplanar(X, tol_rel)
     origin, B = _local_frame(X, planar)
     Xl = (X - origin) @ B
@@ -275,7 +265,7 @@ def resect(
                 candidates.append((rvec, tvec, near))
         if not candidates:
             raise GeometryError(
-                _at(
+                at(
                     where,
                     "resection: RANSAC found no pose consistent with "
                     f"{need} or more of the {n} points (threshold {threshold_px} px)",
@@ -299,14 +289,14 @@ def resect(
                 new = e <= threshold_px
                 if new.sum() < need:
                     raise GeometryError(
-                        _at(
+                        at(
                             where,
                             f"resection: only {new.sum()} of {n} points within "
                             f"{threshold_px} px of a common pose",
                         )
                     )
                 if is_collinear(X[new], tol_rel):
-                    raise GeometryError(_at(where, "resection: the inliers are collinear"))
+                    raise GeometryError(at(where, "resection: the inliers are collinear"))
                 if np.array_equal(new, inliers):
                     break
                 inliers = new
@@ -315,12 +305,12 @@ def resect(
                 res, e = _residuals(X, uv, camera, R, C)
     except cv2.error as exc:
         raise GeometryError(
-            _at(where, f"resection: OpenCV failed: {str(exc).strip().splitlines()[-1]}")
+            at(where, f"resection: OpenCV failed: {str(exc).strip().splitlines()[-1]}")
         ) from exc
 
     if not np.all(np.isfinite(e[inliers])):
         raise GeometryError(
-            _at(
+            at(
                 where,
                 "resection: points come out behind the camera; "
                 "the correspondences or the camera are wrong",
@@ -328,3 +318,49 @@ def resect(
         )
     rms = float(np.sqrt(np.mean(e[inliers] ** 2)))
     return Resection(R_world_to_camera=R, center_m=C, rms_px=rms, inliers=inliers, residuals_px=res)
+
+
+def planar_pose(
+    X_world_m, uv_px, camera: Camera, *, where: str = "", tol_rel: float = COPLANAR_TOL_REL
+):
+    """Pose of one image of a flat field with known interior orientation (the DLT's stand-in).
+
+    The measured pixels are corrected for the distortion of ``camera``
+    (:func:`fieldcal.model.camera.correct`), the points are expressed in their plane's own frame,
+    and OpenCV's IPPE (infinitesimal plane-based pose) gives the two candidate poses, of
+    which the one with the smaller reprojection error is refined by Levenberg-Marquardt
+    (this is :func:`fieldcal.field.resection.resect` restricted to coplanar points).
+
+    Parameters
+    ----------
+    X_world_m : (n, 3) array_like
+        Coplanar control points [m] (any plane, not only Z = 0), n >= 4, not collinear.
+    uv_px : (n, 2) array_like
+        Measured pixels [px].
+    camera : Camera
+        Interior orientation, e.g. the nominal focal length with the principal point at
+        the sensor centre and no distortion.
+    where : str
+        The image's name for error messages.
+
+    Returns
+    -------
+    R_world_to_camera : (3, 3) ndarray
+    center_m : (3,) ndarray
+    rms_px : float
+        Reprojection RMS through :func:`fieldcal.model.camera.project` [px].
+    """
+    X, uv = check_points(X_world_m, uv_px, where, "planar pose")
+    if len(X) < 4:
+        raise GeometryError(at(where, f"planar pose needs at least 4 points, got {len(X)}"))
+    if is_collinear(X, tol_rel):
+        raise GeometryError(at(where, f"planar pose: the {len(X)} world points are collinear"))
+    if not is_coplanar(X, tol_rel):
+        raise GeometryError(
+            at(
+                where,
+                "planar pose: the world points are not coplanar; use dlt() or resection.resect()",
+            )
+        )
+    res = resect(X, uv, camera, where=where, tol_rel=tol_rel)
+    return res.R_world_to_camera, res.center_m, res.rms_px

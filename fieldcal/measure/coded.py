@@ -39,6 +39,7 @@ import pyarrow as pa
 
 from fieldcal.errors import InputError
 from fieldcal.measure.targets import _apriori_sigma, _check_image, empty_measurements, measurements_table
+from fieldcal.robust import robust_sigma
 
 __all__ = ["to_uint8", "detect_aruco", "diagonal_crossing", "marker_exclusion_polygons",
            "DEFAULT_DICTIONARY"]
@@ -181,8 +182,8 @@ def _refine_by_edges(img, corners, n_cells, *, n_along=40, step_px=0.25):
         direction = vec[..., :, 1]                                         # (n, 4, 2)
         normal = np.stack([-direction[..., 1], direction[..., 0]], axis=-1)
         r = np.einsum("nkmi,nki->nkm", pts - c, normal)
-        mad = np.median(np.abs(np.where(ok, r, np.nan)), axis=2, keepdims=True)
-        w = (ok & (np.abs(r) <= np.maximum(3 * 1.4826 * np.nan_to_num(mad), 0.05))).astype(float)
+        sig = robust_sigma(np.where(ok, r, np.nan), axis=2, keepdims=True)
+        w = (ok & (np.abs(r) <= np.maximum(3 * np.nan_to_num(sig), 0.05))).astype(float)
     p0 = c[:, :, 0, :]
     q0, dq = np.roll(p0, 1, axis=1), np.roll(direction, 1, axis=1)      # side k-1 meets side k
     A = np.stack([direction, -dq], axis=-1)
@@ -293,8 +294,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     inner = _side_samples(img, c, -0.5, n_cells)     # middle of the black border
     outer = _side_samples(img, c, +0.5, n_cells)     # middle of the white quiet zone
     contrast = np.abs(np.median(outer, axis=1) - np.median(inner, axis=1))
-    mad = np.median(np.abs(outer - np.median(outer, axis=1, keepdims=True)), axis=1)
-    noise = np.maximum(1.4826 * mad, 0.3)
+    noise = np.maximum(robust_sigma(outer - np.median(outer, axis=1, keepdims=True), axis=1), 0.3)
     snr = contrast / noise
     H, W = img.shape
     truncated = ((c[..., 0] < 1) | (c[..., 1] < 1) | (c[..., 0] > W - 2) | (c[..., 1] > H - 2)).any(1)

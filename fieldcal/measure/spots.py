@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 
 from fieldcal.errors import InputError
+from fieldcal.robust import robust_sigma
 
 __all__ = ["FLAGS", "Spot", "iterative_threshold", "measure_spot"]
 
@@ -243,7 +244,7 @@ def measure_spot(image, *, window_px: int = 24, upsample: int = 4, min_snr: floa
         break
     # background and noise from the whole window (the spot is a small part of it)
     bg = float(np.median(win))
-    noise = float(np.sqrt((1.4826 * np.median(np.abs(win - bg))) ** 2 + 1.0 / 12.0))
+    noise = float(np.sqrt(robust_sigma(win - bg) ** 2 + 1.0 / 12.0))
     if not mask[pr, pc]:
         return _missing(f"no spot: the brightest area is not above the threshold {thr:.0f} DN",
                         win.max(), bg, noise, thr)

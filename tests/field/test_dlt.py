@@ -6,20 +6,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.dlt import (
-    dlt,
-    dlt_robust,
-    ideal_pixels,
-    is_collinear,
-    is_coplanar,
-    opencv_camera_matrix,
-    planar_pose,
-    plane_frame,
-    pose_from_opencv,
-    pose_to_opencv,
-    zhang_focal,
-)
+from fieldcal.field.dlt import dlt, dlt_robust, zhang_focal
+from fieldcal.field.geometry import is_collinear, is_coplanar, plane_frame
+from fieldcal.field.resection import planar_pose
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.model.opencv_frames import ideal_pixels, opencv_camera_matrix, pose_from_opencv, pose_to_opencv
 from fieldcal.synthetic.field import IXU150_TABLE1, look_at
 
 # Phase One iXU150 as calibrated in METHODS Table 1, and a wide-angle camera with about

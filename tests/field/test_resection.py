@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.dlt import ideal_pixels, opencv_camera_matrix, pose_from_opencv
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.model.opencv_frames import ideal_pixels, opencv_camera_matrix, pose_from_opencv
 from fieldcal.synthetic.field import IXU150_TABLE1, look_at
 
 IXU = Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)

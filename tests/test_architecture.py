@@ -1,0 +1,132 @@
+"""The package's shape: no Prefect in the library, no import cycles, no private names
+imported across modules, and no function longer than the limit (issue 12)."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LIBRARY = ROOT / "fieldcal"
+MAX_FUNCTION_LINES = 100  # issue 12: long functions broken into their named steps
+
+
+def _modules(top: Path, package: str):
+    for path in sorted(top.rglob("*.py")):
+        rel = path.relative_to(top).with_suffix("")
+        parts = [package, *rel.parts]
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        yield ".".join(parts), path
+
+
+def _imports(module: str, path: Path):
+    """(imported module, imported names, line) of every import in the file, at any depth."""
+    tree = ast.parse(path.read_text())
+    is_pkg = path.name == "__init__.py"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, [], node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base[: len(base) - node.level + (1 if is_pkg else 0)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            yield target, [a.name for a in node.names], node.lineno
+
+
+def test_the_library_never_imports_prefect():
+    code = ("import importlib, pkgutil, sys, fieldcal\n"
+            "for m in pkgutil.walk_packages(fieldcal.__path__, 'fieldcal.'):\n"
+            "    importlib.import_module(m.name)\n"
+            "print(sorted(k for k in sys.modules if k == 'prefect' or k.startswith('prefect.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def _graph():
+    mods = dict(_modules(LIBRARY, "fieldcal"))
+    graph = {m: set() for m in mods}
+    for m, path in mods.items():
+        for target, names, _ in _imports(m, path):
+            for cand in [f"{target}.{n}" for n in names] + [target]:
+                if cand in mods and cand != m:
+                    graph[m].add(cand)
+                    break
+    return graph
+
+
+def _cycles(graph):
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles_in_the_library():
+    """Module-level and deferred imports alike: a package's ``__init__`` re-exporting its
+    modules counts as importing them."""
+    graph = _graph()
+    # a package __init__ is imported by every import of its submodules: not an edge back
+    for m in graph:
+        graph[m] = {t for t in graph[m] if not m.startswith(t + ".")}
+    assert _cycles(graph) == []
+
+
+@pytest.mark.parametrize("top", ["fieldcal", "flows"])
+def test_no_private_name_is_imported_from_another_module(top):
+    offenders = []
+    for m, path in _modules(ROOT / top, top):
+        for target, names, line in _imports(m, path):
+            if not target.startswith(("fieldcal", "flows")):
+                continue
+            for n in names:
+                if n.startswith("_") and n != "__version__":
+                    offenders.append(f"{path.relative_to(ROOT)}:{line}: {n} from {target}")
+            if any(p.startswith("_") for p in target.split(".")):
+                offenders.append(f"{path.relative_to(ROOT)}:{line}: private module {target}")
+    assert offenders == []
+
+
+@pytest.mark.parametrize("top", ["fieldcal", "flows"])
+def test_no_function_is_longer_than_the_limit(top):
+    long = []
+    for _, path in _modules(ROOT / top, top):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} ({n} lines)")
+    assert long == []
