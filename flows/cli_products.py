@@ -156,15 +156,18 @@ def _report(args) -> int:
 
 def _comparison_text(c, a, b) -> str:
     lines = [f"A: {a.label()}", f"B: {b.label()}",
-             f"grid {c.grid[0]} x {c.grid[1]} over the sensor"
-             + (", best common rotation removed" if c.remove_rotation else ""),
-             f"difference |uv_A(ray_B(uv)) - uv|: max {c.max_px:.4g} px ({c.max_um:.4g} um), "
-             f"RMS {c.rms_px:.4g} px",
-             f"explained by the two calibrations' uncertainties (1 sigma): up to "
-             f"{float(c.sigma_px.max()):.4g} px",
-             f"chi-square {c.chi2:.4g} with {c.dof} degrees of freedom, p = {c.p_value:.3g}; "
-             f"outside the explained range {c.outside_px:.2g} px",
-             f"verdict: {c.verdict}"]
+             f"tested {c.where}"
+             + (f" (grid {c.grid[0]} x {c.grid[1]})" if c.region == "sensor" else ""),
+             f"change where tested: max {c.max_px:.4g} px = {c.max_um:.4g} um, "
+             f"RMS {c.rms_px:.4g} px = {c.rms_um:.4g} um",
+             f"over the whole sensor (display{', extrapolated off the axes' if c.region == 'axes' else ''}): "
+             f"max {c.sensor_max_px:.4g} px = {c.sensor_max_px * c.pixel_size_um:.4g} um; "
+             f"explained by the two uncertainties (1 sigma): up to {float(c.sigma_px.max()):.4g} px",
+             f"tests (Holm at alpha = {c.alpha:g}):"]
+    lines += [f"  {t.line()}" for t in c.tests]
+    lines.append(f"  outside the explained range: {c.outside_px:.2g} px (limit {c.outside_tol_px:g} px)")
+    lines += [f"not tested: {x}" for x in c.left_out]
+    lines.append(f"verdict: {c.verdict}")
     return "\n".join(lines) + "\n"
 
 

@@ -419,7 +419,8 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
     _vectors(ax, c.uv_px[sel], c.diff_px[sel], 0.9 * step * (sensor.width_px / nx), "cyan", 0.005)
     _sensor_axes(ax, sensor)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label("|difference| [px]")
-    ax.set_title(f"Same ray, difference: max {c.max_px:.3g} px ({c.max_um:.3g} um)", fontsize=9,
+    ax.set_title(f"Same ray, difference over the sensor: max {c.sensor_max_px:.3g} px "
+                 f"({c.sensor_max_px * c.pixel_size_um:.3g} um)", fontsize=9,
                  loc="left", pad=16)
     ax = fig.add_subplot(1, 3, 2)
     im = ax.imshow(sig, extent=ext, origin="upper", vmin=0, vmax=vmax, cmap="magma")
@@ -434,7 +435,7 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
     im = ax.imshow(ratio, extent=ext, origin="upper", cmap="coolwarm", vmin=0, vmax=top)
     _sensor_axes(ax, sensor)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label("|difference| / sigma")
-    ax.set_title(f"chi2 = {c.chi2:.3g} with {c.dof} dof, p = {c.p_value:.2g}", fontsize=9,
+    ax.set_title(f"map test: chi2 = {c.chi2:.3g} with {c.dof} dof, p = {c.map_p_value:.2g}", fontsize=9,
                  loc="left", pad=16)
     head = (f"B {c.version_b} ({c.method_b}) vs A {c.version_a} ({c.method_a}): {c.verdict}")
     fig.suptitle("\n".join(textwrap.wrap(head, 150)), fontsize=9)

@@ -522,10 +522,16 @@ FLEET_SCHEMA = pa.schema([
     ("camera_id", pa.string()), ("version", pa.string()), ("method", pa.string()),
     ("acquired", pa.timestamp("us", tz="UTC")), ("previous_version", pa.string()),
     ("previous_method", pa.string()), ("previous_acquired", pa.timestamp("us", tz="UTC")),
-    ("max_change_px", pa.float64()), ("max_change_um", pa.float64()),
-    ("rms_change_um", pa.float64()), ("chi2", pa.float64()), ("dof", pa.int32()),
-    ("p_value", pa.float64()), ("significant", pa.bool_()), ("exceeds_tolerance", pa.bool_()),
+    ("region", pa.string()), ("max_change_px", pa.float64()), ("max_change_um", pa.float64()),
+    ("rms_change_px", pa.float64()), ("rms_change_um", pa.float64()), ("chi2", pa.float64()),
+    ("dof", pa.int32()), ("p_value", pa.float64()), ("changed", pa.string()),
+    ("significant", pa.bool_()), ("exceeds_tolerance", pa.bool_()),
     ("flagged", pa.bool_()), ("tolerance_um", pa.float64()), ("verdict", pa.string())])
+"""One row per camera. The change columns are all of the region tested (``region``:
+``sensor``, or ``axes`` when a goniometer calibration is involved) and in both units of the
+same numbers; ``chi2, dof`` are the map test's, ``p_value`` the family's (Holm) and
+``changed`` the quantities that changed significantly
+(:class:`fieldcal.products.compare.Comparison`)."""
 
 
 def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
@@ -572,9 +578,10 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
             rows.append(out)
             continue
         out.update(previous_version=prev["version"], previous_method=prev["method"],
-                   previous_acquired=prev.get("acquired"), max_change_px=c.max_px,
-                   max_change_um=c.max_um, rms_change_um=c.rms_px * c.pixel_size_um,
-                   chi2=c.chi2, dof=c.dof, p_value=c.p_value, significant=c.significant,
+                   previous_acquired=prev.get("acquired"), region=c.region,
+                   max_change_px=c.max_px, max_change_um=c.max_um, rms_change_px=c.rms_px,
+                   rms_change_um=c.rms_um, chi2=c.chi2, dof=c.dof, p_value=c.p_value,
+                   changed=", ".join(c.changed), significant=c.significant,
                    exceeds_tolerance=c.exceeds_tolerance, flagged=c.flagged, verdict=c.verdict)
         rows.append(out)
     return pa.Table.from_pylist(rows, schema=FLEET_SCHEMA)

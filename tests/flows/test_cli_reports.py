@@ -41,13 +41,21 @@ def test_compare_text_json_and_plot(lake_env, tmp_path, capsys):
     v = lake_env["versions"]
     assert main(["compare", v["d1"], v["d2"], "--plot", str(tmp_path / "c.png")]) == 0
     text = capsys.readouterr().out
-    assert "chi-square" in text and "FLAGGED" in text
+    assert "FLAGGED" in text and "Holm" in text
+    # one line per quantity tested, each change in one unit with its sigma
+    for label in ("principal distance: change", "principal point (xp, yp): change",
+                  "radial distortion at the edge of the field", "correction field over the sensor"):
+        assert label in text, label
+    assert "um; chi2" in text and "px (1 sigma up to" in text
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["compare", "previous", "latest", "--camera", "cam-f", "--format", "json",
                  "--out", str(tmp_path / "c.json")]) == 0
     s = json.loads((tmp_path / "c.json").read_text())
     assert (s["version_a"], s["version_b"]) == (v["f1"], v["f2"])
     assert s["flagged"] is False and s["dof"] >= 9
+    assert [t["key"] for t in s["tests"]] == ["f", "principal_point", "edge_distortion", "map"]
+    assert s["max_um"] == pytest.approx(s["max_px"] * s["pixel_size_um"])
+    assert s["rms_um"] <= s["max_um"]
 
 
 def test_export_json_to_stdout_is_the_document(lake_env, capsys):
