@@ -179,3 +179,52 @@ def test_a_goniometer_against_a_field_calibration_compares_only_the_map_and_says
     text = " ".join(c.left_out)
     assert "optical axis points" in text and "convention" in text and "off the two scanned axes" in text
     assert not c.significant and c.max_px < 1e-9
+
+
+def test_repeat_goniometer_sessions_scatter_as_their_sigmas_say(pairs):
+    """Goal 0 for the goniometer: 40 sessions, each a new alignment on the arm and new noise.
+
+    The error is against the method's value for the true camera (its exact spots on a
+    perfectly aligned set-up): the goniometer's f and principal point are those of the
+    minimum-sum convention (f absorbs the linear part of the radial distortion: 374 um here).
+    """
+    import pyarrow as pa
+
+    from fieldcal.goniometer import measurements_table
+    from fieldcal.synthetic.goniometer import make_scenario, spot_positions_px
+
+    sc = make_scenario("canon5d2")
+    cam = sc.camera()
+    aligned = {"zero_px": [0.0, 0.0], "tilt_mrad": 0.0, "cone_mrad": 0.0}
+    rows, meas = [], []
+    for axis, angles in (("x", sc.x_angles_deg), ("y", sc.y_angles_deg)):
+        uv = spot_positions_px(cam, axis, angles, aligned)
+        for a, (u, v) in zip(angles, uv, strict=True):
+            rows.append({"file": f"{axis}{a:+.1f}", "axis": axis, "angle_deg": a})
+            meas.append({"file": f"{axis}{a:+.1f}", "u_px": u, "v_px": v, "flag": "ok"})
+    ref = gonio_calibrate(cam.sensor, pa.Table.from_pylist(rows), measurements_table(meas)).parameters[:3]
+    cals = [c for pair in pairs["goniometer"] for c in pair]
+    est = np.array([c.camera.params[:3] for c in cals])
+    sig = np.array([[c.sigma_of(k) for k in ("f_mm", "xp_mm", "yp_mm")] for c in cals])
+    rms_z = np.sqrt(np.mean(((est - ref) / sig) ** 2, axis=0))
+    # the issue's band; 40 sessions estimate an RMS to +-11 %
+    assert np.all((rms_z > 0.7) & (rms_z < 1.3)), rms_z
+
+
+def test_the_issues_three_synthetic_sessions_of_one_camera_agree(tmp_path):
+    """``fieldcal synth --method goniometer`` seeds 1, 2, 3 (the same camera, rendered frames):
+    called changed with chi2 464-6425 on 9 dof before; no pair is significant now."""
+    from fieldcal.goniometer import measure_session, read_frames_csv
+    from fieldcal.synthetic.goniometer import write_session
+
+    cals = []
+    for seed in (1, 2, 3):
+        truth = write_session(tmp_path / f"s{seed}", "canon5d2", seed=seed, raster_scale=0.25)
+        frames = read_frames_csv(tmp_path / f"s{seed}" / "frames.csv")
+        res = gonio_calibrate(truth.sensor, frames, measure_session(tmp_path / f"s{seed}", frames, truth.sensor))
+        doc = dict(res.document_fields(), version=f"synth-{seed}", camera_id="canon", session_id=f"s{seed}")
+        cals.append(Calibration.from_document(doc, PARAM_NAMES, res.covariance))
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        c = compare_calibrations(cals[i], cals[j])
+        assert not c.significant, (i, j, c.verdict)
+        assert c.region == "axes" and c.max_um == pytest.approx(c.max_px * c.pixel_size_um)
