@@ -19,6 +19,14 @@ the rigorous variant, and compares against the exact truth:
   (``zero_offset=False``) and without the sweeps' pointing (``fit_pointing=False``).
 
 Prints a markdown table (and writes it to ``--markdown`` if given).
+
+``--repeat N``: repeat sessions of one unchanged camera (issue 16), per camera: N rendered
+sessions at ``--scale`` (each a new seed: a new alignment on the arm, new encoder errors,
+jitter and pixel noise), calibrated; the scatter of f, xp, yp across the sessions against
+the reported sigmas, ``|error| / sigma`` against the method's value for the true camera
+(the exact spots of a perfectly aligned set-up), and ``fieldcal compare``'s verdict on the
+N/2 independent pairs; then the same for ``--pairs`` pairs of sessions simulated without
+images (tests/goniometer/simulate.py).
 """
 
 from __future__ import annotations
@@ -35,6 +43,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from fieldcal.goniometer import method as gon  # noqa: E402
+from fieldcal.model.camera import PARAM_NAMES  # noqa: E402
+from fieldcal.products.compare import compare_calibrations  # noqa: E402
+from fieldcal.products.uncertainty import Calibration  # noqa: E402
 from fieldcal.synthetic.goniometer import write_session  # noqa: E402
 
 KEYS = ("f_mm", "xp_mm", "yp_mm")
@@ -97,18 +108,75 @@ def run(name: str, workdir: Path, scale: float, seed: int) -> list[str]:
     return out
 
 
+def _calibration(res, label: str) -> Calibration:
+    doc = dict(res.document_fields(), version=label, camera_id="c", session_id=label)
+    return Calibration.from_document(doc, PARAM_NAMES, res.covariance)
+
+
+def _repeat_row(label: str, cals: list, conv: np.ndarray) -> str:
+    P = np.array([c.camera.params[:3] for c in cals])
+    S = np.array([[c.sigma_of(k) for k in KEYS] for c in cals])
+    scatter = P.std(axis=0, ddof=1) / np.sqrt(np.mean(S**2, axis=0))
+    z = np.sqrt(np.mean(((P - conv) / S) ** 2, axis=0))
+    comps = [compare_calibrations(cals[2 * i], cals[2 * i + 1]) for i in range(len(cals) // 2)]
+    p = np.array([c.p_value for c in comps])
+    per = np.array([[t.p_value for t in c.tests] for c in comps])
+    return (f"| {label} | {len(cals)} | " + " / ".join(f"{x:.2f}" for x in scatter) + " | "
+            + " / ".join(f"{x:.2f}" for x in z) + f" | {len(comps)} | {(p < 0.01).sum()} | "
+            f"{(p < 0.05).sum()} | " + " / ".join(f"{x:.2f}" for x in (per < 0.05).mean(axis=0)) + " |")
+
+
+def repeat(name: str, workdir: Path, scale: float, n: int, pairs: int) -> list[str]:
+    """Repeat sessions of one camera (module docstring, ``--repeat``)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tests.goniometer.simulate import simulated_session
+
+    rendered, t0 = [], time.perf_counter()
+    for seed in range(n):
+        folder = workdir / f"{name}-repeat-{seed}"
+        truth = write_session(folder, name, seed=100 + seed, raster_scale=scale)
+        frames = gon.read_frames_csv(folder / "frames.csv")
+        meas = gon.measure_session(folder, frames, truth.sensor)
+        rendered.append(_calibration(gon.calibrate(truth.sensor, frames, meas), f"r{seed}"))
+    t1 = time.perf_counter()
+    simulated = []
+    for k in range(2 * pairs):
+        cam, frames, meas = simulated_session(name, seed=5000 + k, raster_scale=scale)
+        simulated.append(_calibration(gon.calibrate(cam.sensor, frames, meas), f"s{k}"))
+    t2 = time.perf_counter()
+    aligned = {a: {"zero_px": [0.0, 0.0], "tilt_mrad": 0.0, "cone_mrad": 0.0} for a in "xy"}
+    exact = write_session(workdir / f"{name}-aligned", name, seed=0, raster_scale=scale,
+                          misalignment=aligned, noise=False, jitter_px=0.0, encoder_sigma_arcsec=0.0)
+    f_exact = gon.read_frames_csv(exact.folder / "frames.csv")
+    conv = gon.calibrate(exact.sensor, f_exact, exact.exact_measurements()).parameters[:3]
+    s = exact.sensor
+    return [f"### {name}: repeat sessions of one camera ({s.width_px} x {s.height_px} px of "
+            f"{s.pixel_size_um:g} um)", "",
+            f"rendered: {(t1 - t0) / max(n, 1):.1f} s per session (render, measure, calibrate); "
+            f"simulated (no images): {(t2 - t1) / max(2 * pairs, 1):.2f} s per session", "",
+            "| sessions | n | scatter / sigma: f / xp / yp | RMS abs(error) / sigma: f / xp / yp | pairs "
+            "| significant at 0.01 | at 0.05 | per-test rate at 0.05: f / pp / edge / map |",
+            "|---|---|---|---|---|---|---|---|",
+            _repeat_row("rendered", rendered, conv), _repeat_row("simulated", simulated, conv), ""]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--markdown", type=Path, default=None)
+    ap.add_argument("--repeat", type=int, default=0, help="repeat sessions per camera (issue 16)")
+    ap.add_argument("--pairs", type=int, default=100, help="with --repeat: simulated pairs")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         workdir = args.workdir or Path(tmp)
         lines = ["## Goniometer method on synthetic sessions (bench/bench_goniometer.py)", ""]
         for name in ("canon5d2", "h3d"):
-            lines += run(name, workdir, args.scale, args.seed)
+            lines += (repeat(name, workdir, args.scale, args.repeat, args.pairs) if args.repeat
+                      else run(name, workdir, args.scale, args.seed))
     text = "\n".join(lines)
     print(text)
     if args.markdown:

@@ -178,6 +178,8 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
         arrays["targets/xyz_m"] = res.targets_m
         arrays["targets/sigma_m"] = res.sigma_targets_m
         attrs["targets/xyz_m"] = {"ids": [str(t) for t in data.targets.ids]}
+        arrays["targets/survey_residual_mm"] = res.survey_residual_mm        # surveyed - adjusted
+        arrays["targets/survey_used"] = res.survey_used.astype("int8")
     summary = _field_summary(sess, res)
     return Outcome(doc, arrays, attrs, res.residual_table(), summary, left_out, res)
 

@@ -9,6 +9,9 @@ sessions).
 
 - ``fieldcal report VERSION [--out DIR]``: ``DIR/report.html`` (self-contained) and the
   plots as PNG (:mod:`fieldcal.products.report`); prints the HTML's path.
+- ``fieldcal certificate VERSION [--out DIR] [--config FILE]``: ``DIR/certificate.html``,
+  the printable calibration certificate with its acceptance verdict
+  (:mod:`fieldcal.products.certificate`); prints the path and the verdict.
 - ``fieldcal compare V1 V2 [--plot PNG] [--format text|json] [--out FILE]``: where the same
   ray lands in both, what their uncertainties explain, and the change test
   (:mod:`fieldcal.products.compare`).
@@ -154,17 +157,32 @@ def _report(args) -> int:
     return 0
 
 
+@_run
+def _certificate(args) -> int:
+    from fieldcal.products.certificate import load_config, write_certificate
+
+    load_config(args.config)                      # a bad configuration: before the lake is read
+    lake = open_lake(args)
+    version = resolve_version(lake, args.version, args.camera)
+    page = write_certificate(lake, version, args.out or f"fieldcal-certificate-{version}", args.config)
+    print(page)
+    return 0
+
+
 def _comparison_text(c, a, b) -> str:
     lines = [f"A: {a.label()}", f"B: {b.label()}",
-             f"grid {c.grid[0]} x {c.grid[1]} over the sensor"
-             + (", best common rotation removed" if c.remove_rotation else ""),
-             f"difference |uv_A(ray_B(uv)) - uv|: max {c.max_px:.4g} px ({c.max_um:.4g} um), "
-             f"RMS {c.rms_px:.4g} px",
-             f"explained by the two calibrations' uncertainties (1 sigma): up to "
-             f"{float(c.sigma_px.max()):.4g} px",
-             f"chi-square {c.chi2:.4g} with {c.dof} degrees of freedom, p = {c.p_value:.3g}; "
-             f"outside the explained range {c.outside_px:.2g} px",
-             f"verdict: {c.verdict}"]
+             f"tested {c.where}"
+             + (f" (grid {c.grid[0]} x {c.grid[1]})" if c.region == "sensor" else ""),
+             f"change where tested: max {c.max_px:.4g} px = {c.max_um:.4g} um, "
+             f"RMS {c.rms_px:.4g} px = {c.rms_um:.4g} um",
+             f"over the whole sensor (display{', extrapolated off the axes' if c.region == 'axes' else ''}): "
+             f"max {c.sensor_max_px:.4g} px = {c.sensor_max_px * c.pixel_size_um:.4g} um; "
+             f"explained by the two uncertainties (1 sigma): up to {float(c.sigma_px.max()):.4g} px",
+             f"tests (Holm at alpha = {c.alpha:g}):"]
+    lines += [f"  {t.line()}" for t in c.tests]
+    lines.append(f"  outside the explained range: {c.outside_px:.2g} px (limit {c.outside_tol_px:g} px)")
+    lines += [f"not tested: {x}" for x in c.left_out]
+    lines.append(f"verdict: {c.verdict}")
     return "\n".join(lines) + "\n"
 
 
@@ -227,7 +245,8 @@ def _undistort(args) -> int:
 
 
 def add_commands(subparsers) -> None:
-    """Register ``report``, ``compare``, ``export`` and ``undistort`` (module docstring)."""
+    """Register ``report``, ``certificate``, ``compare``, ``export`` and ``undistort`` (module
+    docstring)."""
     from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
     from fieldcal.products.export import FORMATS, OPENCV_MODELS
     from fieldcal.products.undistort import INTERPOLATION
@@ -241,6 +260,22 @@ def add_commands(subparsers) -> None:
     p.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default ./fieldcal-report-VERSION)")
     p.set_defaults(func=_report, command="report")
+
+    p = subparsers.add_parser("certificate", help="write the printable calibration certificate",
+                              description="Write DIR/certificate.html: identity, interior orientation "
+                                          "in mm and px, distortion tables, correlations, adjustment, "
+                                          "coverage, check points, the change since the previous "
+                                          "calibration and the acceptance verdict (A4, print to PDF "
+                                          "from a browser).")
+    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output folder (default ./fieldcal-certificate-VERSION)")
+    p.add_argument("--config", metavar="FILE", default=None,
+                   help="TOML or JSON: issuer, facility, identity, validity and acceptance "
+                        "thresholds (defaults: fieldcal.products.certificate.DEFAULT_CONFIG)")
+    p.set_defaults(func=_certificate, command="certificate")
 
     p = subparsers.add_parser("compare", help="compare two calibrations of one camera",
                               description="Where the same ray lands in V1 and V2 over the sensor, "

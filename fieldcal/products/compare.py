@@ -12,12 +12,17 @@ common rotation of B's rays onto A's (Wahba's problem, solved by SVD) is removed
 
 Is the change real? (:func:`compare_calibrations`)
 --------------------------------------------------
-Stack the difference map over an ``n``-point grid as ``d`` (2n,). To first order
+The verdict is a family of tests (:mod:`fieldcal.products.change`): one per quantity both
+calibrations observe (``f``, the principal point, the radial distortion at the edge of
+the field) and the *map test* below over the correction field where both observe,
+combined by Holm's procedure at the level ``alpha``.
+
+The map test. Stack the difference map over the tested points as ``d``. To first order
 ``d = J (theta_A - theta_B)`` with the landing Jacobian ``J`` (2n, p) of
-:func:`fieldcal.products.uncertainty.landing_jacobian` (a ray fixed in the camera frame: where it
-lands moves with the parameters), evaluated once, at A, over the union of the parameters
-either calibration estimated. If both measured the same camera with independent errors,
-``d ~ N(0, C)`` with
+:func:`fieldcal.products.uncertainty.landing_jacobian` (a ray fixed in the camera frame:
+where it lands moves with the parameters), evaluated once, at A, over the union of the
+parameters either calibration estimated. If both measured the same camera with
+independent errors, ``d ~ N(0, C)`` with
 
     C = J (Sigma_A + Sigma_B) J^T = M M^T,    M = J L,   L L^T = Sigma_A + Sigma_B
 
@@ -25,28 +30,37 @@ either calibration estimated. If both measured the same camera with independent 
 below 2n: the map is the parameter difference projected onto the sensor. (One Jacobian
 for both matters: ``J_A`` and ``J_B`` differ slightly, and stacking both would add
 spurious tiny singular values that a pseudo-inverse blows up.) With the SVD
-``M = U S V^T`` truncated to the ``r`` singular values above ``rcond * s_max``, the
-pseudo-inverse gives the test statistic
+``M = U S V^T`` truncated to the ``r`` directions that move the tested points by more
+than ``min_sigma_px`` RMS (``s_k / sqrt(rows) > min_sigma_px``, default 1e-4 px), the
+pseudo-inverse gives the statistic
 
-    chi2 = d^T C^+ d = |S_r^-1 U_r^T d|^2    ~  chi-square with r degrees of freedom
+    chi2 = d^T C^+ d = |S_r^-1 U_r^T d|^2    ~  chi-square with r degrees of freedom.
 
-and its p-value. A part of ``d`` outside the range of ``C`` (``(I - U_r U_r^T) d``) is a
-change that neither calibration's uncertainty allows for at all; it is reported as
-``outside_px`` and makes the change significant when it exceeds ``outside_tol_px``. With
-``remove_rotation`` both ``d`` and ``M`` are first projected onto the fields that no
-common rotation explains (:func:`fieldcal.products.uncertainty.remove_rotation_part`).
+The floor matters: ``d`` is the exact difference, ``C`` its first-order covariance, and
+in a direction that moves the points by 1e-5 px the second-order terms of a parameter
+difference (1e-4 px between two goniometer sessions) are many "sigmas" -- with a
+relative cut-off of 1e-7 such directions turned repeat sessions of one camera into
+chi-square values of 60-6000 on 9 degrees of freedom. A change that small is far below
+any measurement's accuracy. A part of ``d`` outside the kept directions
+(``(I - U_r U_r^T) d``) is a change that neither calibration's uncertainty allows for; it
+is reported as ``outside_px`` and makes the change significant when it exceeds
+``outside_tol_px``. With ``remove_rotation`` both ``d`` and ``M`` are first projected onto
+the fields that no common rotation explains
+(:func:`fieldcal.products.uncertainty.remove_rotation_part`).
 
-The verdict combines the test (significant at level ``alpha``) with the size of the change
-against a tolerance in the image plane (``tolerance_um``, largest ``|d|`` over the grid
-times the pixel pitch): a camera is *flagged* when its change is both significant and
-larger than the tolerance.
+The verdict combines the tests (significant at level ``alpha``) with the size of the
+change against a tolerance in the image plane (``tolerance_um``): a camera is *flagged*
+when its change is both significant and larger than the tolerance. Sizes are always of
+the tested region and in both units, ``px`` and ``um`` of the same numbers (``max_px``,
+``max_um``, ``rms_px``, ``rms_um``); the map over the whole sensor (``diff_px``,
+``sensor_max_px``) is for display.
 
 A goniometer calibration observes only the two scanned axes of the sensor, and there only
 the component along each axis, and not where the optical axis points (the arm's zero is
 aligned on the sensor centre): its model off the axes is an extrapolation, and its split
 between principal point and decentering is a convention of the method. When either
-calibration is a goniometer's (``region="auto"``), the test and the size of the change use
-the points of the centre row (their u component) and of the centre column (their v
+calibration is a goniometer's (``region="auto"``), the map test and the size of the change
+use the points of the centre row (their u component) and of the centre column (their v
 component) only, at the spot positions the goniometer measured (its sweeps do not reach
 the sensor's edges), with the best common rotation removed; the map over the sensor is
 kept for display.
@@ -54,28 +68,30 @@ kept for display.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
 
 from fieldcal.errors import InputError
 from fieldcal.model.camera import PARAM_NAMES, Camera, project, unproject
+from fieldcal.products.change import QuantityTest, holm, observed_quantities, quantity_tests
 from fieldcal.products.uncertainty import (
     Calibration,
     landing_jacobian,
-    remove_rotation_part,
     rotation_jacobian,
     summarise_2x2,
 )
 
 __all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations",
-           "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA"]
+           "combined_covariance", "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA", "DEFAULT_MIN_SIGMA_PX"]
 
 DEFAULT_TOLERANCE_UM = 2.0
 """Default tolerance of a change in the image plane [um] (about 0.4 px at 5.3 um pixels)."""
 DEFAULT_ALPHA = 0.01
-"""Default significance level of the change test."""
+"""Default significance level of the change test (the family of tests, Holm)."""
+DEFAULT_MIN_SIGMA_PX = 1e-4
+"""Directions of the map test that move the tested points by less (RMS) are left out [px]."""
 
 
 def best_rotation(a, b):
@@ -134,16 +150,28 @@ class Comparison:
     uv_px : (n, 2) ndarray
         The grid pixels, row by row.
     diff_px : (n, 2) ndarray
-        ``uv_A(ray_B(uv)) - uv`` [px].
+        ``uv_A(ray_B(uv)) - uv`` [px] over the whole sensor (display; rotation removed with
+        ``remove_rotation``).
     sigma_px : (n,) ndarray
         1-sigma (semi-major axis) of the difference at each pixel that the two
         calibrations' uncertainties explain [px].
-    chi2, dof, p_value : float, int, float
-        The test of the module docstring.
+    chi2, dof, map_p_value : float, int, float
+        The map test of the module docstring.
+    p_value : float
+        The family's: the smallest Holm-adjusted p-value of :attr:`tests`.
     outside_px : float
         Largest norm of the part of the map outside the range of its covariance [px].
     pixel_size_um, tolerance_um, alpha : float
     remove_rotation : bool
+    region : {"sensor", "axes"}
+        Where the map was tested and the change measured.
+    max_px, rms_px : float
+        Largest and RMS change where tested [px] (``|d|`` per point over the sensor; the
+        along-axis component at the goniometer's spots, rotation removed, for ``axes``).
+    tests : tuple of QuantityTest
+        One per quantity (:mod:`fieldcal.products.change`), the map test last.
+    left_out : tuple of str
+        What the comparison does not test, and why.
     """
 
     version_a: str
@@ -156,6 +184,7 @@ class Comparison:
     sigma_px: np.ndarray
     chi2: float
     dof: int
+    map_p_value: float
     p_value: float
     outside_px: float
     pixel_size_um: float
@@ -163,27 +192,42 @@ class Comparison:
     alpha: float
     outside_tol_px: float
     remove_rotation: bool
-    region: str = "sensor"
-    test_max_px: float | None = None
+    region: str
+    max_px: float
+    rms_px: float
+    tests: tuple = field(default_factory=tuple)
+    left_out: tuple = field(default_factory=tuple)
 
     @property
     def norm_px(self) -> np.ndarray:
-        """``|d|`` (n,) [px]."""
+        """``|d|`` (n,) over the whole sensor [px] (display)."""
         return np.hypot(self.diff_px[:, 0], self.diff_px[:, 1])
 
     @property
-    def max_px(self) -> float:
+    def sensor_max_px(self) -> float:
+        """Largest ``|d|`` over the whole sensor [px]; for a goniometer partly an extrapolation."""
         return float(self.norm_px.max())
 
     @property
-    def rms_px(self) -> float:
-        return float(np.sqrt(np.mean(self.norm_px ** 2)))
+    def max_um(self) -> float:
+        """:attr:`max_px` in the image plane [um]."""
+        return self.max_px * self.pixel_size_um
 
     @property
-    def max_um(self) -> float:
-        """The largest change where it was tested [um] (the axes for a goniometer comparison)."""
-        top = self.max_px if self.test_max_px is None else self.test_max_px
-        return top * self.pixel_size_um
+    def rms_um(self) -> float:
+        """:attr:`rms_px` in the image plane [um]."""
+        return self.rms_px * self.pixel_size_um
+
+    @property
+    def where(self) -> str:
+        return ("along the scanned axes, at the measured spots, pointing removed"
+                if self.region == "axes" else "over the sensor"
+                + (", common rotation removed" if self.remove_rotation else ""))
+
+    @property
+    def changed(self) -> list[str]:
+        """Keys of the quantities that changed significantly (Holm, level ``alpha``)."""
+        return [t.key for t in self.tests if t.significant(self.alpha)]
 
     @property
     def significant(self) -> bool:
@@ -200,35 +244,48 @@ class Comparison:
 
     @property
     def verdict(self) -> str:
-        where = " along the scanned axes" if self.region == "axes" else ""
-        size = (f"largest change{where} {self.max_um:.2f} um ({self.max_um / self.pixel_size_um:.3f} px) "
+        size = (f"largest change {self.max_um:.3g} um ({self.max_px:.3g} px) {self.where}, "
                 f"{'>' if self.exceeds_tolerance else '<='} tolerance {self.tolerance_um:g} um")
         if self.outside_px > self.outside_tol_px:
             why = (f"changed where neither calibration has any uncertainty "
                    f"({self.outside_px:.3f} px outside the explained range)")
         elif self.significant:
-            why = f"significant change (p = {self.p_value:.2g} < {self.alpha:g})"
+            what = ", ".join(self.changed)
+            why = f"significant change in {what} (p = {self.p_value:.2g} < {self.alpha:g}, Holm)"
         else:
-            why = f"no significant change (p = {self.p_value:.2g} >= {self.alpha:g})"
+            why = f"no significant change (p = {self.p_value:.2g} >= {self.alpha:g}, Holm)"
         return f"{why}; {size}" + ("; FLAGGED" if self.flagged else "")
 
     def summary(self) -> dict:
         """Scalars for tables and JSON."""
-        d = {k: v for k, v in asdict(self).items() if k not in ("uv_px", "diff_px", "sigma_px")}
-        d.update(grid=list(self.grid), max_px=self.max_px, max_um=self.max_um, rms_px=self.rms_px,
-                 max_sigma_px=float(self.sigma_px.max()), significant=self.significant,
-                 exceeds_tolerance=self.exceeds_tolerance, flagged=self.flagged,
-                 verdict=self.verdict)
+        d = {k: getattr(self, k) for k in (
+            "version_a", "version_b", "method_a", "method_b", "chi2", "dof", "map_p_value",
+            "p_value", "outside_px", "pixel_size_um", "tolerance_um", "alpha", "outside_tol_px",
+            "remove_rotation", "region", "max_px", "rms_px")}
+        d.update(grid=list(self.grid), max_um=self.max_um, rms_um=self.rms_um,
+                 sensor_max_px=self.sensor_max_px, max_sigma_px=float(self.sigma_px.max()),
+                 significant=self.significant, exceeds_tolerance=self.exceeds_tolerance,
+                 flagged=self.flagged, changed=self.changed, verdict=self.verdict,
+                 tests=[t.to_dict() for t in self.tests], left_out=list(self.left_out))
         return d
 
 
 def _sqrt_psd(cov):
-    """``L`` with ``L L^T = cov`` for a symmetric positive semi-definite matrix."""
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    return V * np.sqrt(np.clip(w, 0.0, None))
+    """``L`` with ``L L^T = cov`` for a symmetric positive semi-definite matrix.
+
+    Factored as ``D sqrt(R)`` with ``D`` the standard deviations and ``R`` the correlation
+    matrix: the parameters' variances span 25 orders of magnitude (``f`` in mm^2, ``k3``
+    in mm^-12), and an eigendecomposition of ``cov`` itself loses the small eigenvalues
+    (a direction of a 6-image field calibration came out as exactly zero).
+    """
+    cov = 0.5 * (cov + cov.T)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    scale = np.where(sd > 0, sd, 1.0)
+    w, V = np.linalg.eigh(cov / np.outer(scale, scale))
+    return (V * np.sqrt(np.clip(w, 0.0, None))) * scale[:, None]
 
 
-def _combined_covariance(a: Calibration, b: Calibration):
+def combined_covariance(a: Calibration, b: Calibration):
     """``Sigma_A + Sigma_B`` over the union of their estimated parameters (PARAM_NAMES order)."""
     names = [n for n in PARAM_NAMES if n in a.names or n in b.names]
     pos = {n: i for i, n in enumerate(names)}
@@ -276,11 +333,86 @@ def _project_out(basis, X):
     return X - Q @ (Q.T @ X)
 
 
+@dataclass
+class _MapTest:
+    uv: np.ndarray          # (n, 2) grid
+    diff: np.ndarray        # (n, 2) over the grid
+    sigma: np.ndarray       # (n,) over the grid
+    d_t: np.ndarray         # tested components (rows,)
+    M_t: np.ndarray         # (rows, p)
+    per_point: int          # components per tested point (1 along axes, 2 over the sensor)
+
+
+def _midpoint(a: Calibration, b: Calibration, uv):
+    """The camera halfway between A and B and where B's rays through ``uv`` land in it."""
+    cam_m = Camera(a.sensor, 0.5 * (a.camera.params + b.camera.params))
+    return cam_m, project(unproject(uv, b.camera), np.eye(3), np.zeros(3), cam_m)
+
+
+def _map(a: Calibration, b: Calibration, names, L, grid, region, remove_rotation) -> _MapTest:
+    """The difference map over the grid and the tested components with their ``M``.
+
+    ``M`` is linearised halfway between the two calibrations, at the pixels where the
+    rays land there: the exact map then differs from ``J (theta_A - theta_B)`` by third-order
+    terms only (1.8e-6 px instead of 0.04 px for two 6-image field calibrations whose maps
+    differ by 29 px), so that the statistic does not mistake curvature for change.
+    """
+    uv, d = ray_difference_px(a.camera, b.camera, remove_rotation=remove_rotation, grid=grid)
+    n = len(uv)
+    cam_m, uv_m = _midpoint(a, b, uv)
+    M = landing_jacobian(cam_m, uv_m, names).reshape(2 * n, len(names)) @ L
+    dv = d.reshape(2 * n)
+    if remove_rotation:
+        R = rotation_jacobian(cam_m, uv_m).reshape(-1, 3)
+        M, dv = _project_out(R, M), _project_out(R, dv)
+    Mp = M.reshape(n, 2, -1)
+    sigma = summarise_2x2(np.einsum("nik,njk->nij", Mp, Mp))
+    if region != "axes":
+        return _MapTest(uv, dv.reshape(n, 2), sigma, dv, M, 2)
+    uv_t, rows = _swept_points(a, b) or _axis_points(a.sensor, grid)
+    _, d_t = ray_difference_px(a.camera, b.camera, uv_t)
+    cam_m, uv_tm = _midpoint(a, b, uv_t)
+    R = rotation_jacobian(cam_m, uv_tm).reshape(-1, 3)[rows]
+    dv_t = _project_out(R, d_t.reshape(-1)[rows])
+    M_t = _project_out(R, (landing_jacobian(cam_m, uv_tm, names).reshape(-1, len(names)) @ L)[rows])
+    return _MapTest(uv, dv.reshape(n, 2), sigma, dv_t, M_t, 1)
+
+
+def _map_test(m: _MapTest, rcond: float, min_sigma_px: float):
+    """``(chi2, r, p, outside_px, max_px, rms_px)`` of the map test (module docstring)."""
+    rows = m.d_t.size
+    U, s, _ = np.linalg.svd(m.M_t, full_matrices=False)
+    s_max = s[0] if s.size and s[0] > 0 else 1.0
+    keep = (s > rcond * s_max) & (s / np.sqrt(max(rows, 1)) > min_sigma_px)
+    r = int(keep.sum())
+    z = (U[:, keep].T @ m.d_t) / s[keep]
+    chi2 = float(z @ z)
+    outside = m.d_t - U[:, keep] @ (U[:, keep].T @ m.d_t)
+    size = (np.abs(m.d_t) if m.per_point == 1 else np.hypot(*m.d_t.reshape(-1, 2).T))
+    out_size = (np.abs(outside) if m.per_point == 1 else np.hypot(*outside.reshape(-1, 2).T))
+    p = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
+    return (chi2, r, p, float(out_size.max()) if out_size.size else 0.0,
+            float(size.max()) if size.size else 0.0,
+            float(np.sqrt(np.mean(size**2))) if size.size else 0.0)
+
+
+def _check(tolerance_um, alpha, region, min_sigma_px) -> None:
+    if not (tolerance_um > 0):
+        raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
+    if not (0 < alpha < 1):
+        raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
+    if region not in ("auto", "sensor", "axes"):
+        raise InputError(f"region must be 'auto', 'sensor' or 'axes', got {region!r}", "compare")
+    if not (min_sigma_px >= 0):
+        raise InputError(f"min_sigma_px must be >= 0, got {min_sigma_px}", "compare")
+
+
 def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int] = (41, 31),
                          tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
-                         remove_rotation: bool = False, rcond: float = 1e-7,
-                         outside_tol_px: float = 0.01, region: str = "auto") -> Comparison:
-    """Where the same rays land in two calibrations, and whether the change is real.
+                         remove_rotation: bool = False, rcond: float = 1e-9,
+                         min_sigma_px: float = DEFAULT_MIN_SIGMA_PX, outside_tol_px: float = 0.01,
+                         region: str = "auto") -> Comparison:
+    """Where the same rays land in two calibrations, and whether the camera changed.
 
     Parameters
     ----------
@@ -291,63 +423,40 @@ def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int
     tolerance_um : float
         Largest acceptable change in the image plane [um].
     alpha : float
-        Significance level of the test.
+        Significance level of the family of tests (Holm).
     remove_rotation : bool
         Remove the best common rotation first (:func:`ray_difference_px`).
     rcond : float
-        Singular values of ``M`` below ``rcond * s_max`` count as zero (rank).
+        Singular values of ``M`` below ``rcond * s_max`` count as zero (numerical rank).
+    min_sigma_px : float
+        Directions of the map test that move the tested points by less, RMS, are left out
+        [px] (module docstring).
     outside_tol_px : float
         A change outside the range of the covariance larger than this [px] is significant.
     region : {"auto", "sensor", "axes"}
-        Where the change is tested: the whole grid, or the scanned axes of a goniometer
+        Where the map is tested: the whole grid, or the scanned axes of a goniometer
         (module docstring); ``"auto"`` picks ``"axes"`` when either is a goniometer's.
 
     Returns
     -------
     Comparison
     """
-    if not (tolerance_um > 0):
-        raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
-    if not (0 < alpha < 1):
-        raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
-    if region not in ("auto", "sensor", "axes"):
-        raise InputError(f"region must be 'auto', 'sensor' or 'axes', got {region!r}", "compare")
+    _check(tolerance_um, alpha, region, min_sigma_px)
     if region == "auto":
         region = "axes" if "goniometer" in (a.method, b.method) else "sensor"
-    if region == "axes":
-        remove_rotation = True
-    uv, d = ray_difference_px(a.camera, b.camera, remove_rotation=remove_rotation, grid=grid)
-    n = len(uv)
-    names, cov = _combined_covariance(a, b)
-    L = _sqrt_psd(cov)
-    J = landing_jacobian(a.camera, uv, names).reshape(2 * n, len(names))
-    M = J @ L
-    dv = d.reshape(2 * n)
-    if remove_rotation:
-        M = remove_rotation_part(a.camera, uv, M)
-        dv = remove_rotation_part(a.camera, uv, dv)
-    Mp = M.reshape(n, 2, -1)
-    sigma = summarise_2x2(np.einsum("nik,njk->nij", Mp, Mp))
-    test_max = None
-    if region == "axes":
-        uv_t, rows = _swept_points(a, b) or _axis_points(a.sensor, grid)
-        _, d_t = ray_difference_px(a.camera, b.camera, uv_t)
-        R = rotation_jacobian(a.camera, uv_t).reshape(-1, 3)[rows]
-        dv_t = _project_out(R, d_t.reshape(-1)[rows])
-        M_t = _project_out(R, (landing_jacobian(a.camera, uv_t, names).reshape(-1, len(names)) @ L)[rows])
-        test_max = float(np.abs(dv_t).max())
-    else:
-        dv_t, M_t = dv, M
-    U, s, _ = np.linalg.svd(M_t, full_matrices=False)
-    keep = s > rcond * (s[0] if s.size and s[0] > 0 else 1.0)
-    r = int(keep.sum())
-    z = (U[:, keep].T @ dv_t) / s[keep]
-    chi2 = float(z @ z)
-    outside = dv_t - U[:, keep] @ (U[:, keep].T @ dv_t)
-    outside_px = (float(np.abs(outside).max()) if region == "axes"
-                  else float(np.hypot(*outside.reshape(-1, 2).T).max()) if n else 0.0)
-    p_value = float(stats.chi2.sf(chi2, r)) if r > 0 else 1.0
-    return Comparison(a.version, b.version, a.method, b.method, tuple(grid), uv,
-                      dv.reshape(n, 2) if remove_rotation else d, sigma, chi2, r, p_value,
-                      outside_px, float(a.sensor.pixel_size_um), float(tolerance_um),
-                      float(alpha), float(outside_tol_px), bool(remove_rotation), region, test_max)
+    remove_rotation = remove_rotation or region == "axes"
+    names, cov = combined_covariance(a, b)
+    m = _map(a, b, names, _sqrt_psd(cov), grid, region, remove_rotation)
+    chi2, r, p_map, outside_px, max_px, rms_px = _map_test(m, rcond, min_sigma_px)
+    keys, left_out = observed_quantities(a, b)
+    where = ("along the scanned axes" if region == "axes" else "over the sensor")
+    map_test = QuantityTest("map", f"correction field {where}", "px", (max_px,),
+                            (float(m.sigma.max()),), chi2, r, p_map)
+    tests = quantity_tests(a, b, names, cov, keys) + [map_test]
+    adjusted = holm([t.p_value for t in tests])
+    tests = tuple(replace(t, p_adjusted=float(q)) for t, q in zip(tests, adjusted, strict=True))
+    return Comparison(a.version, b.version, a.method, b.method, tuple(grid), m.uv, m.diff,
+                      m.sigma, chi2, r, p_map, float(adjusted.min()), outside_px,
+                      float(a.sensor.pixel_size_um), float(tolerance_um), float(alpha),
+                      float(outside_tol_px), bool(remove_rotation), region, max_px, rms_px,
+                      tests, tuple(left_out))

@@ -24,7 +24,13 @@ from fieldcal.products.uncertainty import Calibration, decentering_curve, radial
 
 __all__ = ["to_png", "residual_vectors", "residuals_per_image", "stations_3d",
            "distortion_curves", "uncertainty_figure", "correlation_figure",
-           "goniometer_axes", "compare_figure", "history_plot", "fleet_plot"]
+           "goniometer_axes", "compare_figure", "history_plot", "fleet_plot",
+           "residual_histogram", "distortion_vectors", "PARAM_UNITS"]
+
+PARAM_UNITS = {"f_mm": "mm", "xp_mm": "mm", "yp_mm": "mm", "k0": "1", "k1": "mm^-2",
+               "k2": "mm^-4", "k3": "mm^-6", "p1": "mm^-1", "p2": "mm^-1", "a1": "1", "a2": "1",
+               "b1": "1", "b2": "1"}
+"""The unit of each camera parameter (CONTRACT section 2)."""
 
 DPI = 110
 _AXIS_COLORS = {"x": "tab:blue", "y": "tab:orange"}
@@ -419,7 +425,8 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
     _vectors(ax, c.uv_px[sel], c.diff_px[sel], 0.9 * step * (sensor.width_px / nx), "cyan", 0.005)
     _sensor_axes(ax, sensor)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label("|difference| [px]")
-    ax.set_title(f"Same ray, difference: max {c.max_px:.3g} px ({c.max_um:.3g} um)", fontsize=9,
+    ax.set_title(f"Same ray, difference over the sensor: max {c.sensor_max_px:.3g} px "
+                 f"({c.sensor_max_px * c.pixel_size_um:.3g} um)", fontsize=9,
                  loc="left", pad=16)
     ax = fig.add_subplot(1, 3, 2)
     im = ax.imshow(sig, extent=ext, origin="upper", vmin=0, vmax=vmax, cmap="magma")
@@ -434,7 +441,7 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
     im = ax.imshow(ratio, extent=ext, origin="upper", cmap="coolwarm", vmin=0, vmax=top)
     _sensor_axes(ax, sensor)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label("|difference| / sigma")
-    ax.set_title(f"chi2 = {c.chi2:.3g} with {c.dof} dof, p = {c.p_value:.2g}", fontsize=9,
+    ax.set_title(f"map test: chi2 = {c.chi2:.3g} with {c.dof} dof, p = {c.map_p_value:.2g}", fontsize=9,
                  loc="left", pad=16)
     head = (f"B {c.version_b} ({c.method_b}) vs A {c.version_a} ({c.method_a}): {c.verdict}")
     fig.suptitle("\n".join(textwrap.wrap(head, 150)), fontsize=9)
@@ -479,9 +486,9 @@ def history_plot(history, parameters=("f_mm", "xp_mm", "yp_mm"), *, tolerance=No
         tol = (tolerance or {}).get(name)
         if tol is not None and np.isfinite(y[reference]):
             ax.axhspan(y[reference] - tol, y[reference] + tol, color="tab:green", alpha=0.12,
-                       label=f"tolerance +-{tol:.3g}")
+                       label=f"tolerance +-{tol:.3g} {PARAM_UNITS.get(name, '')}".rstrip())
             ax.axhline(y[reference], color="tab:green", lw=0.8)
-        ax.set_ylabel(name)
+        ax.set_ylabel(f"{name} [{PARAM_UNITS[name]}]" if name in PARAM_UNITS else name)
         ax.ticklabel_format(axis="y", useOffset=False, style="sci", scilimits=(-3, 4))
         ax.legend(fontsize=7, loc="best")
     axes[-1].set_xlabel("acquired")
@@ -519,4 +526,84 @@ def fleet_plot(summary, *, tolerance_um: float) -> Figure:
               + ax.get_legend_handles_labels()[1], fontsize=7, loc="upper left",
               bbox_to_anchor=(1.01, 1.0))
     ax.set_title("Fleet: latest vs previous calibration", fontsize=10, loc="left")
+    return fig
+
+
+# --------------------------------------------------------------------------------------
+# residual distribution, 2-D distortion
+# --------------------------------------------------------------------------------------
+def residual_histogram(z, expected_sigma: float, *, what: str = "residual / a-priori sigma",
+                       unit: str = "", statistic=None, dof: int = 2) -> Figure:
+    """Histogram of residuals ``z`` (n,) with the normal curve they are expected to follow.
+
+    ``expected_sigma`` is the standard deviation the residuals should have (for example
+    ``sigma0 sqrt(r / n)``: the a-posteriori unit weight and the share of the observations'
+    redundancy; see :mod:`fieldcal.products.report`). With ``statistic`` (m,), a per-point
+    test statistic that is chi-square with ``dof`` degrees of freedom (the residual
+    weighted by its own redundancy), a second panel shows it against that density.
+    """
+    from scipy import stats as st
+
+    z = np.asarray(z, float)
+    z = z[np.isfinite(z)]
+    fig = Figure(figsize=(11.0 if statistic is not None else 8.0, 3.6), layout="constrained")
+    ax = fig.add_subplot(1, 2 if statistic is not None else 1, 1)
+    if statistic is not None:
+        T = np.asarray(statistic, float)
+        T = T[np.isfinite(T)]
+        ax2 = fig.add_subplot(1, 2, 2)
+        top = max(float(st.chi2.isf(0.001, dof)), float(np.percentile(T, 99.5)) if T.size else 1.0)
+        ax2.hist(T, bins=np.linspace(0, top, 60), density=True, color="tab:green", alpha=0.6,
+                 label=f"{T.size} points (mean {T.mean() if T.size else float('nan'):.3g})")
+        x = np.linspace(top / 600, top, 600)
+        ax2.plot(x, st.chi2.pdf(x, dof), color="black", lw=1.2, label=f"chi-square, {dof} dof (mean {dof})")
+        ax2.set_xlim(0, top)
+        ax2.set_xlabel("per-point test statistic (residual over its own sigma, squared)")
+        ax2.set_ylabel("density")
+        ax2.legend(fontsize=8)
+    if z.size == 0:
+        ax.text(0.5, 0.5, "no residuals", ha="center", transform=ax.transAxes)
+        return fig
+    lim = max(4.0 * expected_sigma, float(np.percentile(np.abs(z), 99.5)))
+    bins = np.linspace(-lim, lim, int(np.clip(np.sqrt(z.size), 15, 80)))
+    ax.hist(z, bins=bins, density=True, color="tab:blue", alpha=0.6,
+            label=f"{z.size} residuals (RMS {np.sqrt(np.mean(z**2)):.3g}{' ' + unit if unit else ''})")
+    x = np.linspace(-lim, lim, 400)
+    if expected_sigma > 0:
+        ax.plot(x, np.exp(-0.5 * (x / expected_sigma) ** 2) / (expected_sigma * np.sqrt(2 * np.pi)),
+                color="black", lw=1.2, label=f"expected normal, sigma {expected_sigma:.3g}")
+    out = int((np.abs(z) > lim).sum())
+    ax.set_xlim(-lim, lim)
+    ax.set_xlabel(what + (f" [{unit}]" if unit else ""))
+    ax.set_ylabel("density")
+    ax.legend(fontsize=8, title=f"{out} beyond the axes" if out else None, title_fontsize=7)
+    return fig
+
+
+def distortion_vectors(grid_u_px, grid_v_px, field_px, sensor: Sensor, *, step: int = 3,
+                       reach_px=None) -> Figure:
+    """The correction field (ny, nx, 2) [px] as vectors over the sensor, its size in colour.
+
+    ``reach_px``: optional (u, v) points whose convex extent marks where the data were.
+    """
+    gu, gv = np.asarray(grid_u_px, float), np.asarray(grid_v_px, float)
+    F = np.asarray(field_px, float)
+    mag = np.hypot(F[..., 0], F[..., 1])
+    fig = Figure(figsize=(9.0, 6.4), layout="constrained")
+    ax = fig.add_subplot()
+    du, dv = (gu[1] - gu[0]) / 2 if gu.size > 1 else 0.5, (gv[1] - gv[0]) / 2 if gv.size > 1 else 0.5
+    im = ax.imshow(mag, extent=(gu[0] - du, gu[-1] + du, gv[-1] + dv, gv[0] - dv), origin="upper",
+                   cmap="viridis")
+    uu, vv = np.meshgrid(gu[::step], gv[::step])
+    vec = F[::step, ::step].reshape(-1, 2)
+    _vectors(ax, np.column_stack([uu.ravel(), vv.ravel()]), vec,
+             0.9 * step * 2 * du, "white", 0.004)
+    if reach_px is not None and len(reach_px):
+        pts = np.asarray(reach_px, float)
+        ax.plot(pts[:, 0], pts[:, 1], ".", ms=1.5, color="tab:red", alpha=0.5, label="observations")
+        ax.legend(fontsize=8, loc="lower right")
+    _sensor_axes(ax, sensor)
+    fig.colorbar(im, ax=ax, shrink=0.85).set_label("|correction| [px]")
+    ax.set_title(f"Correction (measured -> ideal point) over the sensor: up to {mag.max():.3g} px",
+                 fontsize=10, loc="left")
     return fig

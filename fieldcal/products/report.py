@@ -37,7 +37,8 @@ import pyarrow as pa
 
 from fieldcal.errors import InputError, LakeError
 from fieldcal.model.camera import INDEX, PARAM_NAMES, correction
-from fieldcal.products import plots
+from fieldcal.products import content, plots
+from fieldcal.products import report_sections as sections
 from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, compare_calibrations
 from fieldcal.products.uncertainty import Calibration, uncertainty_map
 
@@ -46,9 +47,10 @@ __all__ = ["FIELD_FIGURES", "GONIOMETER_FIGURES", "UNITS", "ReportFiles", "param
            "render_html", "write_report", "parameter_tolerance", "fleet_summary",
            "CORRELATION_THRESHOLD", "SIGNIFICANCE_SIGMAS"]
 
-FIELD_FIGURES = ("residual_vectors", "residuals_per_image", "stations_3d", "distortion_curves",
-                 "uncertainty_map", "correlation")
-GONIOMETER_FIGURES = ("axis_distortion", "distortion_curves", "uncertainty_map", "correlation")
+FIELD_FIGURES = ("residual_vectors", "residual_histogram", "residuals_per_image", "stations_3d",
+                 "distortion_curves", "distortion_vectors", "uncertainty_map", "correlation")
+GONIOMETER_FIGURES = ("axis_distortion", "residual_histogram", "distortion_curves", "distortion_vectors",
+                      "uncertainty_map", "correlation")
 UNITS = {"f_mm": "mm", "xp_mm": "mm", "yp_mm": "mm", "k0": "1", "k1": "mm^-2", "k2": "mm^-4",
          "k3": "mm^-6", "p1": "mm^-1", "p2": "mm^-1", "a1": "1", "a2": "1", "b1": "1", "b2": "1"}
 CORRELATION_THRESHOLD = 0.95
@@ -272,6 +274,61 @@ def goniometer_axis_table(cal: Calibration, residuals: pa.Table) -> dict:
 # --------------------------------------------------------------------------------------
 # figures
 # --------------------------------------------------------------------------------------
+def _residual_histogram(cal: Calibration, r: dict, used):
+    """The residuals against the normal distribution they should follow (figure, caption).
+
+    Field method: each component divided by its a-priori sigma; expected sigma
+    ``sigma0 sqrt(redundancy / equations)`` (the mean redundancy number; the targets' survey
+    equations count when the targets were adjusted). Goniometer: the fit residuals along the
+    axes [px]; expected ``sigma_fit sqrt((n - t) / n)`` (eq. 10).
+    """
+    st = cal.document.get("stats") or {}
+    adj = content.adjustment_figures(cal)
+    if cal.method == "field":
+        sig = np.asarray(r.get("sigma_px", np.ones(len(used))), float)[used]
+        z = np.concatenate([np.asarray(r["du_px"], float)[used] / sig, np.asarray(r["dv_px"], float)[used] / sig])
+        n_eq = adj["n_equations"] + (3 * int(st.get("n_targets") or 0) if st.get("targets_adjusted") else 0)
+        expected = float(st.get("sigma0") or 1.0) * math.sqrt(max(adj["redundancy"], 0) / max(n_eq, 1))
+        T = np.asarray(r.get("normalized_residual", np.full(len(used), np.nan)), float)[used]
+        fig = plots.residual_histogram(z, expected, what="image residual / its a-priori sigma",
+                                       statistic=T if np.isfinite(T).any() else None)
+        cap = ("Left: image residual components (u and v) over their a-priori sigmas, with the "
+               "normal curve they should follow, sigma0 x sqrt(redundancy / equations) (the mean "
+               "redundancy number: approximate, since a target seen in few images keeps less of "
+               "its error in the residuals). Right: each point's residual over its own "
+               "sigma (its redundancy included), squared, against the chi-square density with 2 "
+               "degrees of freedom it follows exactly when the a-priori sigmas are right.")
+    else:
+        axis = np.asarray(r.get("axis", np.full(len(used), None, object)))
+        z = np.where(axis == "x", np.asarray(r["du_px"], float), np.asarray(r["dv_px"], float))[used]
+        n = int(np.isfinite(z).sum())
+        t = int(st.get("n_fitted") or 0)
+        expected = float(st.get("sigma_fit_px") or 0.0) * math.sqrt(max(n - t, 0) / max(n, 1))
+        fig = plots.residual_histogram(z, expected, what="fit residual along the axis", unit="px")
+        cap = ("Residuals of the distortion fit along the swept axes, with the normal curve "
+               "they should follow: sigma_fit (eq. 10) x sqrt((n - t) / n).")
+    return fig, cap
+
+
+def _distortion_vectors(cal: Calibration, points_uv):
+    """The 2-D correction field of the Zarr group (or of the parameters) (figure, caption)."""
+    F = cal.arrays.get("correction_field")
+    gu, gv = cal.arrays.get("grid_u_px"), cal.arrays.get("grid_v_px")
+    if F is None or gu is None or gv is None:
+        gu, gv = cal.sensor.grid_px(41, 31)[:41, 0], cal.sensor.grid_px(41, 31)[::41, 1]
+        uu, vv = np.meshgrid(gu, gv)
+        F = correction(cal.sensor.pixel_to_mm(np.column_stack([uu.ravel(), vv.ravel()])),
+                       cal.camera.params) / cal.sensor.pixel_mm
+        F[:, 1] *= -1.0
+        F = F.reshape(len(gv), len(gu), 2)
+    fig = plots.distortion_vectors(gu, gv, F, cal.sensor, reach_px=points_uv)
+    cap = ("The model's correction (from the measured to the ideal point, in pixels along u and v) "
+           "over the sensor: vectors magnified as the key says, the size in colour; red dots are the "
+           "observations" + (" (off the two scanned axes the goniometer's model is an extrapolation)"
+                             if cal.method == "goniometer" else "") + ".")
+    return fig, cap
+
+
 def build_figures(cal: Calibration, residuals: pa.Table) -> dict:
     """``{name: (Figure, caption)}`` for the report, in :data:`FIELD_FIGURES` or
     :data:`GONIOMETER_FIGURES` order."""
@@ -313,6 +370,13 @@ def build_figures(cal: Calibration, residuals: pa.Table) -> dict:
             plots.goniometer_axes(table, sigma_fit_px=(cal.document.get("stats") or {}).get("sigma_fit_px")),
             "Distortion along each swept axis after the interior orientation (left) and the "
             "residuals after the distortion fit (right), as in the lab paper's Figs. 4-7.")
+    figs["residual_histogram"] = _residual_histogram(cal, r, used)
+    ordered = {}
+    for name in ("residual_vectors", "axis_distortion", "residual_histogram", "residuals_per_image",
+                 "stations_3d"):
+        if name in figs:
+            ordered[name] = figs[name]
+    figs = ordered
     reach = None
     if used.any():
         ok = used & np.isfinite(uv).all(axis=1)
@@ -323,6 +387,7 @@ def build_figures(cal: Calibration, residuals: pa.Table) -> dict:
         "Radial correction and decentering profile from the principal point to the farthest "
         "corner, with 1- and 3-sigma bands propagated from the covariance; the dashed line is "
         "the largest radius with measurements (beyond it the model is extrapolated).")
+    figs["distortion_vectors"] = _distortion_vectors(cal, uv[used] if used.any() else None)
     figs["uncertainty_map"] = (
         plots.uncertainty_figure(cal, points_uv_px=uv[used] if used.any() else None),
         "Projection uncertainty: 1 sigma of where a ray lands [px], propagated from the "
@@ -362,17 +427,10 @@ def _fmt(x, digits: int = 6) -> str:
     return html.escape(f"{x:.{digits}g}")
 
 
-def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captions: dict) -> str:
-    """The report's HTML (self-contained: PNGs as data URIs)."""
+def _meta_section(cal: Calibration) -> list[str]:
     doc = cal.document
     st = doc.get("stats") or {}
     e = html.escape
-    title = f"fieldcal report: {doc.get('camera_id')} / {doc.get('session_id')}"
-    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
-           f"<title>{e(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>",
-           f"<h1>{e(title)}</h1>",
-           f"<p>Version <code>{e(cal.version)}</code>, {e(cal.method)} method, model "
-           f"{e(str(doc.get('model')))}.</p>"]
     s = doc["sensor"]
     meta = [("camera", doc.get("camera_id")), ("session", doc.get("session_id")),
             ("version", cal.version), ("method", cal.method), ("acquired", doc.get("acquired")),
@@ -390,42 +448,45 @@ def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captio
         meta += [("sigma of the distortion fit (eq. 10)", f"{st.get('sigma_fit_px', float('nan')):.4g} px"),
                  ("fx, fy", f"{st.get('fx_mm', float('nan')):.6g}, {st.get('fy_mm', float('nan')):.6g} mm"),
                  ("solver", st.get("solver"))]
-    out.append('<table class="meta">')
-    out += [f"<tr><td>{e(k)}</td><td>{e(str(v))}</td></tr>" for k, v in meta]
-    out.append("</table>")
+    adj = content.adjustment_figures(cal)
+    meta.append(("redundancy", f"{adj['redundancy']} ({adj['n_equations']} equations, "
+                               f"{adj['n_unknowns']} unknowns)"))
+    return (['<table class="meta">'] + [f"<tr><td>{e(k)}</td><td>{e(str(v))}</td></tr>" for k, v in meta]
+            + ["</table>"])
 
-    # inputs
+
+def _inputs_section(cal: Calibration, residuals: pa.Table) -> list[str]:
+    e = html.escape
     inp = inputs_summary(cal, residuals)
-    out.append('<h2 id="inputs">What went in, what was left out</h2>')
-    out.append('<ul class="compact">' + "".join(f"<li>{e(x)}</li>" for x in inp["went_in"]) + "</ul>")
+    out = ['<h2 id="inputs">What went in, what was left out</h2>',
+           '<ul class="compact">' + "".join(f"<li>{e(x)}</li>" for x in inp["went_in"]) + "</ul>"]
     if inp["rejected_by_reason"]:
         out.append("<p>Rejected measurements by reason: "
                    + ", ".join(f"{e(k)}: {v}" for k, v in inp["rejected_by_reason"].items()) + ".</p>")
     left = inp["left_out"]
     if left:
-        shown = left[:200]
         out.append(f"<p>Left out ({len(left)} item(s)" + (", first 200 shown" if len(left) > 200 else "")
                    + "):</p>")
         out.append('<table id="left-out"><tr><th>what</th><th>item</th><th>why</th></tr>')
         out += [f"<tr><td>{e(x['what'])}</td><td>{e(str(x['item']))}</td><td>{e(str(x['why']))}</td></tr>"
-                for x in shown]
+                for x in left[:200]]
         out.append("</table>")
     else:
         out.append("<p>Nothing was left out.</p>")
-    for n in inp["notes"]:
-        out.append(f'<p class="note">Note: {e(n)}</p>')
+    out += [f'<p class="note">Note: {e(n)}</p>' for n in inp["notes"]]
+    return out
 
-    # parameters
-    rows = parameter_rows(cal)
-    out.append('<h2 id="parameters">Parameters</h2>')
-    out.append(f"<p>A-posteriori sigmas. Rows shaded yellow are not significant at "
-               f"{SIGNIFICANCE_SIGMAS:g} sigma (|value| &lt; {SIGNIFICANCE_SIGMAS:g} sigma); "
-               f'<span class="hicorr">red</span> marks correlations above '
-               f"{CORRELATION_THRESHOLD:g}.</p>")
-    out.append('<table id="parameter-table"><tr><th>parameter</th><th>value</th><th>sigma</th>'
-               "<th>unit</th><th>|value|/sigma</th><th>status</th><th>correlated (|r| &gt; "
-               f"{CORRELATION_THRESHOLD:g})</th></tr>")
-    for r in rows:
+
+def _parameters_section(cal: Calibration) -> list[str]:
+    e = html.escape
+    out = ['<h2 id="parameters">Parameters</h2>',
+           f"<p>A-posteriori sigmas. Rows shaded yellow are not significant at "
+           f"{SIGNIFICANCE_SIGMAS:g} sigma (|value| &lt; {SIGNIFICANCE_SIGMAS:g} sigma); "
+           f'<span class="hicorr">red</span> marks correlations above {CORRELATION_THRESHOLD:g}.</p>',
+           '<table id="parameter-table"><tr><th>parameter</th><th>value</th><th>sigma</th>'
+           "<th>unit</th><th>|value|/sigma</th><th>status</th><th>correlated (|r| &gt; "
+           f"{CORRELATION_THRESHOLD:g})</th></tr>"]
+    for r in parameter_rows(cal):
         cls = "fixed" if not r["estimated"] else ("" if r["significant"] else "insig")
         corr = ", ".join(f"{o} ({c:+.3f})" for o, c in r["correlated"])
         out.append(f'<tr class="{cls}"><td>{e(r["name"])}</td><td class="num">{_fmt(r["value"], 8)}'
@@ -433,36 +494,64 @@ def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captio
                    f'<td class="num">{_fmt(r["t"], 3)}</td><td>{e(r["status"])}</td>'
                    f'<td{" class=" + chr(34) + "hicorr" + chr(34) if corr else ""}>{e(corr)}</td></tr>')
     out.append("</table>")
+    out.append(sections.interior_px(cal))
     corr = cal.correlation()
     names = list(cal.names)
     out.append("<h3>Correlation matrix of the estimated parameters</h3>")
-    out.append('<table id="correlation-table"><tr><th></th>'
-               + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>")
+    out.append('<table id="correlation-table"><tr><th></th>' + "".join(f"<th>{e(n)}</th>" for n in names)
+               + "</tr>")
     for i, a in enumerate(names):
-        cells = []
-        for j in range(len(names)):
-            hi = i != j and abs(corr[i, j]) > CORRELATION_THRESHOLD
-            cells.append(f'<td class="num{" hicorr" if hi else ""}">{corr[i, j]:+.3f}</td>')
+        cells = [f'<td class="num{" hicorr" if i != j and abs(corr[i, j]) > CORRELATION_THRESHOLD else ""}">'
+                 f"{corr[i, j]:+.3f}</td>" for j in range(len(names))]
         out.append(f"<tr><th>{e(a)}</th>{''.join(cells)}</tr>")
     out.append("</table>")
+    return out
 
-    # uncertainty numbers
-    gu, gv, sig = uncertainty_map(cal, (41, 31))
+
+def _uncertainty_section(cal: Calibration) -> list[str]:
+    _, _, sig = uncertainty_map(cal, (41, 31))
     _, _, sig_r = uncertainty_map(cal, (41, 31), remove_rotation=True)
-    out.append('<h2 id="uncertainty">Projection uncertainty</h2>')
-    out.append(f"<p>1 sigma of where a ray lands: {sig[15, 20]:.3g} px at the centre, "
-               f"{max(sig[0, 0], sig[0, -1], sig[-1, 0], sig[-1, -1]):.3g} px in the worst corner, "
-               f"{sig.max():.3g} px at most; without a common camera rotation {sig_r[15, 20]:.3g} px "
-               f"at the centre and {sig_r.max():.3g} px at most "
-               f"(covariance: {e(cal.covariance_source)}).</p>")
+    return ['<h2 id="uncertainty">Projection uncertainty</h2>',
+            f"<p>1 sigma of where a ray lands: {sig[15, 20]:.3g} px at the centre, "
+            f"{max(sig[0, 0], sig[0, -1], sig[-1, 0], sig[-1, -1]):.3g} px in the worst corner, "
+            f"{sig.max():.3g} px at most; without a common camera rotation {sig_r[15, 20]:.3g} px "
+            f"at the centre and {sig_r.max():.3g} px at most "
+            f"(covariance: {html.escape(cal.covariance_source)}).</p>"]
 
-    # figures
-    out.append('<h2 id="plots">Plots</h2>')
+
+def _figures_section(figures_png: dict, captions: dict) -> list[str]:
+    e = html.escape
+    out = ['<h2 id="plots">Plots</h2>']
     for name, png in figures_png.items():
         b64 = base64.b64encode(png).decode("ascii")
         out.append(f'<figure id="fig-{e(name)}"><img src="data:image/png;base64,{b64}" '
                    f'alt="{e(name)}"><figcaption>{e(captions.get(name, ""))} '
                    f"(<code>{e(name)}.png</code>)</figcaption></figure>")
+    return out
+
+
+def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captions: dict, *,
+                previous: Calibration | None = None, change=None) -> str:
+    """The report's HTML (self-contained: PNGs as data URIs); ``previous`` the camera's
+    calibration before this one and ``change`` the comparison with it (or None)."""
+    doc = cal.document
+    e = html.escape
+    title = f"fieldcal report: {doc.get('camera_id')} / {doc.get('session_id')}"
+    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
+           f"<title>{e(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>",
+           f"<h1>{e(title)}</h1>",
+           f"<p>Version <code>{e(cal.version)}</code>, {e(cal.method)} method, model "
+           f"{e(str(doc.get('model')))}.</p>"]
+    out += _meta_section(cal)
+    out += _inputs_section(cal, residuals)
+    out += _parameters_section(cal)
+    out.append(sections.model_equations())
+    out += _uncertainty_section(cal)
+    if cal.method == "field":
+        out.append(sections.exterior_table(cal, image_table(cal, residuals)))
+        out.append(sections.targets_section(cal))
+    out.append(sections.previous_section(cal, previous, change))
+    out += _figures_section(figures_png, captions)
     out.append(f"<p><small>Written by fieldcal {e(str(doc.get('code_version', '')))} on "
                f"{dt.datetime.now(dt.UTC).strftime('%Y-%m-%dT%H:%M:%SZ')}.</small></p>")
     out += ["</body>", "</html>"]
@@ -477,10 +566,23 @@ class ReportFiles:
     pngs: dict
 
 
+def _previous(lake, cal: Calibration):
+    """``(previous calibration, comparison)`` of the same camera, or ``(None, None)``."""
+    prev = content.previous_version(lake, cal)
+    if prev is None:
+        return None, None
+    try:
+        before = Calibration.from_lake(lake, prev)
+        return before, compare_calibrations(before, cal)
+    except (InputError, LakeError):
+        return None, None
+
+
 def write_report(lake, version: str, out_dir) -> ReportFiles:
     """Write ``report.html`` and one PNG per plot of a committed version into ``out_dir``."""
     cal = Calibration.from_lake(lake, version)
     residuals = lake.read_residuals(version)
+    previous, change = _previous(lake, cal)
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -494,7 +596,8 @@ def write_report(lake, version: str, out_dir) -> ReportFiles:
         paths[name] = out / f"{name}.png"
         paths[name].write_bytes(pngs[name])
     page = out / "report.html"
-    page.write_text(render_html(cal, residuals, pngs, captions), encoding="utf-8")
+    page.write_text(render_html(cal, residuals, pngs, captions, previous=previous, change=change),
+                    encoding="utf-8")
     return ReportFiles(page, paths)
 
 
@@ -522,10 +625,16 @@ FLEET_SCHEMA = pa.schema([
     ("camera_id", pa.string()), ("version", pa.string()), ("method", pa.string()),
     ("acquired", pa.timestamp("us", tz="UTC")), ("previous_version", pa.string()),
     ("previous_method", pa.string()), ("previous_acquired", pa.timestamp("us", tz="UTC")),
-    ("max_change_px", pa.float64()), ("max_change_um", pa.float64()),
-    ("rms_change_um", pa.float64()), ("chi2", pa.float64()), ("dof", pa.int32()),
-    ("p_value", pa.float64()), ("significant", pa.bool_()), ("exceeds_tolerance", pa.bool_()),
+    ("region", pa.string()), ("max_change_px", pa.float64()), ("max_change_um", pa.float64()),
+    ("rms_change_px", pa.float64()), ("rms_change_um", pa.float64()), ("chi2", pa.float64()),
+    ("dof", pa.int32()), ("p_value", pa.float64()), ("changed", pa.string()),
+    ("significant", pa.bool_()), ("exceeds_tolerance", pa.bool_()),
     ("flagged", pa.bool_()), ("tolerance_um", pa.float64()), ("verdict", pa.string())])
+"""One row per camera. The change columns are all of the region tested (``region``:
+``sensor``, or ``axes`` when a goniometer calibration is involved) and in both units of the
+same numbers; ``chi2, dof`` are the map test's, ``p_value`` the family's (Holm) and
+``changed`` the quantities that changed significantly
+(:class:`fieldcal.products.compare.Comparison`)."""
 
 
 def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
@@ -572,9 +681,10 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
             rows.append(out)
             continue
         out.update(previous_version=prev["version"], previous_method=prev["method"],
-                   previous_acquired=prev.get("acquired"), max_change_px=c.max_px,
-                   max_change_um=c.max_um, rms_change_um=c.rms_px * c.pixel_size_um,
-                   chi2=c.chi2, dof=c.dof, p_value=c.p_value, significant=c.significant,
+                   previous_acquired=prev.get("acquired"), region=c.region,
+                   max_change_px=c.max_px, max_change_um=c.max_um, rms_change_px=c.rms_px,
+                   rms_change_um=c.rms_um, chi2=c.chi2, dof=c.dof, p_value=c.p_value,
+                   changed=", ".join(c.changed), significant=c.significant,
                    exceeds_tolerance=c.exceeds_tolerance, flagged=c.flagged, verdict=c.verdict)
         rows.append(out)
     return pa.Table.from_pylist(rows, schema=FLEET_SCHEMA)

@@ -10,6 +10,7 @@ import pytest
 import tifffile
 
 from fieldcal.products.export import EXACT_PX, normalised_rays
+from fieldcal.products.report import GONIOMETER_FIGURES
 from fieldcal.products.uncertainty import Calibration
 from flows.cli import main
 from tests.products.test_report import check_html, reports_lake
@@ -32,22 +33,29 @@ def test_report_latest_writes_the_html_and_the_plots(lake_env, tmp_path, capsys)
     assert main(["report", "latest", "--camera", "cam-g", "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out / "report.html")
     c = check_html((out / "report.html").read_text())
-    assert c.errors == [] and len(c.figures) == 4
-    assert sorted(p.name for p in out.glob("*.png")) == sorted(
-        f"{n}.png" for n in ("axis_distortion", "distortion_curves", "uncertainty_map", "correlation"))
+    assert c.errors == [] and len(c.figures) == len(GONIOMETER_FIGURES)
+    assert sorted(p.name for p in out.glob("*.png")) == sorted(f"{n}.png" for n in GONIOMETER_FIGURES)
 
 
 def test_compare_text_json_and_plot(lake_env, tmp_path, capsys):
     v = lake_env["versions"]
     assert main(["compare", v["d1"], v["d2"], "--plot", str(tmp_path / "c.png")]) == 0
     text = capsys.readouterr().out
-    assert "chi-square" in text and "FLAGGED" in text
+    assert "FLAGGED" in text and "Holm" in text
+    # one line per quantity tested, each change in one unit with its sigma
+    for label in ("principal distance: change", "principal point (xp, yp): change",
+                  "radial distortion at the edge of the field", "correction field over the sensor"):
+        assert label in text, label
+    assert "um; chi2" in text and "px (1 sigma up to" in text
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["compare", "previous", "latest", "--camera", "cam-f", "--format", "json",
                  "--out", str(tmp_path / "c.json")]) == 0
     s = json.loads((tmp_path / "c.json").read_text())
     assert (s["version_a"], s["version_b"]) == (v["f1"], v["f2"])
     assert s["flagged"] is False and s["dof"] >= 9
+    assert [t["key"] for t in s["tests"]] == ["f", "principal_point", "edge_distortion", "map"]
+    assert s["max_um"] == pytest.approx(s["max_px"] * s["pixel_size_um"])
+    assert s["rms_um"] <= s["max_um"]
 
 
 def test_export_json_to_stdout_is_the_document(lake_env, capsys):

@@ -187,7 +187,9 @@ def test_a_laboratory_and_a_field_calibration_of_one_sensor_compare(tmp_path_fac
     c = compare_calibrations(lab, field, grid=(21, 16), region="sensor")
     assert (c.method_a, c.method_b) == ("goniometer", "field")
     union = set(lab.names) | set(names)
-    assert c.dof <= len(union) and c.dof >= len(union) - 2   # f / k0 and xp / p1-like pairs may merge
+    # f / k0 and xp / p1-like pairs merge, and two directions move the grid by less than
+    # 1e-4 px RMS (7.7e-5 and 5.5e-5 px: not tested, module docstring): 8 of the 12
+    assert len(union) - 4 <= c.dof <= len(union)
     assert c.max_px < 1e-6 and not c.significant
     # the lab calibration's own uncertainty dominates in the corners it never observed
     s = c.sigma_px.reshape(16, 21)

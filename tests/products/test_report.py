@@ -352,3 +352,64 @@ def test_inputs_summary_gives_the_reasons_images_were_left_out():
     assert why == {"images/a.tif": "unreadable: truncated TIFF",
                    "images/b.tif": "left out before the adjustment (no reason recorded in the document)",
                    "images/c.tif": "no usable image points"}
+
+
+# --------------------------------------------------------------------------------------
+# what a calibration engineer looks for (issue 16)
+# --------------------------------------------------------------------------------------
+def _text_of(page: str) -> str:
+    import re
+
+    return " ".join(re.sub(r"<[^>]+>", " ", page).split())
+
+
+def test_field_report_has_the_engineers_tables(shared, tmp_path):
+    lake, v = shared["lake_obj"], shared["versions"]
+    files = write_report(lake, v["f2"], tmp_path / "rep")
+    text, c = _assert_report(files, FIELD_FIGURES)
+    assert {"interior-px", "model", "exterior", "exterior-table", "targets", "target-precision",
+            "survey-residuals", "previous", "previous-table"} <= c.ids
+    words = _text_of(text)
+    cal = Calibration.from_lake(lake, v["f2"])
+    d = cal.sensor.pixel_mm
+    # f and the principal point in pixels
+    assert f"{cal.camera.f_mm / d:.3f}" in words
+    assert f"{(cal.sensor.width_px - 1) / 2 + cal.camera.params[INDEX['xp_mm']] / d:.3f}" in words
+    # the model's equations
+    assert "dx = xb radial + p1 (r^2 + 2 xb^2)" in words
+    # one exterior-orientation row per image, its centre to the mm
+    for im in cal.document["images"]:
+        assert im["file"] in words and f"{im['center_m'][0]:.3f}" in words
+    # the previous calibration of cam-f (January) with the change test
+    assert v["f1"] in words and "Holm" in words and "principal distance: change" in words
+    # survey residuals: surveyed minus adjusted, the largest first
+    res = np.asarray(cal.arrays["targets/survey_residual_mm"])
+    assert res.shape == np.asarray(cal.arrays["targets/xyz_m"]).shape
+    assert "Survey residuals (surveyed minus adjusted)" in words
+
+
+def test_report_of_a_camera_first_calibration_says_so(shared, tmp_path):
+    files = write_report(shared["lake_obj"], shared["versions"]["g"], tmp_path / "rep")
+    text, c = _assert_report(files, GONIOMETER_FIGURES)
+    assert "first calibration in the lake" in _text_of(text)
+    assert "exterior" not in c.ids                  # a goniometer has no exterior orientation
+
+
+def test_residual_histogram_expected_curve_matches_a_correct_adjustment(shared):
+    """The per-point statistic of a correct adjustment follows chi-square(2): mean 2 +- 5 %."""
+    res = shared["lake_obj"].read_residuals(shared["versions"]["f2"])
+    used = res["used"].to_numpy(zero_copy_only=False).astype(bool)
+    T = res["normalized_residual"].to_numpy(zero_copy_only=False).astype(float)[used]
+    # 3300 points: the mean of chi-square(2) has sigma 2 / sqrt(3300) = 0.035
+    assert abs(T.mean() - 2.0) < 0.15
+
+
+def test_history_plot_tolerance_has_a_unit():
+    from fieldcal.products.plots import history_plot
+
+    fig = history_plot({"version": ["a", "b"], "acquired": [dt.datetime(2026, 1, 1), dt.datetime(2026, 6, 1)],
+                        "method": ["field", "field"], "f_mm": [146.39, 146.40],
+                        "sigma_f_mm": [0.01, 0.01]}, ["f_mm"], tolerance={"f_mm": 0.002})
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert any(lab.startswith("tolerance +-0.002 mm") for lab in labels), labels
+    assert fig.axes[0].get_ylabel() == "f_mm [mm]"
