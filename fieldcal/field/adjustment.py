@@ -33,7 +33,7 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,10 +43,7 @@ from scipy.stats import chi2
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import FieldData
-from fieldcal.field.distortion_init import distortion_lsq
-from fieldcal.field.dlt import dlt_robust, zhang_focal
-from fieldcal.field.geometry import is_coplanar
-from fieldcal.field.resection import planar_pose, resect
+from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.solver.blocksparse import BlockSparseJacobian, ResidualBlock, SingularSystemError
@@ -55,8 +52,8 @@ from fieldcal.solver.lsq import LsqResult, solve
 __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", "initial_values",
            "adjust_field", "validate_field_data", "CORE_PARAMS"]
 
-CORE_PARAMS = ("f_mm", "xp_mm", "yp_mm")
-"""Never held fixed by the automatic selection (a degenerate one is a diagnosis, not a fix)."""
+# CORE_PARAMS (f, xp, yp; fieldcal.field.initial) are never held fixed by the automatic
+# selection: a degenerate one is a diagnosis, not a fix.
 
 MIN_POINTS_PER_IMAGE = 6
 MIN_IMAGES = 3
@@ -154,92 +151,6 @@ def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMA
         raise GeometryError(f"only {len(data.images)} image(s) ({', '.join(im.file for im in data.images)}); "
                             f"the field method needs at least {MIN_IMAGES}, from different positions "
                             "and roll angles")
-
-
-# ---------------------------------------------------------------------------- initial values
-@dataclass
-class InitialValues:
-    """Starting point of the adjustment, with how it was obtained."""
-
-    params: np.ndarray
-    R_world_to_camera: np.ndarray
-    center_m: np.ndarray
-    outliers: np.ndarray          # (m,) observations flagged by the robust initialisers
-    dlt_f_mm: np.ndarray          # per image (NaN where no DLT)
-    how: str
-
-
-def _per_image(data: FieldData):
-    order = np.argsort(data.obs.image, kind="stable")
-    bounds = np.searchsorted(data.obs.image[order], np.arange(len(data.images) + 1))
-    return [order[bounds[i]:bounds[i + 1]] for i in range(len(data.images))]
-
-
-def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
-    """Initial interior and exterior orientation (module docstring, step 1)."""
-    sensor = data.sensor
-    groups = _per_image(data)
-    X_all = data.targets.xyz_m
-    planar_field = is_coplanar(X_all[np.unique(data.obs.target)])
-    n_img = len(data.images)
-    dlt_f = np.full(n_img, np.nan)
-    dlt_pp = np.full((n_img, 2), np.nan)
-    poses: list = [None] * n_img
-    outliers = np.zeros(len(data.obs), bool)
-    nominal = data.nominal_focal_mm
-    if not planar_field:
-        for i, k in enumerate(groups):
-            X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-            if is_coplanar(X):
-                continue
-            try:
-                res = dlt_robust(X, uv, sensor, where=data.images[i].file, seed=i)
-            except GeometryError:
-                continue
-            dlt_f[i], dlt_pp[i] = res.f_mm, (res.xp_mm, res.yp_mm)
-            poses[i] = (res.R_world_to_camera, res.center_m)
-            outliers[k[~res.inliers]] = True
-    ok = np.isfinite(dlt_f)
-    if nominal is not None and ok.any():
-        ok &= (dlt_f > 0.5 * nominal) & (dlt_f < 2.0 * nominal)
-    params = np.zeros(13)
-    if ok.sum() >= max(1, n_img // 4):
-        params[INDEX["f_mm"]] = np.median(dlt_f[ok])
-        params[[INDEX["xp_mm"], INDEX["yp_mm"]]] = np.median(dlt_pp[ok], axis=0)
-        how = f"DLT on {ok.sum()} of {n_img} images (median f, xp, yp)"
-    elif nominal is not None:
-        params[INDEX["f_mm"]] = nominal
-        how = "nominal focal length, principal point at the sensor centre"
-    else:
-        views = [(X_all[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
-        params[INDEX["f_mm"]] = zhang_focal(views, sensor, where="session")
-        how = "Zhang's closed form from the planar views"
-    camera = Camera(sensor, params)
-    R = np.zeros((n_img, 3, 3))
-    C = np.zeros((n_img, 3))
-    for i, k in enumerate(groups):
-        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-        where = data.images[i].file
-        if poses[i] is None and is_coplanar(X):
-            R_i, C_i, _ = planar_pose(X, uv, camera, where=where)
-            poses[i] = (R_i, C_i)
-        res = resect(X, uv, camera, ransac=len(k) >= 8, where=where, init=poses[i],
-                     threshold_px=max(8.0, 0.002 * max(sensor.width_px, sensor.height_px)))
-        R[i], C[i] = res.R_world_to_camera, res.center_m
-        if res.inliers is not None:
-            outliers[k[~np.asarray(res.inliers, bool)]] = True
-    # distortion initial values, eq. 7-8, from the inliers of all images
-    names = [n for n in estimate if n not in CORE_PARAMS]
-    if names:
-        use = ~outliers
-        img = data.obs.image[use]
-        Xc = np.einsum("kab,kb->ka", R[img], X_all[data.obs.target[use]] - C[img])
-        q = -params[INDEX["f_mm"]] * Xc[:, :2] / Xc[:, 2:3]
-        xy = sensor.pixel_to_mm(data.obs.uv_px[use])
-        fit = distortion_lsq(xy, q, params[INDEX["xp_mm"]], params[INDEX["yp_mm"]], names)
-        for n in names:
-            params[INDEX[n]] = fit.coefficients[n]
-    return InitialValues(params, R, C, outliers, dlt_f, how)
 
 
 # ---------------------------------------------------------------------------- the LSQ problem

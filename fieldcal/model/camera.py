@@ -148,38 +148,29 @@ class Camera:
         return unproject(uv_px, self)
 
 
-def _terms(xb, yb, p):
-    """Shared pieces of the correction: r2, radial factor and its derivative d(radial)/d(r2)."""
+def correction_terms(xb, yb, p):
+    """The correction polynomial (CONTRACT section 2), written once for the whole package.
+
+    Parameters
+    ----------
+    xb, yb : ndarray
+        Measured points relative to the principal point [mm] (any equal shapes).
+    p : (13,) ndarray
+        Camera parameters.
+
+    Returns
+    -------
+    qx, qy : ndarray
+        The ideal point ``(xb + dx, yb + dy)`` [mm].
+    g00, g01, g10, g11 : ndarray
+        The entries of ``G = dq/dx'``, the Jacobian of the correction with respect to the
+        measured point.
+    r2, xy_ : ndarray
+        ``xb^2 + yb^2`` and ``xb yb`` (shared with :func:`ideal_point_columns`).
+    """
     r2 = xb * xb + yb * yb
     radial = p[K0] + r2 * (p[K1] + r2 * (p[K2] + r2 * p[K3]))
     dradial = p[K1] + r2 * (2.0 * p[K2] + 3.0 * r2 * p[K3])
-    return r2, radial, dradial
-
-
-def correction(xy_mm, params):
-    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
-    p = np.asarray(params, dtype=float)
-    xy = np.asarray(xy_mm, dtype=float)
-    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    r2, radial, _ = _terms(xb, yb, p)
-    dx = xb * radial + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xb * yb + p[B1] * xb + p[B2] * yb
-    dy = yb * radial + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xb * yb + p[A1] * xb + p[A2] * yb
-    return np.stack([dx, dy], axis=-1)
-
-
-def correct(xy_mm, params):
-    """Measured image points (..., 2) [mm] -> ideal points ``q`` (..., 2) [mm], closed form.
-
-    ``q = (xb + dx, yb + dy)``, relative to the principal point (see the module docstring).
-    """
-    p = np.asarray(params, dtype=float)
-    xy = np.asarray(xy_mm, dtype=float)
-    return xy - p[[XP, YP]] + correction(xy, p)
-
-
-def _correct_terms(xb, yb, p):
-    """Ideal point ``(qx, qy)`` and the entries of ``G = dq/dx'`` at ``xb, yb`` (arrays)."""
-    r2, radial, dradial = _terms(xb, yb, p)
     xy_ = xb * yb
     qx = xb * (1 + radial) + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xy_ + p[B1] * xb + p[B2] * yb
     qy = yb * (1 + radial) + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xy_ + p[A1] * xb + p[A2] * yb
@@ -190,11 +181,32 @@ def _correct_terms(xb, yb, p):
     return qx, qy, g00, g01, g10, g11, r2, xy_
 
 
-def _param_columns(xb, yb, p, g, r2, xy_, columns):
+def correction(xy_mm, params):
+    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
+    p = np.asarray(params, dtype=float)
+    xy = np.asarray(xy_mm, dtype=float)
+    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
+    qx, qy = correction_terms(xb, yb, p)[:2]
+    return np.stack([qx - xb, qy - yb], axis=-1)
+
+
+def correct(xy_mm, params):
+    """Measured image points (..., 2) [mm] -> ideal points ``q`` (..., 2) [mm], closed form.
+
+    ``q = (xb + dx, yb + dy)``, relative to the principal point (see the module docstring).
+    """
+    p = np.asarray(params, dtype=float)
+    xy = np.asarray(xy_mm, dtype=float)
+    qx, qy = correction_terms(xy[..., 0] - p[XP], xy[..., 1] - p[YP], p)[:2]
+    return np.stack([qx, qy], axis=-1)
+
+
+def ideal_point_columns(xb, yb, p, g, r2, xy_, columns):
     """``dq/dp_c`` at fixed measured point for each parameter index ``c``: a list of (x, y) pairs.
 
-    ``g = (g00, g01, g10, g11)`` are the entries of ``G`` (:func:`_correct_terms`); constant
-    zero columns are returned as the scalar 0.
+    ``g = (g00, g01, g10, g11)``, ``r2`` and ``xy_`` as :func:`correction_terms` returns
+    them; constant zero columns are returned as the scalar 0. (``dq/df`` is 0: f enters
+    through the collinearity side, ``q = -f Xc/Zc``.)
     """
     g00, g01, g10, g11 = g
     out = []
@@ -245,12 +257,12 @@ def correct_jacobian(xy_mm, params, columns=None):
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
     xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    qx, qy, g00, g01, g10, g11, r2, xy_ = _correct_terms(xb, yb, p)
+    qx, qy, g00, g01, g10, g11, r2, xy_ = correction_terms(xb, yb, p)
     q = np.stack([qx, qy], axis=-1)
     G = np.stack([np.stack([g00, g01], -1), np.stack([g10, g11], -1)], -2)
     cols = range(13) if columns is None else columns
     Q = np.empty(xb.shape + (2, len(cols)))
-    for j, (c0, c1) in enumerate(_param_columns(xb, yb, p, (g00, g01, g10, g11), r2, xy_, cols)):
+    for j, (c0, c1) in enumerate(ideal_point_columns(xb, yb, p, (g00, g01, g10, g11), r2, xy_, cols)):
         Q[..., 0, j], Q[..., 1, j] = c0, c1
     return q, G, Q
 
@@ -286,7 +298,7 @@ def distort(q_mm, params, *, tol_mm: float = 1e-10, max_iter: int = 30, check: b
         if idx.size == 0:
             break
         bx, by = xb[idx], yb[idx]
-        qx, qy, g00, g01, g10, g11, _, _ = _correct_terms(bx, by, p)
+        qx, qy, g00, g01, g10, g11, _, _ = correction_terms(bx, by, p)
         ex, ey = qx - qx_t[idx], qy - qy_t[idx]
         det = g00 * g11 - g01 * g10
         sx = (g11 * ex - g01 * ey) / det
