@@ -25,9 +25,10 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
 5. **Diagnoses instead of calibrations** (:class:`~fieldcal.errors.GeometryError`): fewer
    than :data:`MIN_IMAGES` images or :data:`MIN_POINTS_PER_IMAGE` points in an image; a
    network that cannot determine f even with every additional parameter held fixed (checked
-   on the first solve's a-priori covariance: relative sigma above ``max_rel_sigma_f``, naming
-   the unknown f is most correlated with, e.g. the camera distance of a flat wall photographed
-   from one direction); an automatic selection that ends with f still undetermined; singular
+   on the a-priori covariance at the initial values: relative sigma above ``max_rel_sigma_f``,
+   naming the unknown f cannot be told from, e.g. the camera distance of a flat wall
+   photographed from one direction; the same diagnosis whether or not a factorisation of the
+   near-singular system breaks down); an automatic selection that ends with f still undetermined; singular
    normal equations (naming the unknown where known).
 """
 
@@ -38,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pyarrow as pa
+import scipy.linalg
 from scipy.stats import chi2
 
 from fieldcal.errors import GeometryError, InputError
@@ -46,7 +48,12 @@ from fieldcal.field.data import FieldData
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera
 from fieldcal.robust import robust_sigma
-from fieldcal.solver.blocksparse import BlockSparseJacobian, ResidualBlock, SingularSystemError
+from fieldcal.solver.blocksparse import (
+    BlockSparseJacobian,
+    ResidualBlock,
+    SingularSystemError,
+    equilibrated_cholesky,
+)
 from fieldcal.solver.lsq import LsqResult, solve
 
 __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", "initial_values",
@@ -170,6 +177,10 @@ class FieldProblem:
         self._cols_sur = m.n_reduced + 3 * m.t_slot[m.survey_k][:, None] + np.arange(3)
         self._template: list[ResidualBlock] | None = None
         self._structure = None
+        # eliminated blocks: the targets (3 each) when adjusted; with the targets fixed, the
+        # exterior orientations (6 each), so that only the interior is solved densely
+        self.n_dense = m.n_reduced if m.targets_adjusted else m.n_int
+        self.block_size = 3 if m.targets_adjusted else 6
 
     def evaluate(self, x, jacobian: bool):
         m = self.model
@@ -189,7 +200,8 @@ class FieldProblem:
             blocks = [self._template[0].with_values(*[p[1] for p in parts])]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
-        J = BlockSparseJacobian(m.n_rows, m.n_params, m.n_reduced, 3, blocks, structure=self._structure)
+        J = BlockSparseJacobian(m.n_rows, m.n_params, self.n_dense, self.block_size, blocks,
+                                structure=self._structure)
         self._structure = J.structure
         return r, J
 
@@ -305,15 +317,21 @@ class _Solver:
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
 
-    def run(self, estimate, obs_active, survey_active, label):
+    def run(self, estimate, obs_active, survey_active, label, before=None):
+        """One adjustment from the current state; ``before(model, x0, J0)`` sees its start."""
         o = self.options
         model = BundleModel(self.data, self.params, estimate, self.R,
                             targets_adjusted=o.targets_adjusted, obs_active=obs_active,
                             survey_active=survey_active)
         x0 = model.pack(self.params, self.C, self.X)
         self.model = model
+        problem = FieldProblem(model)
+        if before is not None:
+            r0, J0 = problem.evaluate(x0, True)
+            if np.all(np.isfinite(r0)) and J0.all_finite():
+                before(model, x0, J0)
         try:
-            result = solve(FieldProblem(model), x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
+            result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
                            eps2=o.eps2, ftol=o.ftol)
         except InputError as err:          # not finite at x0: the previous round went astray
             raise GeometryError(f"the adjustment diverged before {label} ({err.reason}); the "
@@ -348,9 +366,11 @@ def _robust_scale(z):
 
 def _drop_undetermined_targets(data, obs_active, survey_active, reason):
     """Targets whose survey is rejected need two images; otherwise their points go too."""
-    n_img_per_target = np.zeros(len(data.targets), int)
-    pairs = np.unique(np.stack([data.obs.target[obs_active], data.obs.image[obs_active]]), axis=1)
-    np.add.at(n_img_per_target, pairs[0], 1)
+    if survey_active.all():
+        return 0
+    n_img = len(data.images)
+    pairs = np.unique(data.obs.target[obs_active] * n_img + data.obs.image[obs_active])
+    n_img_per_target = np.bincount(pairs // n_img, minlength=len(data.targets))
     weak = (~survey_active) & (n_img_per_target < 2)
     drop = obs_active & weak[data.obs.target]
     obs_active[drop] = False
@@ -470,15 +490,33 @@ def _snooping(model, result, obs_active, survey_active, reason, test, o):
     return n
 
 
-def _quadratic_form(Q, r):
-    """``r^T Q^+ r`` per group (Q (k, d, d) possibly near-singular for zero redundancy)."""
-    Qp = np.linalg.pinv(Q, rcond=1e-8, hermitian=True)
-    return np.einsum("ki,kij,kj->k", r, Qp, r)
+def _quadratic_form(Q, r, rcond: float = 1e-8):
+    """``r^T Q^+ r`` per group (Q (k, d, d) symmetric, possibly near-singular for zero redundancy).
+
+    The pseudo-inverse drops eigenvalues below ``rcond`` times the largest (as
+    ``numpy.linalg.pinv``); for d = 2 in closed form (no batched SVD of 10^4 tiny matrices).
+    """
+    if Q.shape[1] != 2:
+        Qp = np.linalg.pinv(Q, rcond=rcond, hermitian=True)
+        return np.einsum("ki,kij,kj->k", r, Qp, r)
+    a, b, c = Q[:, 0, 0], 0.5 * (Q[:, 0, 1] + Q[:, 1, 0]), Q[:, 1, 1]
+    half = np.hypot(0.5 * (a - c), b)
+    lam_hi, lam_lo = 0.5 * (a + c) + half, 0.5 * (a + c) - half
+    # eigenvector of lam_hi: (b, lam_hi - a) or (lam_hi - c, b), whichever is longer
+    v0, v1 = np.where(a >= c, lam_hi - c, b), np.where(a >= c, b, lam_hi - a)
+    nv = np.hypot(v0, v1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_hi = np.where(nv > 0, (v0 * r[:, 0] + v1 * r[:, 1]) / nv, np.hypot(r[:, 0], r[:, 1]))
+        p_lo2 = np.maximum(r[:, 0] ** 2 + r[:, 1] ** 2 - p_hi**2, 0.0)
+        keep_hi = lam_hi > 0
+        keep_lo = lam_lo > rcond * lam_hi
+        return (np.where(keep_hi, p_hi**2 / lam_hi, 0.0)
+                + np.where(keep_hi & keep_lo, p_lo2 / lam_lo, 0.0))
 
 
 def _interior_stats(model, result):
     """Sigma (a-posteriori) and correlation of the estimated interior parameters."""
-    cov = result.jac.normal_equations().covariance_reduced() * result.sigma0**2
+    cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
     ci = cov[: model.n_int, : model.n_int]
     s = np.sqrt(np.diag(ci))
     corr = ci / np.outer(s, s)
@@ -564,47 +602,75 @@ def _f_undetermined(rel, c, name, held=""):
                          f"{_column_label(name)}): {_ADVICE}")
 
 
-def _check_f_determinable(model, result, o):
-    """Refuse, right after the first adjustment, a network that cannot determine f.
+def _reduced_covariance(model, ne):
+    """``N^-1`` over ``[interior | exterior]`` (n_reduced, n_reduced), unit weight.
 
-    With the a-priori covariance (a property of the geometry, not of the residuals, which
-    may still hold blunders) and every additional parameter held fixed (the most any choice
-    of parameters could do): a relative sigma of f above ``max_rel_sigma_f`` then will not
-    get better by fixing parameters, so the diagnosis is given now, naming the unknown that
-    f cannot be told from. (A session's explicit ``estimate`` whose additional parameters
-    alone make f uncertain is honoured, with the sigma it gives.)
+    With the targets adjusted they are the eliminated blocks and this is the inverse Schur
+    complement; with the targets fixed the exteriors are eliminated and it is all of N^-1.
     """
-    if "f_mm" not in model.estimate:
-        return
-    ne = result.jac.normal_equations()
-    try:
-        cov = ne.covariance_reduced()
-    except SingularSystemError:
-        _f_in_null_space(model, ne)
-        raise
-    sigma_f, c, name = _f_determination(model, cov, fixed_extras=True)
-    rel = sigma_f / max(abs(result.x[list(model.estimate).index("f_mm")]), 1e-12)
-    if not (rel <= o.max_rel_sigma_f):
-        extra = any(n not in CORE_PARAMS for n in model.estimate)
-        raise _f_undetermined(rel, c, name, " even with every additional parameter held fixed" if extra else "")
+    return ne.covariance_reduced() if model.targets_adjusted else ne.covariance_dense()
 
 
-def _f_in_null_space(model, ne) -> None:
-    """Singular normal equations: if f takes part in their null space, say what it cannot be
-    told from (the other unknown with the largest share of the null vector, equilibrated)."""
-    S = ne.schur_complement()
+def _reduced_normal_matrix(model, ne):
+    """``N`` reduced to ``[interior | exterior]`` (targets eliminated), dense."""
+    return ne.schur_complement() if model.targets_adjusted else ne.dense_matrix()
+
+
+def _covariance_via_eigen(S):
+    """``S^+`` of a symmetric positive semi-definite S, eigenvalues floored at ``n eps`` of the
+    largest after equilibration: a null direction gets a huge (not infinite) variance."""
     d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
     w, V = np.linalg.eigh(S / np.outer(d, d))
-    v = V[:, 0]
-    jf = list(model.estimate).index("f_mm")
-    if abs(v[jf]) < 0.1:
+    w = np.maximum(w, len(w) * np.finfo(float).eps * max(w[-1], 1e-300))
+    return (V / w) @ V.T / np.outer(d, d)
+
+
+def _check_f_determinable(model, x, J, o):
+    """Refuse, before the first adjustment, a network that cannot determine f.
+
+    With the a-priori covariance at the initial values ``x`` (Jacobian ``J``): a property
+    of the geometry, not of the residuals, which may still hold blunders, and taken before
+    the solver can wander along a direction the data do not fix (f -> 0, say). With
+    every additional parameter held fixed (the most any choice
+    of parameters could do: their rows and columns are taken out of the normal equations):
+    a relative sigma of f above ``max_rel_sigma_f`` then will not get better by fixing
+    parameters, so the diagnosis is given now, naming the unknown f cannot be told from:
+    the one whose knowledge would determine f best (the smallest conditional variance of f),
+    with its correlation. The covariance is the inverse of the equilibrated reduced normal matrix, by
+    Cholesky, or where that breaks down by its eigen-decomposition with the eigenvalues
+    floored at round-off: a singular system gives f a huge sigma and the correlation with its
+    partner in the null space, so the diagnosis does not depend on which pivot fails first.
+    (A session's explicit ``estimate`` whose additional parameters alone make f uncertain is
+    honoured, with the sigma it gives.)
+    """
+    names = list(model.estimate)
+    if "f_mm" not in names:
         return
-    share = np.abs(v)
-    share[jf] = 0.0
-    k = int(np.argmax(share))
-    raise GeometryError(f"the data cannot determine the principal distance: it cannot be told from "
-                        f"{_column_label(model.column_names()[k])} (singular normal equations, "
-                        f"smallest eigenvalue {w[0]:.1e} relative to the diagonal): {_ADVICE}")
+    S = _reduced_normal_matrix(model, J.normal_equations())
+    keep = np.array([n in CORE_PARAMS for n in names] + [True] * (S.shape[0] - len(names)))
+    Sk = S[np.ix_(keep, keep)]
+    try:
+        cho, scale = equilibrated_cholesky(Sk)
+        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
+    except SingularSystemError:
+        cov = _covariance_via_eigen(Sk)
+    jf = names.index("f_mm")
+    var = np.maximum(np.diag(cov), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov[jf] / np.sqrt(var[jf] * var)
+        # what f cannot be told from: the unknown whose knowledge would determine f best
+        # (the smallest conditional variance var_f - cov_fj^2 / var_j)
+        cond = var[jf] - cov[jf] ** 2 / var
+    cond[jf] = np.inf
+    cond[~np.isfinite(cond)] = np.inf
+    corr[~np.isfinite(corr)] = 0.0
+    k = int(np.argmin(cond))
+    rel = np.sqrt(var[jf]) / max(abs(x[jf]), 1e-12)
+    if not (rel <= o.max_rel_sigma_f):
+        extra = any(n not in CORE_PARAMS for n in names)
+        label = np.array(model.column_names()[: S.shape[0]])[keep][k]
+        raise _f_undetermined(rel, float(corr[k]), str(label),
+                              " even with every additional parameter held fixed" if extra else "")
 
 
 def _singular_diagnosis(err, model) -> str:
@@ -631,7 +697,7 @@ def _check_core_determined(model, result, corr, sigma, o):
     if o.estimate is None and "f_mm" in names:     # the automatic selection could not make f determined
         rel = sigma[names.index("f_mm")] / max(abs(result.x[names.index("f_mm")]), 1e-12)
         if not (rel <= o.max_rel_sigma_f):
-            cov = result.jac.normal_equations().covariance_reduced() * result.sigma0**2
+            cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
             raise _f_undetermined(rel, *_f_determination(model, cov, fixed_extras=False)[1:])
 
 
@@ -681,9 +747,9 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     def solve_clean(label):
         for rnd in range(o.max_rounds):
             _drop_undetermined_targets(data, obs_active, survey_active, reason)
-            model, result = solver.run(estimate, obs_active, survey_active, f"{label} {rnd + 1}")
-            if len(solver.rounds) == 1:       # the very first solve: can this network determine f?
-                _check_f_determinable(model, result, o)
+            # before the very first solve: can this network determine f at all?
+            check = (lambda m, x, J: _check_f_determinable(m, x, J, o)) if not solver.rounds else None
+            model, result = solver.run(estimate, obs_active, survey_active, f"{label} {rnd + 1}", before=check)
             n = _gross_rejection(solver, model, result, obs_active, survey_active, reason, o)
             if n == 0:
                 n = _snooping(model, result, obs_active, survey_active, reason, test, o)

@@ -75,6 +75,7 @@ __all__ = [
     "BlockSparseJacobian",
     "JacobianStructure",
     "NormalEquations",
+    "equilibrated_cholesky",
 ]
 
 _EPS = np.finfo(float).eps
@@ -671,7 +672,7 @@ class NormalEquations:
             f.Vinv = np.zeros((0, b, b))
         # S = U + D_r - sum_e W_e V*_e^-1 W_e^T
         S, f.Ys = self._schur(d[:nr], f.Vinv)
-        f.cho, f.s_scale = _equilibrated_cholesky(S)
+        f.cho, f.s_scale = equilibrated_cholesky(S)
         if damping is None:
             self._zero = f
         return f
@@ -779,6 +780,44 @@ class NormalEquations:
         self._cross = cross[:-1]
         return self._Cee, self._cross
 
+    def dense_matrix(self) -> np.ndarray:
+        """``N`` (n, n) assembled densely from ``U``, ``W`` and ``V`` (for modest n only)."""
+        nr, b, nb = self.n_reduced, self.b, self.n_blocks
+        n = nr + nb * b
+        N = np.zeros((n, n))
+        N[:nr, :nr] = self.U
+        if nb:
+            W = self.coupling().toarray()
+            N[:nr, nr:] = W
+            N[nr:, :nr] = W.T
+            idx = nr + np.arange(nb)[:, None] * b + np.arange(b)
+            N[idx[:, :, None], idx[:, None, :]] = self.V
+        return N
+
+    def covariance_dense(self) -> np.ndarray:
+        """``N^-1`` (n, n) from the blocks (for modest n only; see the module docstring).
+
+        ``(N^-1)_rr = S^-1``, ``(N^-1)_re = -S^-1 Y``, ``(N^-1)_ee = V^-1 + Y^T S^-1 Y``
+        with ``Y = W V^-1``; raises :class:`SingularSystemError` as :meth:`solve` does.
+        """
+        Cr = self.covariance_reduced()
+        nr, b, nb = self.n_reduced, self.b, self.n_blocks
+        if not nb:
+            return Cr.copy()
+        Vinv = self._factor(None).Vinv
+        W = self.coupling().toarray().reshape(nr, nb, b)
+        Y = np.einsum("rej,ejk->rek", W, Vinv).reshape(nr, nb * b)
+        n = nr + nb * b
+        C = np.zeros((n, n))
+        C[:nr, :nr] = Cr
+        C[:nr, nr:] = -Cr @ Y
+        C[nr:, :nr] = C[:nr, nr:].T
+        Cee = Y.T @ Cr @ Y
+        idx = np.arange(nb)[:, None] * b + np.arange(b)
+        Cee[idx[:, :, None], idx[:, None, :]] += Vinv
+        C[nr:, nr:] = 0.5 * (Cee + Cee.T)
+        return C
+
     def covariance_elim_blocks(self) -> np.ndarray:
         """(n_blocks, b, b) the diagonal blocks of ``N^-1`` for the eliminated parameters."""
         return self._elim_covariances()[0]
@@ -819,7 +858,7 @@ def _pivot_tol(n: int) -> float:
     return max(n, 1) * _EPS
 
 
-def _equilibrated_cholesky(S):
+def equilibrated_cholesky(S):
     """Cholesky of ``D S D`` with ``D = diag(S)^-1/2``; raises SingularSystemError."""
     nr = S.shape[0]
     if nr == 0:
