@@ -46,7 +46,7 @@ from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import FieldData
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
-from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera
+from fieldcal.model.camera import FIELD_PARAMS, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.solver.blocksparse import (
     BlockSparseJacobian,
@@ -80,9 +80,12 @@ class AdjustmentOptions:
         automatic selection of step 4.
     method : str
         ``"lmqn"`` (default) or ``"lm"``.
-    tau, eps2, ftol : float
+    tau, eps2, ftol, sigma_tol : float
         LM's initial damping factor (small: the initial values are good), the step
-        tolerance and the negligible-decrease tolerance of :func:`fieldcal.solver.lsq.solve`.
+        tolerance and the negligible-decrease tolerances of :func:`fieldcal.solver.lsq.solve`
+        (``sigma_tol``: stop when a step is below this many a-posteriori standard
+        deviations: 1e-3 leaves every parameter within a thousandth of its sigma of the
+        optimum, whatever its units and wherever the origin lies).
     robust_k : float
         Gross-error threshold in robust sigmas (normalised residual norm).
     snoop_alpha : float
@@ -103,6 +106,7 @@ class AdjustmentOptions:
     tau: float = 1e-6
     eps2: float = 1e-10
     ftol: float = 1e-12
+    sigma_tol: float = 1e-3
     robust_k: float = 8.0
     snoop_alpha: float = 1e-6
     max_rounds: int = 20
@@ -114,7 +118,7 @@ class AdjustmentOptions:
         return {"targets_adjusted": self.targets_adjusted,
                 "estimate": list(self.estimate) if self.estimate is not None else None,
                 "method": self.method, "max_iter": self.max_iter, "tau": self.tau, "eps2": self.eps2,
-                "ftol": self.ftol,
+                "ftol": self.ftol, "sigma_tol": self.sigma_tol,
                 "robust_k": self.robust_k,
                 "snoop_alpha": self.snoop_alpha, "max_rounds": self.max_rounds,
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
@@ -332,7 +336,7 @@ class _Solver:
                 before(model, x0, J0)
         try:
             result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
-                           eps2=o.eps2, ftol=o.ftol)
+                           eps2=o.eps2, ftol=o.ftol, sigma_tol=o.sigma_tol)
         except InputError as err:          # not finite at x0: the previous round went astray
             raise GeometryError(f"the adjustment diverged before {label} ({err.reason}); the "
                                 "data do not hold the camera in place") from None
@@ -348,6 +352,26 @@ class _Solver:
         if self.progress:
             self.progress(f"{label}: {result.iterations} iterations, sigma0 {result.sigma0:.3f}")
         return model, result
+
+    def hold_fixed(self, model, result, j):
+        """Fix interior unknown ``j`` of ``model`` at 0 and move the others to where the
+        linearised problem puts them (the conditional mean given ``x_j = 0``):
+        ``x - N^-1 e_j x_j / (N^-1)_jj``, one solve with the factorisation already made.
+        The next adjustment then starts next to its optimum (a warm start)."""
+        ne = result.jac.normal_equations()
+        e = np.zeros(len(result.x))
+        e[j] = 1.0
+        try:
+            y = ne.solve(-e)                                   # N^-1 e_j
+            x = result.x - y * (result.x[j] / y[j])
+        except SingularSystemError:
+            x = result.x.copy()
+        x[j] = 0.0
+        if np.all(np.isfinite(x)):
+            self.params, self.R, self.C, X = model.unpack(x)
+            if self.options.targets_adjusted:
+                self.X = X
+        self.params[model.int_index[j]] = 0.0
 
     def residuals_all(self):
         """Measured minus predicted pixels of every observation at the current state."""
@@ -774,8 +798,8 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
                 break
             name, why = pick
             fixed[name] = why
+            solver.hold_fixed(model, result, estimate.index(name))
             estimate.remove(name)
-            solver.params[INDEX[name]] = 0.0
             if progress:
                 progress(f"holding {name} fixed at 0: {why}")
             model, result = solve_clean("re-adjustment")

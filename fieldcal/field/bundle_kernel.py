@@ -11,33 +11,22 @@ observations with every intermediate in registers: ``Xc``, ``q``, the Newton ite
 the three derivative blocks. The contract test (``tests/field/test_bundle.py``) runs both
 implementations on the same inputs.
 
-Numba (pinned in ``pyproject.toml``) compiles the kernel on its first call and caches the
-machine code beside this file (``cache=True``), so a new process (a Dask worker) loads it
-instead of compiling again. When Numba is missing or cannot compile on a platform, or when
-the environment sets ``FIELDCAL_NUMBA=0``, :func:`kernel` returns ``None`` and the bundle
-uses the NumPy reference; :func:`status` says which and why (one line).
+Compilation, caching and the fallback are :mod:`fieldcal.solver.compiled`'s: when Numba is
+missing or cannot compile on a platform, or the environment sets ``FIELDCAL_NUMBA=0``,
+:func:`kernel` returns ``None`` and the bundle uses the NumPy reference; :func:`status`
+says which and why (one line).
 """
 
 from __future__ import annotations
 
-import logging
-import os
-
 import numpy as np
 
 from fieldcal.model.camera import correction_terms
-
-try:  # the kernel is optional: without Numba the NumPy reference runs
-    import numba
-except ImportError as _err:  # pragma: no cover - numba is a pinned dependency
-    numba, _IMPORT_ERROR = None, _err
-else:
-    _IMPORT_ERROR = None
+from fieldcal.solver import compiled
 
 __all__ = ["kernel", "status", "evaluate_reference_inputs"]
 
-_log = logging.getLogger(__name__)
-_STATE: dict = {}
+_NAME = "bundle residuals and blocks"
 
 
 def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
@@ -154,42 +143,23 @@ def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
             d_ext[k, 1, 3 + c] = -t1
 
 
-if numba is not None:
+if compiled.numba is not None:
     # the one correction polynomial (fieldcal.model.camera), compiled for scalars
-    _terms = numba.njit(cache=True, inline="always")(correction_terms)
-    _compiled = numba.njit(cache=True, nogil=True, error_model="numpy")(_bundle_blocks)
+    _terms = compiled.numba.njit(cache=True, inline="always")(correction_terms)
+    _compiled = compiled.numba.njit(cache=True, nogil=True, error_model="numpy")(_bundle_blocks)
+else:  # pragma: no cover
+    _compiled = None
 
 
 def kernel():
-    """The compiled kernel, or ``None`` when it is switched off or cannot be compiled.
-
-    The first call compiles (or loads from Numba's cache) and checks the kernel on a tiny
-    problem; the outcome is kept for the process.
-    """
-    if "kernel" in _STATE:
-        return _STATE["kernel"]
-    k, why = None, ""
-    if os.environ.get("FIELDCAL_NUMBA", "1").strip() in ("0", "false", "no", "off"):
-        why = "switched off by FIELDCAL_NUMBA=0"
-    else:
-        try:
-            if numba is None:
-                raise _IMPORT_ERROR
-            k = _compiled
-            _smoke(k)
-            why = "compiled (numba)"
-        except Exception as err:  # noqa: BLE001 - any failure to import or compile means: use NumPy
-            k, why = None, f"numba kernel unavailable ({type(err).__name__}: {str(err).splitlines()[0][:200]}); " \
-                           "using the NumPy implementation"
-            _log.info(why)
-    _STATE["kernel"], _STATE["status"] = k, why
-    return k
+    """The compiled kernel, or ``None`` (then the NumPy reference runs; see :func:`status`)."""
+    return compiled.kernel(_NAME, _compiled, _smoke)
 
 
 def status() -> str:
     """One line: whether the compiled kernel is in use, and why not."""
     kernel()
-    return _STATE["status"]
+    return compiled.status(_NAME)
 
 
 def evaluate_reference_inputs():

@@ -157,8 +157,9 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         if done.all():
             break
         A, rr = jb.d_ext, r.reshape(-1, 2)
-        N = _segment_sums(np.einsum("kai,kaj->kij", A, A), starts, counts)
-        g = _segment_sums(np.einsum("kai,ka->ki", A, rr), starts, counts)
+        A0, A1 = A[:, 0], A[:, 1]
+        N = _segment_sums(A0[:, :, None] * A0[:, None, :] + A1[:, :, None] * A1[:, None, :], starts, counts)
+        g = _segment_sums(A0 * rr[:, :1] + A1 * rr[:, 1:], starts, counts)
         dg = np.einsum("kii->ki", N)
         Nd = N + (mu[:, None] * np.maximum(dg, 1e-300))[:, :, None] * eye + done[:, None, None] * eye
         h = -np.linalg.solve(Nd, g[:, :, None])[:, :, 0]

@@ -68,6 +68,7 @@ import scipy.linalg
 import scipy.sparse
 
 from fieldcal.errors import GeometryError, InputError
+from fieldcal.solver import blocksparse_kernels
 
 __all__ = [
     "SingularSystemError",
@@ -268,6 +269,7 @@ class _BlockLayout:
                              "position is one or the other in every group", where)
         self.red_sel, red_pos = _positions(red_mask)
         self.elim_sel, elim_pos = _positions(elim_mask)
+        self.red_pos, self.elim_pos = red_pos.astype(np.intp), elim_pos.astype(np.intp)
         self.c_r, self.c_e = len(red_pos), len(elim_pos)
         red_cols = cols[:, red_pos]
         self.red_cols = red_cols
@@ -510,6 +512,13 @@ class BlockSparseJacobian:
         """
         r = np.asarray(r, dtype=float)
         g = np.zeros(self.n_params)
+        kern = blocksparse_kernels.gradient()
+        if kern is not None:
+            r = np.ascontiguousarray(r)
+            for lay, blk in self._pairs():
+                if lay.k:
+                    kern(np.ascontiguousarray(blk.values), lay.rows, lay.cols, r, g)
+            return g
         for lay, blk in self._pairs():
             if not lay.k:
                 continue
@@ -526,6 +535,13 @@ class BlockSparseJacobian:
         """``J h`` (m,) for a parameter step ``h`` (n,)."""
         h = np.asarray(h, dtype=float)
         out = np.zeros(self.n_rows)
+        kern = blocksparse_kernels.matvec()
+        if kern is not None:
+            h = np.ascontiguousarray(h)
+            for lay, blk in self._pairs():
+                if lay.k:
+                    kern(np.ascontiguousarray(blk.values), lay.rows, lay.cols, h, out)
+            return out
         for lay, blk in self._pairs():
             if not lay.k:
                 continue
@@ -600,7 +616,10 @@ class NormalEquations:
         U = np.zeros(nr * nr)
         V = np.zeros(nb * b * b)
         Ws = np.zeros(st.n_slots * b)
-        for lay, blk in jac._pairs():
+        kern = blocksparse_kernels.assemble()
+        if kern is not None:
+            self._assemble_compiled(kern, U.reshape(nr, nr), V.reshape(nb, b, b), Ws.reshape(st.n_slots, b))
+        for lay, blk in ([] if kern is not None else jac._pairs()):
             if not lay.k:
                 continue
             values = blk.values
@@ -634,6 +653,24 @@ class NormalEquations:
         self.V = V.reshape(nb, b, b)
         self.W_slots = Ws.reshape(st.n_slots, b)
         self._zero = self._WT = self._Cr = self._Cee = self._cross = None
+
+    def _assemble_compiled(self, kern, U, V, Ws):
+        """U, V and W_slots by the compiled loop (:mod:`fieldcal.solver.blocksparse_kernels`)."""
+        empty2 = np.zeros((0, 0), np.intp)
+        for lay, blk in self.jac._pairs():
+            if not lay.k:
+                continue
+            v = np.ascontiguousarray(blk.values)
+            if lay.c_r:
+                key_cols, key_id = lay.key_cols.astype(np.intp), lay.key_id
+            else:
+                key_cols, key_id = np.zeros((1, 0), np.intp), np.zeros(lay.k, np.intp)
+            if lay.c_e:
+                e, local = lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp)
+                slot_idx = (np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else empty2)
+            else:
+                e, local, slot_idx = np.zeros(0, np.intp), empty2, empty2
+            kern(v, lay.red_pos, lay.elim_pos, key_cols, key_id, e, local, slot_idx, U, V, Ws)
 
     # -- assembled views (for checks and small problems) ---------------------------------
 
