@@ -239,6 +239,31 @@ def _positions(mask: np.ndarray):
     return idx, idx
 
 
+def _unique_inverse(keys, n_max: int):
+    """``np.unique(keys, return_inverse=True)`` for integer keys in ``[0, n_max)``: by a marker
+    array (no sort) when ``n_max`` is modest, else by ``np.unique``."""
+    if n_max > 20_000_000:
+        uniq, inv = np.unique(keys, return_inverse=True)
+        return uniq, inv.reshape(-1)
+    mark = np.zeros(n_max, bool)
+    mark[keys] = True
+    rank = np.cumsum(mark, dtype=np.int64) - 1
+    return np.flatnonzero(mark), rank[keys]
+
+
+def _unique_rows(rows, n_cols: int):
+    """``(first index of each distinct row, id of every row's distinct row)``, ids ordered as
+    ``np.unique(rows, axis=0)`` orders them. Fast path: when the first column alone tells the
+    rows apart (as an image's columns do), a 1-D unique of it."""
+    first_col = rows[:, 0]
+    uniq, first, inv = np.unique(first_col, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    if rows.shape[1] == 1 or np.array_equal(rows[first][inv], rows):
+        return first, inv
+    _, first, inv = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    return first, inv.reshape(-1)
+
+
 class _BlockLayout:
     """Index analysis of one residual block (see :class:`JacobianStructure`)."""
 
@@ -278,9 +303,7 @@ class _BlockLayout:
         if self.c_r and k:
             varying = ~(red_cols == red_cols[:1]).all(axis=0)
             if varying.any():
-                _, first, key_id = np.unique(red_cols[:, varying], axis=0, return_index=True,
-                                             return_inverse=True)
-                key_id = key_id.reshape(-1)
+                first, key_id = _unique_rows(red_cols[:, varying], n_params)
             else:
                 first, key_id = np.zeros(1, np.intp), np.zeros(k, np.intp)
             self.n_keys = len(first)
@@ -353,7 +376,8 @@ class JacobianStructure:
         nr = n_reduced
         keys = [lay.e[:, None] * nr + lay.red_cols for lay in self.layouts if lay.c_e and lay.c_r]
         if keys:
-            uniq, inv = np.unique(np.concatenate([kk.ravel() for kk in keys]), return_inverse=True)
+            uniq, inv = _unique_inverse(np.concatenate([kk.ravel() for kk in keys]),
+                                        self.n_blocks * max(nr, 1))
         else:
             uniq, inv = np.zeros(0, np.intp), np.zeros(0, np.intp)
         self.n_slots = len(uniq)
@@ -364,18 +388,26 @@ class JacobianStructure:
             if lay.c_e and lay.c_r:
                 n = lay.k * lay.c_r
                 lay.slot_idx = inv[pos:pos + n].reshape(lay.k, lay.c_r)
-                lay.W_dest = (lay.slot_idx[:, :, None] * b + np.arange(b)).ravel()
                 pos += n
             else:
                 lay.slot_idx = None
         counts = np.bincount(self.slot_e, minlength=self.n_blocks)
-        self.slot_ptr = np.concatenate([[0], np.cumsum(counts)])
-        self.buckets = self._make_buckets(counts)
-        self.dest_all = (np.concatenate([bk.dest for bk in self.buckets]) if self.buckets
-                         else np.zeros(0, np.intp))
-        for bk in self.buckets:
-            bk.dest = None
+        self.slot_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+        self._counts = counts
+        self._buckets = None
         self._workspace = None
+
+    @property
+    def buckets(self):
+        """The batches of the NumPy Schur complement (made on first use: the compiled loop
+        of :mod:`fieldcal.solver.blocksparse_kernels` does not need them)."""
+        if self._buckets is None:
+            self._buckets = self._make_buckets(self._counts)
+            self.dest_all = (np.concatenate([bk.dest for bk in self._buckets]) if self._buckets
+                             else np.zeros(0, np.intp))
+            for bk in self._buckets:
+                bk.dest = None
+        return self._buckets
 
     def workspace(self):
         """A reusable buffer for the Schur products of all batches, and its per-batch views.
@@ -590,7 +622,7 @@ class BlockSparseJacobian:
 class _Factor:
     """A factorisation of the damped system: V*^-1 blocks, Y = W V*^-1 per batch, chol(S)."""
 
-    __slots__ = ("Vinv", "Ys", "cho", "s_scale")
+    __slots__ = ("Vinv", "Ys", "Y_slots", "cho", "s_scale")
 
 
 class NormalEquations:
@@ -647,7 +679,8 @@ class NormalEquations:
                                  minlength=nb * b * b)
                 if lay.c_r:
                     A = lay.reduced_values(values)
-                    Ws += np.bincount(lay.W_dest, (A.transpose(0, 2, 1) @ B).ravel(),
+                    W_dest = (lay.slot_idx[:, :, None] * b + np.arange(b)).ravel()
+                    Ws += np.bincount(W_dest, (A.transpose(0, 2, 1) @ B).ravel(),
                                       minlength=st.n_slots * b)
         self.U = U.reshape(nr, nr)
         self.V = V.reshape(nb, b, b)
@@ -708,7 +741,7 @@ class NormalEquations:
         else:
             f.Vinv = np.zeros((0, b, b))
         # S = U + D_r - sum_e W_e V*_e^-1 W_e^T
-        S, f.Ys = self._schur(d[:nr], f.Vinv)
+        S, f.Ys, f.Y_slots = self._schur(d[:nr], f.Vinv)
         f.cho, f.s_scale = equilibrated_cholesky(S)
         if damping is None:
             self._zero = f
@@ -719,6 +752,13 @@ class NormalEquations:
         nr, b, st = self.n_reduced, self.b, self.structure
         S = self.U.copy()
         S[np.diag_indices(nr)] += d_r
+        kern = blocksparse_kernels.schur()
+        if kern is not None:                       # W_s V*_e^-1 per slot, S -= W V*^-1 W^T
+            Y = np.empty_like(self.W_slots)
+            if st.n_slots:
+                kern(np.ascontiguousarray(self.W_slots), st.slot_col.astype(np.intp), st.slot_ptr,
+                     np.ascontiguousarray(Vinv), S, Y)
+            return 0.5 * (S + S.T), None, Y
         Ys = []
         if st.buckets:
             Wx = np.vstack([self.W_slots, np.zeros((1, b))])
@@ -729,7 +769,7 @@ class NormalEquations:
                 np.matmul(Y, Wg.transpose(0, 2, 1), out=T)          # W_e V*_e^-1 W_e^T
                 Ys.append(Y)
             S -= np.bincount(st.dest_all, T_all, minlength=nr * nr + 1)[:-1].reshape(nr, nr)
-        return 0.5 * (S + S.T), Ys
+        return 0.5 * (S + S.T), Ys, None
 
     def schur_complement(self, damping=None) -> np.ndarray:
         """``S = U + D_r - W (V + D_e)^-1 W^T`` (n_r, n_r) for damping ``D`` (n,) or scalar."""
@@ -806,6 +846,13 @@ class NormalEquations:
         Cr = self.covariance_reduced()
         st, b = self.structure, self.b
         Cee = f.Vinv.copy()
+        if f.Y_slots is not None:                  # the compiled path keeps Y per slot
+            cross = np.zeros((st.n_slots, b))
+            if st.n_slots and self.n_reduced:
+                blocksparse_kernels.elim_covariances()(f.Y_slots, st.slot_col.astype(np.intp), st.slot_ptr,
+                                                       np.ascontiguousarray(Cr), Cee, cross)
+            self._Cee, self._cross = 0.5 * (Cee + Cee.transpose(0, 2, 1)), cross
+            return self._Cee, self._cross
         cross = np.zeros((st.n_slots + 1, b))
         if st.n_slots and self.n_reduced:
             for bk, Y in zip(st.buckets, f.Ys, strict=True):
@@ -873,6 +920,22 @@ class NormalEquations:
         values = self.jac.blocks[block_index].values
         Q = np.zeros((lay.k, lay.r, lay.r))
         if not lay.k:
+            return Q
+        kern = blocksparse_kernels.group_covariance()
+        if kern is not None:
+            empty2, empty3 = np.zeros((0, 0), np.intp), np.zeros((0, 0, 0))
+            Cr = self.covariance_reduced() if lay.c_r else np.zeros((0, 0))
+            key_cols, key_id = ((lay.key_cols.astype(np.intp), lay.key_id) if lay.c_r
+                                else (np.zeros((1, 0), np.intp), np.zeros(lay.k, np.intp)))
+            if lay.c_e:
+                Cee, cross = self._elim_covariances()
+                e, local = lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp)
+                slot_idx = np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else empty2
+                cross = np.ascontiguousarray(cross) if lay.c_r else np.zeros((0, 0))
+            else:
+                Cee, cross, e, local, slot_idx = empty3, np.zeros((0, 0)), np.zeros(0, np.intp), empty2, empty2
+            kern(np.ascontiguousarray(values), lay.red_pos, lay.elim_pos, key_cols, key_id, e, local, slot_idx,
+                 np.ascontiguousarray(Cr), np.ascontiguousarray(Cee), cross, Q)
             return Q
         if lay.c_r:
             Cr = self.covariance_reduced()
