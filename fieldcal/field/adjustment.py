@@ -201,7 +201,7 @@ class FieldProblem:
                 blocks.append(ResidualBlock.from_parts(self._rows_sur, [(self._cols_sur, sur_values)]))
             self._template = blocks
         else:
-            blocks = [self._template[0].with_values(*[p[1] for p in parts])]
+            blocks = [self._template[0].with_values(*[p[1] for p in parts], combined=jb.combined)]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
         J = BlockSparseJacobian(m.n_rows, m.n_params, self.n_dense, self.block_size, blocks,

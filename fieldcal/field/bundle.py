@@ -54,6 +54,7 @@ class ObservationJacobian:
     d_int: np.ndarray
     d_ext: np.ndarray
     d_tgt: np.ndarray
+    combined: np.ndarray | None = None    # (m, 2, n_int + 6 [+ 3]): the blocks side by side, if so made
 
 
 class BundleModel:
@@ -172,14 +173,18 @@ class BundleModel:
         Jl = np.ascontiguousarray(left_jacobian_so3(ext[:, :3]))
         m, s = len(self.img), self.data.sensor
         res = np.empty((m, 2))
-        if jacobian:
-            d_int, d_ext, d_tgt = np.empty((m, 2, self.n_int)), np.empty((m, 2, 6)), np.empty((m, 2, 3))
+        combined = None
+        if jacobian:   # one array, the blocks side by side (the order of FieldProblem's columns)
+            n_int = self.n_int
+            combined = np.empty((m, 2, n_int + 6 + (3 if self.targets_adjusted else 0)))
+            d_int, d_ext = combined[:, :, :n_int], combined[:, :, n_int:n_int + 6]
+            d_tgt = combined[:, :, n_int + 6:] if self.targets_adjusted else np.empty((m, 2, 3))
         else:
             d_int = d_ext = d_tgt = np.empty((0, 2, 0))
         kern(params, self.int_index, R, Jl, np.ascontiguousarray(C), np.ascontiguousarray(X), self.img,
              self.tgt, self.uv, self.sigma_px, self._start_mm, float(s.width_px), float(s.height_px),
              float(s.pixel_mm), 1e-10, 30, bool(jacobian), res, d_int, d_ext, d_tgt)
-        return res, (ObservationJacobian(d_int, d_ext, d_tgt) if jacobian else None)
+        return res, (ObservationJacobian(d_int, d_ext, d_tgt, combined) if jacobian else None)
 
     def _predict(self, x, jacobian):
         params, _, C, X = self.unpack(x)

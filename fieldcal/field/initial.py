@@ -156,10 +156,12 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
     for _ in range(max_iter):
         if done.all():
             break
-        A, rr = jb.d_ext, r.reshape(-1, 2)
-        A0, A1 = A[:, 0], A[:, 1]
-        N = _segment_sums(A0[:, :, None] * A0[:, None, :] + A1[:, :, None] * A1[:, None, :], starts, counts)
-        g = _segment_sums(A0 * rr[:, :1] + A1 * rr[:, 1:], starts, counts)
+        A2 = jb.d_ext.reshape(-1, 6)                 # rows of the images' points, image by image
+        N, g = np.zeros((n, 6, 6)), np.zeros((n, 6))
+        for i in np.flatnonzero(~done):             # one (2 k_i, 6) product per image (BLAS)
+            rows = slice(2 * bounds[i], 2 * bounds[i + 1])
+            N[i] = A2[rows].T @ A2[rows]
+            g[i] = A2[rows].T @ r[rows]
         dg = np.einsum("kii->ki", N)
         Nd = N + (mu[:, None] * np.maximum(dg, 1e-300))[:, :, None] * eye + done[:, None, None] * eye
         h = -np.linalg.solve(Nd, g[:, :, None])[:, :, 0]

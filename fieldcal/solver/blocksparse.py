@@ -201,8 +201,12 @@ class ResidualBlock:
         return np.concatenate([np.broadcast_to(c, (k, c.shape[-1])) for c in self.part_cols],
                               axis=1)
 
-    def with_values(self, *values) -> ResidualBlock:
-        """The same rows and columns with new values, one (k, r_rows, c_i) array per part."""
+    def with_values(self, *values, combined=None) -> ResidualBlock:
+        """The same rows and columns with new values, one (k, r_rows, c_i) array per part.
+
+        ``combined`` (k, r_rows, c), optional: the parts side by side in one array, when the
+        caller made them so (the parts being views of it); spares :attr:`values` a copy.
+        """
         if len(values) != len(self.part_cols):
             raise InputError(f"with_values: expected {len(self.part_cols)} value arrays (one per "
                              f"part), got {len(values)}", "ResidualBlock")
@@ -219,6 +223,12 @@ class ResidualBlock:
             vals.append(v)
         block.part_values = tuple(vals)
         block._values = None
+        if combined is not None:
+            width = sum(c.shape[-1] for c in self.part_cols)
+            if combined.shape != (self.n_groups, self.r_rows, width):
+                raise InputError(f"with_values: combined values must have shape "
+                                 f"{(self.n_groups, self.r_rows, width)}, got {combined.shape}", "ResidualBlock")
+            block._values = combined
         return block
 
 
@@ -247,7 +257,7 @@ def _unique_inverse(keys, n_max: int):
         return uniq, inv.reshape(-1)
     mark = np.zeros(n_max, bool)
     mark[keys] = True
-    rank = np.cumsum(mark, dtype=np.int64) - 1
+    rank = np.cumsum(mark, dtype=np.int32) - 1
     return np.flatnonzero(mark), rank[keys]
 
 
@@ -610,8 +620,11 @@ class BlockSparseJacobian:
         return scipy.sparse.csr_matrix((data, (rows, cols)), shape=self.shape)
 
     def normal_equations(self) -> NormalEquations:
-        """``N = J^T J`` in block form (see :class:`NormalEquations`)."""
-        return NormalEquations(self)
+        """``N = J^T J`` in block form (see :class:`NormalEquations`), made once per Jacobian
+        (its values never change) and shared by every caller, with its factorisations."""
+        if getattr(self, "_ne", None) is None:
+            self._ne = NormalEquations(self)
+        return self._ne
 
 
 # ----------------------------------------------------------------------------------------
