@@ -35,7 +35,7 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyarrow as pa
@@ -57,7 +57,7 @@ from fieldcal.solver.blocksparse import (
 from fieldcal.solver.lsq import LsqResult, solve
 
 __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", "initial_values",
-           "adjust_field", "validate_field_data", "CORE_PARAMS"]
+           "adjust_field", "validate_field_data", "CORE_PARAMS", "centred"]
 
 # CORE_PARAMS (f, xp, yp; fieldcal.field.initial) are never held fixed by the automatic
 # selection: a degenerate one is a diagnosis, not a fix.
@@ -729,6 +729,11 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
                  progress: Callable[[str], None] | None = None) -> FieldResult:
     """Calibrate a camera from identified field observations (module docstring).
 
+    The problem is solved in a frame whose origin is the rounded centroid of the observed
+    targets (surveyed coordinates in a national grid or UTM, 1e5-1e6 m, would otherwise
+    carry their offset into every difference and every stopping test); centres and targets
+    are translated back, rotations and covariances do not change under a translation.
+
     Parameters
     ----------
     data : FieldData
@@ -746,52 +751,20 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
         Bad input (what and where), or geometry that cannot calibrate (with a diagnosis).
     """
     o = options or AdjustmentOptions()
-    if o.method not in ("lmqn", "lm"):
-        raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
+    _check_options(o)
     validate_field_data(data)
-    if o.estimate is not None:
-        bad = [p for p in o.estimate if p not in FIELD_PARAMS]
-        if bad:
-            raise InputError(f"estimate names {bad}, not in the field method's set {list(FIELD_PARAMS)}",
-                             "adjustment options")
+    local, origin = centred(data)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
-    init = initial_values(data, full)
+    init = initial_values(local, full)
     if progress:
         progress(f"initial values: {init.how}; f {init.params[0]:.4f} mm; "
                  f"{init.outliers.sum()} points flagged by the robust initialisers")
-    m = len(data.obs)
-    obs_active = ~init.outliers
-    reason = np.where(init.outliers, "initial outlier", "").astype(object)
-    test = np.full(m, np.nan)
-    survey_active = np.ones(len(data.targets), bool)
-    solver = _Solver(data, o, init, progress)
+    flags = _Flags(local, init)
+    solver = _Solver(local, o, init, progress)
     estimate = list(full)
-
-    def solve_clean(label):
-        for rnd in range(o.max_rounds):
-            _drop_undetermined_targets(data, obs_active, survey_active, reason)
-            # before the very first solve: can this network determine f at all?
-            check = (lambda m, x, J: _check_f_determinable(m, x, J, o)) if not solver.rounds else None
-            model, result = solver.run(estimate, obs_active, survey_active, f"{label} {rnd + 1}", before=check)
-            n = _gross_rejection(solver, model, result, obs_active, survey_active, reason, o)
-            if n == 0:
-                n = _snooping(model, result, obs_active, survey_active, reason, test, o)
-            # readmit initial outliers that now fit (they were only suspects)
-            res = solver.residuals_all()
-            s = data.obs.sigma_px * max(result.sigma0, 1.0)
-            fits = (reason == "initial outlier") & (np.hypot(res[:, 0], res[:, 1]) < 3.0 * s)
-            obs_active[fits] = True
-            reason[fits] = ""
-            # a target whose rejected image points agree with each other: its survey is wrong
-            if o.targets_adjusted:
-                n += _blame_the_survey(solver, obs_active, survey_active, reason, max(result.sigma0, 1.0))
-            if n == 0 and not fits.any():
-                return model, result
-        return model, result
-
     try:
-        model, result = solve_clean("adjustment")
+        model, result = _solve_clean(solver, flags, estimate, o, "adjustment")
         while o.estimate is None:
             pick = _select_parameter(model, result, estimate, o)
             if pick is None:
@@ -802,7 +775,7 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
             estimate.remove(name)
             if progress:
                 progress(f"holding {name} fixed at 0: {why}")
-            model, result = solve_clean("re-adjustment")
+            model, result = _solve_clean(solver, flags, estimate, o, "re-adjustment")
         try:
             cov, s, corr = _interior_stats(model, result)
         except SingularSystemError as err:
@@ -811,24 +784,97 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     except SingularSystemError as err:
         raise GeometryError(_singular_diagnosis(err, solver.model)) from None
     # everything not used: reason 'initial outlier' left -> it is a blunder
-    reason[(reason == "initial outlier")] = "blunder"
-    params, R, C, X = model.unpack(result.x)
+    flags.reason[(flags.reason == "initial outlier")] = "blunder"
+    return _field_result(data, o, origin, solver, flags, model, result, (cov, s, corr), estimate, fixed, init)
+
+
+def _check_options(o: AdjustmentOptions) -> None:
+    if o.method not in ("lmqn", "lm"):
+        raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
+    if o.estimate is not None:
+        bad = [p for p in o.estimate if p not in FIELD_PARAMS]
+        if bad:
+            raise InputError(f"estimate names {bad}, not in the field method's set {list(FIELD_PARAMS)}",
+                             "adjustment options")
+
+
+def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
+    """The data translated so that the rounded centroid of the observed targets is the origin.
+
+    Returns the translated :class:`FieldData` (only the target coordinates change) and the
+    origin (3,) [m] in the data's frame. Rounding to whole metres keeps the subtraction
+    exact for coordinates of 10^5-10^6 m (Sterbenz), so a field in UTM and the same field
+    in local coordinates become the same numbers up to the rounding of their inputs.
+    """
+    observed = np.unique(data.obs.target)
+    origin = np.round(np.mean(data.targets.xyz_m[observed], axis=0)) if len(observed) else np.zeros(3)
+    targets = replace(data.targets, xyz_m=data.targets.xyz_m - origin)
+    return replace(data, targets=targets), origin
+
+
+@dataclass
+class _Flags:
+    """What the procedure decides per observation and survey (module docstring, step 3)."""
+
+    obs_active: np.ndarray        # (m,) bool
+    reason: np.ndarray            # (m,) object: '' or why the point is not used
+    test: np.ndarray              # (m,) snooping statistic
+    survey_active: np.ndarray     # (n_targets,) bool
+
+    def __init__(self, data: FieldData, init: InitialValues):
+        self.obs_active = ~init.outliers
+        self.reason = np.where(init.outliers, "initial outlier", "").astype(object)
+        self.test = np.full(len(data.obs), np.nan)
+        self.survey_active = np.ones(len(data.targets), bool)
+
+
+def _solve_clean(solver, flags: _Flags, estimate, o, label):
+    """Adjust, reject blunders, readmit what fits, adjust again until nothing changes."""
+    data = solver.data
+    for rnd in range(o.max_rounds):
+        _drop_undetermined_targets(data, flags.obs_active, flags.survey_active, flags.reason)
+        # before the very first solve: can this network determine f at all?
+        check = (lambda m, x, J: _check_f_determinable(m, x, J, o)) if not solver.rounds else None
+        model, result = solver.run(estimate, flags.obs_active, flags.survey_active, f"{label} {rnd + 1}",
+                                   before=check)
+        n = _gross_rejection(solver, model, result, flags.obs_active, flags.survey_active, flags.reason, o)
+        if n == 0:
+            n = _snooping(model, result, flags.obs_active, flags.survey_active, flags.reason, flags.test, o)
+        # readmit initial outliers that now fit (they were only suspects)
+        res = solver.residuals_all()
+        s = data.obs.sigma_px * max(result.sigma0, 1.0)
+        fits = (flags.reason == "initial outlier") & (np.hypot(res[:, 0], res[:, 1]) < 3.0 * s)
+        flags.obs_active[fits] = True
+        flags.reason[fits] = ""
+        # a target whose rejected image points agree with each other: its survey is wrong
+        if o.targets_adjusted:
+            n += _blame_the_survey(solver, flags.obs_active, flags.survey_active, flags.reason,
+                                   max(result.sigma0, 1.0))
+        if n == 0 and not fits.any():
+            return model, result
+    return model, result
+
+
+def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
+    """The :class:`FieldResult`, centres and targets translated back to the data's frame."""
+    cov, s, corr = stats
+    params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
-    n_int = model.n_int
-    ext_var = np.diag(cov)[n_int:].reshape(-1, 6)
+    ext_var = np.diag(cov)[model.n_int:].reshape(-1, 6)
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
         sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
         sigma_X[model.target_index] = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
-    survey_res = (data.targets.xyz_m - solver.X) * 1000.0
+    targets_m = solver.X + origin
+    survey_res = (solver.data.targets.xyz_m - solver.X) * 1000.0
+    init = replace(init, center_m=init.center_m + origin)
     return FieldResult(
         data=data, options=o, params=params, estimate=tuple(estimate), fixed_parameters=fixed,
         sigma=sigma, sigma0=result.sigma0, covariance=cov, covariance_names=model.column_names()[: model.n_reduced],
-        correlation_interior=corr, R_world_to_camera=R, center_m=C, sigma_center_m=sigma_C,
-        targets_m=solver.X, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
-        obs_used=obs_active.copy(), obs_reason=np.array([str(r) for r in reason]), obs_test=test,
-        survey_used=survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
+        correlation_interior=corr, R_world_to_camera=R, center_m=C + origin, sigma_center_m=sigma_C,
+        targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
+        obs_used=flags.obs_active.copy(), obs_reason=np.array([str(r) for r in flags.reason]), obs_test=flags.test,
+        survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
         iterations_total=solver.iterations, initial=init, rounds=solver.rounds)
-

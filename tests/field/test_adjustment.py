@@ -5,6 +5,8 @@ OpenCV's calib1 corners and PhotoModeler's marks of the DBAT calibration sheet, 
 compared with OpenCV's own calibration of the same points.
 """
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -290,3 +292,40 @@ def test_unknown_estimate_name_and_solver_are_refused():
         adjust_field(_small(), AdjustmentOptions(estimate=("f_mm", "b1")))
     with pytest.raises(InputError, match="method must be 'lmqn' or 'lm'"):
         adjust_field(_small(), AdjustmentOptions(method="gn"))
+
+
+# ---------------------------------------------------------------------------- where the origin is
+@pytest.fixture(scope="module")
+def local_and_far():
+    """A wide-angle field with 1 % blunders, in local coordinates and in a national grid (UTM-like
+    easting 5e5 m, northing 4.2e6 m): the same numbers up to the rounding of the inputs."""
+    sf, _ = add_blunders(wide_field(seed=5), fraction=0.01, seed=1)
+    offset = np.array([512_345.678, 4_212_345.321, 87.5])
+    data = sf.data
+    far = replace(data, targets=replace(data.targets, xyz_m=data.targets.xyz_m + offset))
+    return sf, offset, adjust_field(data), adjust_field(far)
+
+
+def test_a_national_grid_gives_the_same_rejections_as_local_coordinates(local_and_far):
+    _, _, a, b = local_and_far
+    assert (a.obs_reason == "blunder").sum() >= 20          # the blunders were found...
+    assert np.array_equal(a.obs_reason, b.obs_reason)       # ...the same ones, for the same reasons
+    assert np.array_equal(a.survey_used, b.survey_used)
+    assert a.fixed_parameters == b.fixed_parameters and a.estimate == b.estimate
+
+
+def test_a_national_grid_gives_the_same_calibration_as_local_coordinates(local_and_far):
+    sf, offset, a, b = local_and_far
+    for n in a.estimate:
+        i = INDEX[n]
+        # a thousandth of a sigma: the solver's tolerance (sigma_tol), not the origin, decides
+        assert abs(a.params[i] - b.params[i]) < 1e-3 * a.sigma[n], n
+        assert b.sigma[n] == pytest.approx(a.sigma[n], rel=1e-6), n
+    assert np.abs((b.center_m - offset) - a.center_m).max() < 1e-3 * a.sigma_center_m.min()
+    assert np.abs(b.R_world_to_camera - a.R_world_to_camera).max() < 1e-9   # rad, ~1e-3 sigma
+    seen = np.isfinite(a.sigma_targets_m).all(axis=1)
+    assert np.all(np.abs((b.targets_m - offset) - a.targets_m)[seen] < 1e-3 * a.sigma_targets_m[seen])
+    sd = np.sqrt(np.diag(a.covariance))               # covariances to 1e-6 of the sigmas' product
+    assert np.all(np.abs(b.covariance - a.covariance) <= 1e-6 * np.outer(sd, sd))
+    # and both are right: the truth within 3 sigma
+    assert np.all(np.abs(z_scores(sf, a)) < 3.0) and np.all(np.abs(z_scores(sf, b)) < 3.0)
