@@ -43,7 +43,6 @@ def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
     f, xp, yp = p[0], p[1], p[2]
     n_int = int_index.shape[0]
     cu, cv = (W - 1.0) / 2.0, (H - 1.0) / 2.0
-    nan = np.nan
     for k in range(img.shape[0]):
         i, t = img[k], tgt[k]
         dx0, dx1, dx2 = X[t, 0] - C[i, 0], X[t, 1] - C[i, 1], X[t, 2] - C[i, 2]
@@ -54,34 +53,9 @@ def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
         if ok:
             qx_t, qy_t = -f * xc0 / z, -f * xc1 / z
             # Newton: correct(x') = q, from the measured point (a fraction of a pixel away)
-            xb, yb = start_mm[k, 0] - xp, start_mm[k, 1] - yp
-            if not (np.isfinite(xb) and np.isfinite(yb)):
-                xb, yb = qx_t, qy_t
-            ok = False
-            for _ in range(max_iter):
-                qx, qy, g00, g01, g10, g11, r2, xy_ = _terms(xb, yb, p)
-                ex, ey = qx - qx_t, qy - qy_t
-                det = g00 * g11 - g01 * g10
-                sx = (g11 * ex - g01 * ey) / det
-                sy = (g00 * ey - g10 * ex) / det
-                xb -= sx
-                yb -= sy
-                if max(abs(sx), abs(sy)) <= tol_mm:
-                    ok = True
-                    break
+            ok, xb, yb = _newton(p, qx_t, qy_t, start_mm[k, 0] - xp, start_mm[k, 1] - yp, tol_mm, max_iter)
         if not ok:
-            res[k, 0] = nan
-            res[k, 1] = nan
-            if jacobian:
-                for j in range(n_int):
-                    d_int[k, 0, j] = nan
-                    d_int[k, 1, j] = nan
-                for j in range(6):
-                    d_ext[k, 0, j] = nan
-                    d_ext[k, 1, j] = nan
-                for j in range(3):
-                    d_tgt[k, 0, j] = nan
-                    d_tgt[k, 1, j] = nan
+            _fill_nan(k, jacobian, res, d_int, d_ext, d_tgt)
             continue
         u = (xb + xp) / d + cu
         v = -(yb + yp) / d + cv
@@ -95,34 +69,8 @@ def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
         w = -1.0 / (s * d * (g00 * g11 - g01 * g10))
         a00, a01, a10, a11 = w * g11, -w * g01, w * g10, -w * g00
         for j in range(n_int):
-            c = int_index[j]
             # e = d q / d p at the fixed measured point, negated (dx'/dp = G^-1 (dq/dp - Q))
-            if c == 0:
-                e0, e1 = qx_t / f, qy_t / f
-            elif c == 1:
-                e0, e1 = g00, g10
-            elif c == 2:
-                e0, e1 = g01, g11
-            elif c == 3:
-                e0, e1 = -xb, -yb
-            elif c == 4:
-                e0, e1 = -xb * r2, -yb * r2
-            elif c == 5:
-                e0, e1 = -xb * r2 * r2, -yb * r2 * r2
-            elif c == 6:
-                e0, e1 = -xb * r2 * r2 * r2, -yb * r2 * r2 * r2
-            elif c == 7:
-                e0, e1 = -(r2 + 2 * xb * xb), -2 * xy_
-            elif c == 8:
-                e0, e1 = -2 * xy_, -(r2 + 2 * yb * yb)
-            elif c == 9:
-                e0, e1 = 0.0, -xb
-            elif c == 10:
-                e0, e1 = 0.0, -yb
-            elif c == 11:
-                e0, e1 = -xb, 0.0
-            else:
-                e0, e1 = -yb, 0.0
+            e0, e1 = _interior_column(int_index[j], xb, yb, r2, xy_, g00, g01, g10, g11, qx_t / f, qy_t / f)
             d_int[k, 0, j] = a00 * e0 + a01 * e1
             d_int[k, 1, j] = a10 * e0 + a11 * e1
         # through Xc: dq/dXc = -f/Zc [[1, 0, -Xc/Zc], [0, 1, -Yc/Zc]]
@@ -143,9 +91,71 @@ def _bundle_blocks(p, int_index, R, Jl, C, X, img, tgt, uv, sigma_px, start_mm,
             d_ext[k, 1, 3 + c] = -t1
 
 
+def _newton(p, qx_t, qy_t, xb, yb, tol_mm, max_iter):
+    """``(converged, xb, yb)``: the measured point whose correction is ``q`` (``distort``),
+    Newton's method from ``(xb, yb)`` (the ideal point when that is not finite)."""
+    if not (np.isfinite(xb) and np.isfinite(yb)):
+        xb, yb = qx_t, qy_t
+    for _ in range(max_iter):
+        dx, dy, g00, g01, g10, g11, r2, xy_ = _terms(xb, yb, p)
+        ex, ey = xb + dx - qx_t, yb + dy - qy_t
+        det = g00 * g11 - g01 * g10
+        sx = (g11 * ex - g01 * ey) / det
+        sy = (g00 * ey - g10 * ex) / det
+        xb -= sx
+        yb -= sy
+        if max(abs(sx), abs(sy)) <= tol_mm:
+            return True, xb, yb
+    return False, xb, yb
+
+
+def _interior_column(c, xb, yb, r2, xy_, g00, g01, g10, g11, dqx_df, dqy_df):
+    """Minus ``dq/dp_c`` at the fixed measured point (``fieldcal.model.camera.ideal_point_columns``),
+    except for f (c = 0), whose column is ``dq/df = q/f`` on the collinearity side."""
+    if c == 0:
+        return dqx_df, dqy_df
+    if c == 1:
+        return g00, g10
+    if c == 2:
+        return g01, g11
+    if c == 3:
+        return -xb, -yb
+    if c == 4:
+        return -xb * r2, -yb * r2
+    if c == 5:
+        return -xb * r2 * r2, -yb * r2 * r2
+    if c == 6:
+        return -xb * r2 * r2 * r2, -yb * r2 * r2 * r2
+    if c == 7:
+        return -(r2 + 2 * xb * xb), -2 * xy_
+    if c == 8:
+        return -2 * xy_, -(r2 + 2 * yb * yb)
+    if c == 9:
+        return 0.0, -xb
+    if c == 10:
+        return 0.0, -yb
+    if c == 11:
+        return -xb, 0.0
+    return -yb, 0.0
+
+
+def _fill_nan(k, jacobian, res, d_int, d_ext, d_tgt):
+    """Observation ``k`` has no prediction (behind the camera, or Newton did not converge)."""
+    res[k, 0] = np.nan
+    res[k, 1] = np.nan
+    if jacobian:
+        for a in range(2):
+            d_int[k, a, :] = np.nan
+            d_ext[k, a, :] = np.nan
+            d_tgt[k, a, :] = np.nan
+
+
 if compiled.numba is not None:
     # the one correction polynomial (fieldcal.model.camera), compiled for scalars
     _terms = compiled.numba.njit(cache=True, inline="always")(correction_terms)
+    _newton = compiled.numba.njit(cache=True)(_newton)
+    _interior_column = compiled.numba.njit(cache=True)(_interior_column)
+    _fill_nan = compiled.numba.njit(cache=True)(_fill_nan)
     _compiled = compiled.numba.njit(cache=True, nogil=True, error_model="numpy")(_bundle_blocks)
 else:  # pragma: no cover
     _compiled = None

@@ -160,8 +160,8 @@ def correction_terms(xb, yb, p):
 
     Returns
     -------
-    qx, qy : ndarray
-        The ideal point ``(xb + dx, yb + dy)`` [mm].
+    dx, dy : ndarray
+        The correction [mm]; the ideal point is ``q = (xb + dx, yb + dy)``.
     g00, g01, g10, g11 : ndarray
         The entries of ``G = dq/dx'``, the Jacobian of the correction with respect to the
         measured point.
@@ -172,22 +172,21 @@ def correction_terms(xb, yb, p):
     radial = p[K0] + r2 * (p[K1] + r2 * (p[K2] + r2 * p[K3]))
     dradial = p[K1] + r2 * (2.0 * p[K2] + 3.0 * r2 * p[K3])
     xy_ = xb * yb
-    qx = xb * (1 + radial) + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xy_ + p[B1] * xb + p[B2] * yb
-    qy = yb * (1 + radial) + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xy_ + p[A1] * xb + p[A2] * yb
+    dx = xb * radial + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xy_ + p[B1] * xb + p[B2] * yb
+    dy = yb * radial + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xy_ + p[A1] * xb + p[A2] * yb
     g00 = 1 + radial + 2 * xb * xb * dradial + 6 * p[P1] * xb + 2 * p[P2] * yb + p[B1]
     g01 = 2 * xy_ * dradial + 2 * p[P1] * yb + 2 * p[P2] * xb + p[B2]
     g10 = 2 * xy_ * dradial + 2 * p[P2] * xb + 2 * p[P1] * yb + p[A1]
     g11 = 1 + radial + 2 * yb * yb * dradial + 6 * p[P2] * yb + 2 * p[P1] * xb + p[A2]
-    return qx, qy, g00, g01, g10, g11, r2, xy_
+    return dx, dy, g00, g01, g10, g11, r2, xy_
 
 
 def correction(xy_mm, params):
     """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
-    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    qx, qy = correction_terms(xb, yb, p)[:2]
-    return np.stack([qx - xb, qy - yb], axis=-1)
+    dx, dy = correction_terms(xy[..., 0] - p[XP], xy[..., 1] - p[YP], p)[:2]
+    return np.stack([dx, dy], axis=-1)
 
 
 def correct(xy_mm, params):
@@ -197,8 +196,9 @@ def correct(xy_mm, params):
     """
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
-    qx, qy = correction_terms(xy[..., 0] - p[XP], xy[..., 1] - p[YP], p)[:2]
-    return np.stack([qx, qy], axis=-1)
+    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
+    dx, dy = correction_terms(xb, yb, p)[:2]
+    return np.stack([xb + dx, yb + dy], axis=-1)
 
 
 def ideal_point_columns(xb, yb, p, g, r2, xy_, columns):
@@ -257,8 +257,8 @@ def correct_jacobian(xy_mm, params, columns=None):
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
     xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    qx, qy, g00, g01, g10, g11, r2, xy_ = correction_terms(xb, yb, p)
-    q = np.stack([qx, qy], axis=-1)
+    dx, dy, g00, g01, g10, g11, r2, xy_ = correction_terms(xb, yb, p)
+    q = np.stack([xb + dx, yb + dy], axis=-1)
     G = np.stack([np.stack([g00, g01], -1), np.stack([g10, g11], -1)], -2)
     cols = range(13) if columns is None else columns
     Q = np.empty(xb.shape + (2, len(cols)))
@@ -298,8 +298,8 @@ def distort(q_mm, params, *, tol_mm: float = 1e-10, max_iter: int = 30, check: b
         if idx.size == 0:
             break
         bx, by = xb[idx], yb[idx]
-        qx, qy, g00, g01, g10, g11, _, _ = correction_terms(bx, by, p)
-        ex, ey = qx - qx_t[idx], qy - qy_t[idx]
+        dx, dy, g00, g01, g10, g11, _, _ = correction_terms(bx, by, p)
+        ex, ey = bx + dx - qx_t[idx], by + dy - qy_t[idx]
         det = g00 * g11 - g01 * g10
         sx = (g11 * ex - g01 * ey) / det
         sy = (g00 * ey - g10 * ex) / det
