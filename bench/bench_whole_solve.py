@@ -114,7 +114,10 @@ def _mrcal_run(req, cache):
                            do_apply_outlier_rejection=True, verbose=False)
     dt = time.perf_counter() - t
     fx, fy, cx, cy = intr[0, :4]
-    return {"t": dt, "rms_px": float(stats["rms_reproj_error__pixels"]) * np.sqrt(2.0), "f_mm": fx * pix,
+    # RMS per point (CONTRACT section 4), from mrcal's own projection of the fixed points
+    q = mrcal.project(mrcal.transform_point_rt(rt[img], X[tgt]), "LENSMODEL_OPENCV8", intr[0])
+    rms = float(np.sqrt(np.mean(np.sum((q - uv) ** 2, axis=1))))
+    return {"t": dt, "rms_px": rms, "f_mm": fx * pix,
             "xp_mm": (cx - (W - 1) / 2.0) * pix, "yp_mm": -(cy - (H - 1) / 2.0) * pix,
             "n_rejected": int(stats.get("Noutliers", 0)), "fixed": [], "iterations": None,
             "sigma_f_mm": None, "n_obs": int(len(uv))}

@@ -294,9 +294,10 @@ class FieldResult:
     def residual_table(self) -> pa.Table:
         """One row per image observation: measured, residual, used, reason, test statistic."""
         d = self.data
-        reason = [r if r else None for r in self.obs_reason]
+        reason = np.where(self.obs_reason == "", None, self.obs_reason.astype(object))
+        files = np.array([im.file for im in d.images], dtype=object)
         return pa.table({
-            "image": pa.array([d.images[i].file for i in d.obs.image], pa.string()),
+            "image": pa.array(files[d.obs.image], pa.string()),
             "target_id": pa.array(d.targets.ids[d.obs.target], pa.string()),
             "u_px": d.obs.uv_px[:, 0], "v_px": d.obs.uv_px[:, 1],
             "du_px": self.residual_px[:, 0], "dv_px": self.residual_px[:, 1],
@@ -875,6 +876,6 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         sigma=sigma, sigma0=result.sigma0, covariance=cov, covariance_names=model.column_names()[: model.n_reduced],
         correlation_interior=corr, R_world_to_camera=R, center_m=C + origin, sigma_center_m=sigma_C,
         targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
-        obs_used=flags.obs_active.copy(), obs_reason=np.array([str(r) for r in flags.reason]), obs_test=flags.test,
+        obs_used=flags.obs_active.copy(), obs_reason=flags.reason.astype(str), obs_test=flags.test,
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
         iterations_total=solver.iterations, initial=init, rounds=solver.rounds)
