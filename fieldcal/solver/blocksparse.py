@@ -662,9 +662,7 @@ class NormalEquations:
         V = np.zeros(nb * b * b)
         Ws = np.zeros(st.n_slots * b)
         kern = blocksparse_kernels.assemble()
-        if kern is not None:
-            self._assemble_compiled(kern, U.reshape(nr, nr), V.reshape(nb, b, b), Ws.reshape(st.n_slots, b))
-        for lay, blk in ([] if kern is not None else jac._pairs()):
+        for lay, blk in jac._pairs():
             if not lay.k:
                 continue
             values = blk.values
@@ -686,7 +684,9 @@ class NormalEquations:
                     else:
                         M = np.add.reduceat(A.transpose(0, 2, 1) @ A, lay.starts[:-1], axis=0)
                     U += np.bincount(lay.U_dest, M.ravel(), minlength=nr * nr)
-            if lay.c_e:
+            if lay.c_e and kern is not None:         # V and W by the compiled loop
+                self._assemble_compiled(kern, lay, values, V.reshape(nb, b, b), Ws.reshape(st.n_slots, b))
+            elif lay.c_e:
                 B = lay.elim_values_full(values, b)
                 V += np.bincount(lay.V_dest, (B.transpose(0, 2, 1) @ B).ravel(),
                                  minlength=nb * b * b)
@@ -700,23 +700,12 @@ class NormalEquations:
         self.W_slots = Ws.reshape(st.n_slots, b)
         self._zero = self._WT = self._Cr = self._Cee = self._cross = None
 
-    def _assemble_compiled(self, kern, U, V, Ws):
-        """U, V and W_slots by the compiled loop (:mod:`fieldcal.solver.blocksparse_kernels`)."""
-        empty2 = np.zeros((0, 0), np.intp)
-        for lay, blk in self.jac._pairs():
-            if not lay.k:
-                continue
-            v = np.ascontiguousarray(blk.values)
-            if lay.c_r:
-                key_cols, key_id = lay.key_cols.astype(np.intp), lay.key_id
-            else:
-                key_cols, key_id = np.zeros((1, 0), np.intp), np.zeros(lay.k, np.intp)
-            if lay.c_e:
-                e, local = lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp)
-                slot_idx = (np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else empty2)
-            else:
-                e, local, slot_idx = np.zeros(0, np.intp), empty2, empty2
-            kern(v, lay.red_pos, lay.elim_pos, key_cols, key_id, e, local, slot_idx, U, V, Ws)
+    def _assemble_compiled(self, kern, lay, values, V, Ws):
+        """V and W_slots of one residual block by the compiled loop (U is formed by BLAS)."""
+        slot_idx = np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else np.zeros((0, 0), np.intp)
+        kern(np.ascontiguousarray(values), lay.red_pos, lay.elim_pos, np.zeros((1, 0), np.intp),
+             np.zeros(lay.k, np.intp), lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp), slot_idx,
+             np.zeros((0, 0)), V, Ws, False)
 
     # -- assembled views (for checks and small problems) ---------------------------------
 

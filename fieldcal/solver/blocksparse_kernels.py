@@ -25,11 +25,11 @@ __all__ = ["assemble", "gradient", "matvec", "schur", "elim_covariances", "group
 _NAME = "block-sparse normal equations"
 
 
-def _assemble(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, U, V, Ws):
+def _assemble(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, U, V, Ws, with_U):
     k, r = v.shape[0], v.shape[1]
     c_r, c_e = red_pos.shape[0], elim_pos.shape[0]
     for g in range(k):
-        if c_r:
+        if c_r and with_U:
             kc = key_cols[key_id[g]]
             for ii in range(c_r):
                 a = red_pos[ii]
@@ -174,7 +174,7 @@ def _smoke(ks):
     v = np.array([[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]])
     U, V, Ws = np.zeros((2, 2)), np.zeros((1, 1, 1)), np.zeros((2, 1))
     a(v, np.array([0, 1]), np.array([2]), np.array([[0, 1]]), np.zeros(1, np.intp), np.zeros(1, np.intp),
-      np.zeros((1, 1), np.intp), np.array([[0, 1]]), U, V, Ws)
+      np.zeros((1, 1), np.intp), np.array([[0, 1]]), U, V, Ws, True)
     if not (np.allclose(U, [[17.0, 22.0], [22.0, 29.0]]) and V[0, 0, 0] == 45.0 and np.allclose(Ws, [[27.0], [36.0]])):
         raise RuntimeError("the compiled assembly gives wrong numbers on a trivial problem")
     g = np.zeros(3)
@@ -203,7 +203,9 @@ def _get():
 
 
 def assemble():
-    """The compiled assembly of U, V, W_slots (in place), or None (use the NumPy reference)."""
+    """The compiled assembly of U (``with_U``), V, W_slots (in place), or None (use the NumPy
+    reference). fieldcal forms U with BLAS (groups sharing reduced columns make one dense
+    product, faster than this loop's scattered updates) and V, W_slots here."""
     ks = _get()
     return None if ks is None else ks[0]
 
