@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, validate_field_data
+from fieldcal.field.adjustment import (
+    AdjustmentOptions,
+    FieldProblem,
+    InitialValues,
+    adjust_field,
+    validate_field_data,
+)
 from fieldcal.field.bundle import BundleModel
 from fieldcal.model.camera import FIELD_PARAMS, INDEX
 from fieldcal.products.compare import ray_difference_px
@@ -329,3 +335,20 @@ def test_a_national_grid_gives_the_same_calibration_as_local_coordinates(local_a
     assert np.all(np.abs(b.covariance - a.covariance) <= 1e-6 * np.outer(sd, sd))
     # and both are right: the truth within 3 sigma
     assert np.all(np.abs(z_scores(sf, a)) < 3.0) and np.all(np.abs(z_scores(sf, b)) < 3.0)
+
+
+def test_a_warm_start_in_a_national_grid_is_translated_like_the_data(local_and_far):
+    """``initial=`` and ``initial_targets_m=`` are given in the data's frame: the same warm start
+    in local coordinates and 4e6 m away gives the same adjustment."""
+    _, offset, a, b = local_and_far
+    warm = InitialValues(params=a.params.copy(), R_world_to_camera=a.R_world_to_camera, center_m=a.center_m,
+                         outliers=a.obs_reason == "blunder", dlt_f_mm=np.full(len(a.data.images), np.nan),
+                         how="warm")
+    c = adjust_field(a.data, initial=warm, initial_targets_m=a.targets_m)
+    d = adjust_field(b.data, initial=replace(warm, center_m=a.center_m + offset),
+                     initial_targets_m=a.targets_m + offset)
+    assert np.array_equal(c.obs_reason, d.obs_reason)
+    for n in c.estimate:
+        assert abs(c.params[INDEX[n]] - d.params[INDEX[n]]) < 1e-3 * c.sigma[n], n
+    assert np.abs((d.center_m - offset) - c.center_m).max() < 1e-3 * c.sigma_center_m.min()
+    assert c.iterations_total < a.iterations_total          # it started next to the solution
