@@ -8,7 +8,7 @@ per axis) and solves it to convergence with each of (timed interleaved, round ro
 and median of N rounds):
 
 - fieldcal: :func:`fieldcal.solver.lsq.solve` (LMQN and LM, with :class:`AdjustmentOptions`'s
-  default ``tau`` and ``eps2``) on :class:`FieldProblem`, targets fixed and targets
+  default ``tau``, ``eps2``, ``ftol`` and ``sigma_tol``) on :class:`FieldProblem`, targets fixed and targets
   adjusted (weighted by their survey sigma); the time includes building the
   :class:`BundleModel` and the problem from the arrays;
 - ``cv2.calibrateCamera`` with ``CALIB_USE_INTRINSIC_GUESS`` (per-view object points are
@@ -230,7 +230,7 @@ def case_fieldcal(sf, start, adjusted, method) -> Case:
     def go(_):
         problem, x0 = fieldcal_problem(sf, start, adjusted)
         return problem, lsq.solve(problem, x0, method=method, tau=o.tau, eps2=o.eps2,
-                                  max_iter=o.max_iter)
+                                  ftol=o.ftol, sigma_tol=o.sigma_tol, max_iter=o.max_iter)
 
     return Case(go, lambda out, times: _report_fieldcal(out, times, adjusted, method))
 
@@ -595,7 +595,8 @@ def profile_fieldcal(sf, start, adjusted=False, method="lmqn", runs=7):
             t0 = time.perf_counter()
             problem, x0 = fieldcal_problem(sf, start, adjusted)
             acc[parts[0][0]] = [time.perf_counter() - t0, 1]
-            res = lsq.solve(problem, x0, method=method, tau=o.tau, eps2=o.eps2, max_iter=o.max_iter)
+            res = lsq.solve(problem, x0, method=method, tau=o.tau, eps2=o.eps2, ftol=o.ftol,
+                            sigma_tol=o.sigma_tol, max_iter=o.max_iter)
             total = time.perf_counter() - t0
             if best is None or total < best[0]:
                 best = (total, {k: list(v) for k, v in acc.items()}, res)

@@ -54,6 +54,7 @@ class Prepared:
     to_measure: list[str]                 # image names (relative paths) to measure
     tables: dict[str, bytes] = field(default_factory=dict)   # name -> bytes of each table file
     frames: pa.Table | None = None        # goniometer: frames.csv as read
+    field_data: object = None             # observation-only field session: FieldData as read (parsed once)
 
     @property
     def method(self) -> str:
@@ -88,8 +89,9 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
     if sess.method == "field":
         targets = read_targets_csv(sess.targets_path)          # validates now
         tables[sess.targets_path.name] = sess.targets_path.read_bytes()
+        field_data = None
         if sess.observations_path is not None:
-            field_data_from_observations(sess)                  # validates now
+            field_data = field_data_from_observations(sess)     # validates now, kept for solve
             tables["observations.csv"] = sess.observations_path.read_bytes()
             to_measure = []
         else:
@@ -104,7 +106,7 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
             elif sess.coded is None:
                 raise InputError("images without coded targets need marks.csv (a few hand-identified "
                                  "targets per image) to be identified", str(sess.folder / "session.json"))
-        return Prepared(sess, settings, to_measure, tables)
+        return Prepared(sess, settings, to_measure, tables, field_data=field_data)
     frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
     tables[sess.frames_path.name] = sess.frames_path.read_bytes()
     names = [str(f) for f in frames.column("file").to_pylist()]
@@ -148,7 +150,7 @@ def _field_result(prepared, measurements, progress, left_out):
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver)
     if sess.observations_path is not None:
-        data = field_data_from_observations(sess)
+        data = prepared.field_data or field_data_from_observations(sess)
         return data, adjust_field(data, options, progress=progress)
     from fieldcal.field.from_images import calibrate_from_measurements
 

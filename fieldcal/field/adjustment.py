@@ -25,38 +25,42 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
 5. **Diagnoses instead of calibrations** (:class:`~fieldcal.errors.GeometryError`): fewer
    than :data:`MIN_IMAGES` images or :data:`MIN_POINTS_PER_IMAGE` points in an image; a
    network that cannot determine f even with every additional parameter held fixed (checked
-   on the first solve's a-priori covariance: relative sigma above ``max_rel_sigma_f``, naming
-   the unknown f is most correlated with, e.g. the camera distance of a flat wall photographed
-   from one direction); an automatic selection that ends with f still undetermined; singular
+   on the a-priori covariance at the initial values: relative sigma above ``max_rel_sigma_f``,
+   naming the unknown f cannot be told from, e.g. the camera distance of a flat wall
+   photographed from one direction; the same diagnosis whether or not a factorisation of the
+   near-singular system breaks down); an automatic selection that ends with f still undetermined; singular
    normal equations (naming the unknown where known).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyarrow as pa
+import scipy.linalg
 from scipy.stats import chi2
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import FieldData
-from fieldcal.field.distortion_init import distortion_lsq
-from fieldcal.field.dlt import dlt_robust, zhang_focal
-from fieldcal.field.geometry import is_coplanar
-from fieldcal.field.resection import planar_pose, resect
-from fieldcal.model.camera import FIELD_PARAMS, INDEX, Camera
+from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
+from fieldcal.model.camera import FIELD_PARAMS, Camera
 from fieldcal.robust import robust_sigma
-from fieldcal.solver.blocksparse import BlockSparseJacobian, ResidualBlock, SingularSystemError
+from fieldcal.solver.blocksparse import (
+    BlockSparseJacobian,
+    ResidualBlock,
+    SingularSystemError,
+    equilibrated_cholesky,
+)
 from fieldcal.solver.lsq import LsqResult, solve
 
 __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", "initial_values",
-           "adjust_field", "validate_field_data", "CORE_PARAMS"]
+           "adjust_field", "validate_field_data", "CORE_PARAMS", "centred"]
 
-CORE_PARAMS = ("f_mm", "xp_mm", "yp_mm")
-"""Never held fixed by the automatic selection (a degenerate one is a diagnosis, not a fix)."""
+# CORE_PARAMS (f, xp, yp; fieldcal.field.initial) are never held fixed by the automatic
+# selection: a degenerate one is a diagnosis, not a fix.
 
 MIN_POINTS_PER_IMAGE = 6
 MIN_IMAGES = 3
@@ -76,9 +80,12 @@ class AdjustmentOptions:
         automatic selection of step 4.
     method : str
         ``"lmqn"`` (default) or ``"lm"``.
-    tau, eps2, ftol : float
+    tau, eps2, ftol, sigma_tol : float
         LM's initial damping factor (small: the initial values are good), the step
-        tolerance and the negligible-decrease tolerance of :func:`fieldcal.solver.lsq.solve`.
+        tolerance and the negligible-decrease tolerances of :func:`fieldcal.solver.lsq.solve`
+        (``sigma_tol``: stop when a step is below this many a-posteriori standard
+        deviations: 1e-3 leaves every parameter within a thousandth of its sigma of the
+        optimum, whatever its units and wherever the origin lies).
     robust_k : float
         Gross-error threshold in robust sigmas (normalised residual norm).
     snoop_alpha : float
@@ -99,6 +106,7 @@ class AdjustmentOptions:
     tau: float = 1e-6
     eps2: float = 1e-10
     ftol: float = 1e-12
+    sigma_tol: float = 1e-3
     robust_k: float = 8.0
     snoop_alpha: float = 1e-6
     max_rounds: int = 20
@@ -110,7 +118,7 @@ class AdjustmentOptions:
         return {"targets_adjusted": self.targets_adjusted,
                 "estimate": list(self.estimate) if self.estimate is not None else None,
                 "method": self.method, "max_iter": self.max_iter, "tau": self.tau, "eps2": self.eps2,
-                "ftol": self.ftol,
+                "ftol": self.ftol, "sigma_tol": self.sigma_tol,
                 "robust_k": self.robust_k,
                 "snoop_alpha": self.snoop_alpha, "max_rounds": self.max_rounds,
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
@@ -156,92 +164,6 @@ def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMA
                             "and roll angles")
 
 
-# ---------------------------------------------------------------------------- initial values
-@dataclass
-class InitialValues:
-    """Starting point of the adjustment, with how it was obtained."""
-
-    params: np.ndarray
-    R_world_to_camera: np.ndarray
-    center_m: np.ndarray
-    outliers: np.ndarray          # (m,) observations flagged by the robust initialisers
-    dlt_f_mm: np.ndarray          # per image (NaN where no DLT)
-    how: str
-
-
-def _per_image(data: FieldData):
-    order = np.argsort(data.obs.image, kind="stable")
-    bounds = np.searchsorted(data.obs.image[order], np.arange(len(data.images) + 1))
-    return [order[bounds[i]:bounds[i + 1]] for i in range(len(data.images))]
-
-
-def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
-    """Initial interior and exterior orientation (module docstring, step 1)."""
-    sensor = data.sensor
-    groups = _per_image(data)
-    X_all = data.targets.xyz_m
-    planar_field = is_coplanar(X_all[np.unique(data.obs.target)])
-    n_img = len(data.images)
-    dlt_f = np.full(n_img, np.nan)
-    dlt_pp = np.full((n_img, 2), np.nan)
-    poses: list = [None] * n_img
-    outliers = np.zeros(len(data.obs), bool)
-    nominal = data.nominal_focal_mm
-    if not planar_field:
-        for i, k in enumerate(groups):
-            X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-            if is_coplanar(X):
-                continue
-            try:
-                res = dlt_robust(X, uv, sensor, where=data.images[i].file, seed=i)
-            except GeometryError:
-                continue
-            dlt_f[i], dlt_pp[i] = res.f_mm, (res.xp_mm, res.yp_mm)
-            poses[i] = (res.R_world_to_camera, res.center_m)
-            outliers[k[~res.inliers]] = True
-    ok = np.isfinite(dlt_f)
-    if nominal is not None and ok.any():
-        ok &= (dlt_f > 0.5 * nominal) & (dlt_f < 2.0 * nominal)
-    params = np.zeros(13)
-    if ok.sum() >= max(1, n_img // 4):
-        params[INDEX["f_mm"]] = np.median(dlt_f[ok])
-        params[[INDEX["xp_mm"], INDEX["yp_mm"]]] = np.median(dlt_pp[ok], axis=0)
-        how = f"DLT on {ok.sum()} of {n_img} images (median f, xp, yp)"
-    elif nominal is not None:
-        params[INDEX["f_mm"]] = nominal
-        how = "nominal focal length, principal point at the sensor centre"
-    else:
-        views = [(X_all[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
-        params[INDEX["f_mm"]] = zhang_focal(views, sensor, where="session")
-        how = "Zhang's closed form from the planar views"
-    camera = Camera(sensor, params)
-    R = np.zeros((n_img, 3, 3))
-    C = np.zeros((n_img, 3))
-    for i, k in enumerate(groups):
-        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-        where = data.images[i].file
-        if poses[i] is None and is_coplanar(X):
-            R_i, C_i, _ = planar_pose(X, uv, camera, where=where)
-            poses[i] = (R_i, C_i)
-        res = resect(X, uv, camera, ransac=len(k) >= 8, where=where, init=poses[i],
-                     threshold_px=max(8.0, 0.002 * max(sensor.width_px, sensor.height_px)))
-        R[i], C[i] = res.R_world_to_camera, res.center_m
-        if res.inliers is not None:
-            outliers[k[~np.asarray(res.inliers, bool)]] = True
-    # distortion initial values, eq. 7-8, from the inliers of all images
-    names = [n for n in estimate if n not in CORE_PARAMS]
-    if names:
-        use = ~outliers
-        img = data.obs.image[use]
-        Xc = np.einsum("kab,kb->ka", R[img], X_all[data.obs.target[use]] - C[img])
-        q = -params[INDEX["f_mm"]] * Xc[:, :2] / Xc[:, 2:3]
-        xy = sensor.pixel_to_mm(data.obs.uv_px[use])
-        fit = distortion_lsq(xy, q, params[INDEX["xp_mm"]], params[INDEX["yp_mm"]], names)
-        for n in names:
-            params[INDEX[n]] = fit.coefficients[n]
-    return InitialValues(params, R, C, outliers, dlt_f, how)
-
-
 # ---------------------------------------------------------------------------- the LSQ problem
 class FieldProblem:
     """The bundle model as a problem for :func:`fieldcal.solver.lsq.solve` (block-sparse Jacobian)."""
@@ -259,6 +181,10 @@ class FieldProblem:
         self._cols_sur = m.n_reduced + 3 * m.t_slot[m.survey_k][:, None] + np.arange(3)
         self._template: list[ResidualBlock] | None = None
         self._structure = None
+        # eliminated blocks: the targets (3 each) when adjusted; with the targets fixed, the
+        # exterior orientations (6 each), so that only the interior is solved densely
+        self.n_dense = m.n_reduced if m.targets_adjusted else m.n_int
+        self.block_size = 3 if m.targets_adjusted else 6
 
     def evaluate(self, x, jacobian: bool):
         m = self.model
@@ -275,10 +201,11 @@ class FieldProblem:
                 blocks.append(ResidualBlock.from_parts(self._rows_sur, [(self._cols_sur, sur_values)]))
             self._template = blocks
         else:
-            blocks = [self._template[0].with_values(*[p[1] for p in parts])]
+            blocks = [self._template[0].with_values(*[p[1] for p in parts], combined=jb.combined)]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
-        J = BlockSparseJacobian(m.n_rows, m.n_params, m.n_reduced, 3, blocks, structure=self._structure)
+        J = BlockSparseJacobian(m.n_rows, m.n_params, self.n_dense, self.block_size, blocks,
+                                structure=self._structure)
         self._structure = J.structure
         return r, J
 
@@ -367,9 +294,10 @@ class FieldResult:
     def residual_table(self) -> pa.Table:
         """One row per image observation: measured, residual, used, reason, test statistic."""
         d = self.data
-        reason = [r if r else None for r in self.obs_reason]
+        reason = np.where(self.obs_reason == "", None, self.obs_reason.astype(object))
+        files = np.array([im.file for im in d.images], dtype=object)
         return pa.table({
-            "image": pa.array([d.images[i].file for i in d.obs.image], pa.string()),
+            "image": pa.array(files[d.obs.image], pa.string()),
             "target_id": pa.array(d.targets.ids[d.obs.target], pa.string()),
             "u_px": d.obs.uv_px[:, 0], "v_px": d.obs.uv_px[:, 1],
             "du_px": self.residual_px[:, 0], "dv_px": self.residual_px[:, 1],
@@ -394,16 +322,22 @@ class _Solver:
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
 
-    def run(self, estimate, obs_active, survey_active, label):
+    def run(self, estimate, obs_active, survey_active, label, before=None):
+        """One adjustment from the current state; ``before(model, x0, J0)`` sees its start."""
         o = self.options
         model = BundleModel(self.data, self.params, estimate, self.R,
                             targets_adjusted=o.targets_adjusted, obs_active=obs_active,
                             survey_active=survey_active)
         x0 = model.pack(self.params, self.C, self.X)
         self.model = model
+        problem = FieldProblem(model)
+        if before is not None:
+            r0, J0 = problem.evaluate(x0, True)
+            if np.all(np.isfinite(r0)) and J0.all_finite():
+                before(model, x0, J0)
         try:
-            result = solve(FieldProblem(model), x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
-                           eps2=o.eps2, ftol=o.ftol)
+            result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
+                           eps2=o.eps2, ftol=o.ftol, sigma_tol=o.sigma_tol)
         except InputError as err:          # not finite at x0: the previous round went astray
             raise GeometryError(f"the adjustment diverged before {label} ({err.reason}); the "
                                 "data do not hold the camera in place") from None
@@ -419,6 +353,26 @@ class _Solver:
         if self.progress:
             self.progress(f"{label}: {result.iterations} iterations, sigma0 {result.sigma0:.3f}")
         return model, result
+
+    def hold_fixed(self, model, result, j):
+        """Fix interior unknown ``j`` of ``model`` at 0 and move the others to where the
+        linearised problem puts them (the conditional mean given ``x_j = 0``):
+        ``x - N^-1 e_j x_j / (N^-1)_jj``, one solve with the factorisation already made.
+        The next adjustment then starts next to its optimum (a warm start)."""
+        ne = result.jac.normal_equations()
+        e = np.zeros(len(result.x))
+        e[j] = 1.0
+        try:
+            y = ne.solve(-e)                                   # N^-1 e_j
+            x = result.x - y * (result.x[j] / y[j])
+        except SingularSystemError:
+            x = result.x.copy()
+        x[j] = 0.0
+        if np.all(np.isfinite(x)):
+            self.params, self.R, self.C, X = model.unpack(x)
+            if self.options.targets_adjusted:
+                self.X = X
+        self.params[model.int_index[j]] = 0.0
 
     def residuals_all(self):
         """Measured minus predicted pixels of every observation at the current state."""
@@ -437,9 +391,11 @@ def _robust_scale(z):
 
 def _drop_undetermined_targets(data, obs_active, survey_active, reason):
     """Targets whose survey is rejected need two images; otherwise their points go too."""
-    n_img_per_target = np.zeros(len(data.targets), int)
-    pairs = np.unique(np.stack([data.obs.target[obs_active], data.obs.image[obs_active]]), axis=1)
-    np.add.at(n_img_per_target, pairs[0], 1)
+    if survey_active.all():
+        return 0
+    n_img = len(data.images)
+    pairs = np.unique(data.obs.target[obs_active] * n_img + data.obs.image[obs_active])
+    n_img_per_target = np.bincount(pairs // n_img, minlength=len(data.targets))
     weak = (~survey_active) & (n_img_per_target < 2)
     drop = obs_active & weak[data.obs.target]
     obs_active[drop] = False
@@ -559,15 +515,33 @@ def _snooping(model, result, obs_active, survey_active, reason, test, o):
     return n
 
 
-def _quadratic_form(Q, r):
-    """``r^T Q^+ r`` per group (Q (k, d, d) possibly near-singular for zero redundancy)."""
-    Qp = np.linalg.pinv(Q, rcond=1e-8, hermitian=True)
-    return np.einsum("ki,kij,kj->k", r, Qp, r)
+def _quadratic_form(Q, r, rcond: float = 1e-8):
+    """``r^T Q^+ r`` per group (Q (k, d, d) symmetric, possibly near-singular for zero redundancy).
+
+    The pseudo-inverse drops eigenvalues below ``rcond`` times the largest (as
+    ``numpy.linalg.pinv``); for d = 2 in closed form (no batched SVD of 10^4 tiny matrices).
+    """
+    if Q.shape[1] != 2:
+        Qp = np.linalg.pinv(Q, rcond=rcond, hermitian=True)
+        return np.einsum("ki,kij,kj->k", r, Qp, r)
+    a, b, c = Q[:, 0, 0], 0.5 * (Q[:, 0, 1] + Q[:, 1, 0]), Q[:, 1, 1]
+    half = np.hypot(0.5 * (a - c), b)
+    lam_hi, lam_lo = 0.5 * (a + c) + half, 0.5 * (a + c) - half
+    # eigenvector of lam_hi: (b, lam_hi - a) or (lam_hi - c, b), whichever is longer
+    v0, v1 = np.where(a >= c, lam_hi - c, b), np.where(a >= c, b, lam_hi - a)
+    nv = np.hypot(v0, v1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_hi = np.where(nv > 0, (v0 * r[:, 0] + v1 * r[:, 1]) / nv, np.hypot(r[:, 0], r[:, 1]))
+        p_lo2 = np.maximum(r[:, 0] ** 2 + r[:, 1] ** 2 - p_hi**2, 0.0)
+        keep_hi = lam_hi > 0
+        keep_lo = lam_lo > rcond * lam_hi
+        return (np.where(keep_hi, p_hi**2 / lam_hi, 0.0)
+                + np.where(keep_hi & keep_lo, p_lo2 / lam_lo, 0.0))
 
 
 def _interior_stats(model, result):
     """Sigma (a-posteriori) and correlation of the estimated interior parameters."""
-    cov = result.jac.normal_equations().covariance_reduced() * result.sigma0**2
+    cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
     ci = cov[: model.n_int, : model.n_int]
     s = np.sqrt(np.diag(ci))
     corr = ci / np.outer(s, s)
@@ -653,47 +627,75 @@ def _f_undetermined(rel, c, name, held=""):
                          f"{_column_label(name)}): {_ADVICE}")
 
 
-def _check_f_determinable(model, result, o):
-    """Refuse, right after the first adjustment, a network that cannot determine f.
+def _reduced_covariance(model, ne):
+    """``N^-1`` over ``[interior | exterior]`` (n_reduced, n_reduced), unit weight.
 
-    With the a-priori covariance (a property of the geometry, not of the residuals, which
-    may still hold blunders) and every additional parameter held fixed (the most any choice
-    of parameters could do): a relative sigma of f above ``max_rel_sigma_f`` then will not
-    get better by fixing parameters, so the diagnosis is given now, naming the unknown that
-    f cannot be told from. (A session's explicit ``estimate`` whose additional parameters
-    alone make f uncertain is honoured, with the sigma it gives.)
+    With the targets adjusted they are the eliminated blocks and this is the inverse Schur
+    complement; with the targets fixed the exteriors are eliminated and it is all of N^-1.
     """
-    if "f_mm" not in model.estimate:
-        return
-    ne = result.jac.normal_equations()
-    try:
-        cov = ne.covariance_reduced()
-    except SingularSystemError:
-        _f_in_null_space(model, ne)
-        raise
-    sigma_f, c, name = _f_determination(model, cov, fixed_extras=True)
-    rel = sigma_f / max(abs(result.x[list(model.estimate).index("f_mm")]), 1e-12)
-    if not (rel <= o.max_rel_sigma_f):
-        extra = any(n not in CORE_PARAMS for n in model.estimate)
-        raise _f_undetermined(rel, c, name, " even with every additional parameter held fixed" if extra else "")
+    return ne.covariance_reduced() if model.targets_adjusted else ne.covariance_dense()
 
 
-def _f_in_null_space(model, ne) -> None:
-    """Singular normal equations: if f takes part in their null space, say what it cannot be
-    told from (the other unknown with the largest share of the null vector, equilibrated)."""
-    S = ne.schur_complement()
+def _reduced_normal_matrix(model, ne):
+    """``N`` reduced to ``[interior | exterior]`` (targets eliminated), dense."""
+    return ne.schur_complement() if model.targets_adjusted else ne.dense_matrix()
+
+
+def _covariance_via_eigen(S):
+    """``S^+`` of a symmetric positive semi-definite S, eigenvalues floored at ``n eps`` of the
+    largest after equilibration: a null direction gets a huge (not infinite) variance."""
     d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
     w, V = np.linalg.eigh(S / np.outer(d, d))
-    v = V[:, 0]
-    jf = list(model.estimate).index("f_mm")
-    if abs(v[jf]) < 0.1:
+    w = np.maximum(w, len(w) * np.finfo(float).eps * max(w[-1], 1e-300))
+    return (V / w) @ V.T / np.outer(d, d)
+
+
+def _check_f_determinable(model, x, J, o):
+    """Refuse, before the first adjustment, a network that cannot determine f.
+
+    With the a-priori covariance at the initial values ``x`` (Jacobian ``J``): a property
+    of the geometry, not of the residuals, which may still hold blunders, and taken before
+    the solver can wander along a direction the data do not fix (f -> 0, say). With
+    every additional parameter held fixed (the most any choice
+    of parameters could do: their rows and columns are taken out of the normal equations):
+    a relative sigma of f above ``max_rel_sigma_f`` then will not get better by fixing
+    parameters, so the diagnosis is given now, naming the unknown f cannot be told from:
+    the one whose knowledge would determine f best (the smallest conditional variance of f),
+    with its correlation. The covariance is the inverse of the equilibrated reduced normal matrix, by
+    Cholesky, or where that breaks down by its eigen-decomposition with the eigenvalues
+    floored at round-off: a singular system gives f a huge sigma and the correlation with its
+    partner in the null space, so the diagnosis does not depend on which pivot fails first.
+    (A session's explicit ``estimate`` whose additional parameters alone make f uncertain is
+    honoured, with the sigma it gives.)
+    """
+    names = list(model.estimate)
+    if "f_mm" not in names:
         return
-    share = np.abs(v)
-    share[jf] = 0.0
-    k = int(np.argmax(share))
-    raise GeometryError(f"the data cannot determine the principal distance: it cannot be told from "
-                        f"{_column_label(model.column_names()[k])} (singular normal equations, "
-                        f"smallest eigenvalue {w[0]:.1e} relative to the diagonal): {_ADVICE}")
+    S = _reduced_normal_matrix(model, J.normal_equations())
+    keep = np.array([n in CORE_PARAMS for n in names] + [True] * (S.shape[0] - len(names)))
+    Sk = S[np.ix_(keep, keep)]
+    try:
+        cho, scale = equilibrated_cholesky(Sk)
+        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
+    except SingularSystemError:
+        cov = _covariance_via_eigen(Sk)
+    jf = names.index("f_mm")
+    var = np.maximum(np.diag(cov), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov[jf] / np.sqrt(var[jf] * var)
+        # what f cannot be told from: the unknown whose knowledge would determine f best
+        # (the smallest conditional variance var_f - cov_fj^2 / var_j)
+        cond = var[jf] - cov[jf] ** 2 / var
+    cond[jf] = np.inf
+    cond[~np.isfinite(cond)] = np.inf
+    corr[~np.isfinite(corr)] = 0.0
+    k = int(np.argmin(cond))
+    rel = np.sqrt(var[jf]) / max(abs(x[jf]), 1e-12)
+    if not (rel <= o.max_rel_sigma_f):
+        extra = any(n not in CORE_PARAMS for n in names)
+        label = np.array(model.column_names()[: S.shape[0]])[keep][k]
+        raise _f_undetermined(rel, float(corr[k]), str(label),
+                              " even with every additional parameter held fixed" if extra else "")
 
 
 def _singular_diagnosis(err, model) -> str:
@@ -720,13 +722,19 @@ def _check_core_determined(model, result, corr, sigma, o):
     if o.estimate is None and "f_mm" in names:     # the automatic selection could not make f determined
         rel = sigma[names.index("f_mm")] / max(abs(result.x[names.index("f_mm")]), 1e-12)
         if not (rel <= o.max_rel_sigma_f):
-            cov = result.jac.normal_equations().covariance_reduced() * result.sigma0**2
+            cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
             raise _f_undetermined(rel, *_f_determination(model, cov, fixed_extras=False)[1:])
 
 
 def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
-                 progress: Callable[[str], None] | None = None) -> FieldResult:
+                 progress: Callable[[str], None] | None = None, initial: InitialValues | None = None,
+                 initial_targets_m=None) -> FieldResult:
     """Calibrate a camera from identified field observations (module docstring).
+
+    The problem is solved in a frame whose origin is the rounded centroid of the observed
+    targets (surveyed coordinates in a national grid or UTM, 1e5-1e6 m, would otherwise
+    carry their offset into every difference and every stopping test); centres and targets
+    are translated back, rotations and covariances do not change under a translation.
 
     Parameters
     ----------
@@ -734,6 +742,11 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     options : AdjustmentOptions, optional
     progress : callable, optional
         Called with one line per stage.
+    initial : InitialValues, optional
+        A warm start (e.g. a previous adjustment of most of the same points) instead of step 1,
+        in the data's frame; its ``outliers`` start as suspects that are readmitted when they fit.
+    initial_targets_m : (n, 3) array_like, optional
+        Starting target coordinates [m] (adjusted targets only); the survey stays the observation.
 
     Returns
     -------
@@ -745,63 +758,34 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
         Bad input (what and where), or geometry that cannot calibrate (with a diagnosis).
     """
     o = options or AdjustmentOptions()
-    if o.method not in ("lmqn", "lm"):
-        raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
+    _check_options(o)
     validate_field_data(data)
-    if o.estimate is not None:
-        bad = [p for p in o.estimate if p not in FIELD_PARAMS]
-        if bad:
-            raise InputError(f"estimate names {bad}, not in the field method's set {list(FIELD_PARAMS)}",
-                             "adjustment options")
+    local, origin = centred(data)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
-    init = initial_values(data, full)
+    init = (replace(initial, center_m=np.asarray(initial.center_m, float) - origin) if initial is not None
+            else initial_values(local, full))
     if progress:
         progress(f"initial values: {init.how}; f {init.params[0]:.4f} mm; "
                  f"{init.outliers.sum()} points flagged by the robust initialisers")
-    m = len(data.obs)
-    obs_active = ~init.outliers
-    reason = np.where(init.outliers, "initial outlier", "").astype(object)
-    test = np.full(m, np.nan)
-    survey_active = np.ones(len(data.targets), bool)
-    solver = _Solver(data, o, init, progress)
+    flags = _Flags(local, init)
+    solver = _Solver(local, o, init, progress)
+    if initial_targets_m is not None and o.targets_adjusted:
+        solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
     estimate = list(full)
-
-    def solve_clean(label):
-        for rnd in range(o.max_rounds):
-            _drop_undetermined_targets(data, obs_active, survey_active, reason)
-            model, result = solver.run(estimate, obs_active, survey_active, f"{label} {rnd + 1}")
-            if len(solver.rounds) == 1:       # the very first solve: can this network determine f?
-                _check_f_determinable(model, result, o)
-            n = _gross_rejection(solver, model, result, obs_active, survey_active, reason, o)
-            if n == 0:
-                n = _snooping(model, result, obs_active, survey_active, reason, test, o)
-            # readmit initial outliers that now fit (they were only suspects)
-            res = solver.residuals_all()
-            s = data.obs.sigma_px * max(result.sigma0, 1.0)
-            fits = (reason == "initial outlier") & (np.hypot(res[:, 0], res[:, 1]) < 3.0 * s)
-            obs_active[fits] = True
-            reason[fits] = ""
-            # a target whose rejected image points agree with each other: its survey is wrong
-            if o.targets_adjusted:
-                n += _blame_the_survey(solver, obs_active, survey_active, reason, max(result.sigma0, 1.0))
-            if n == 0 and not fits.any():
-                return model, result
-        return model, result
-
     try:
-        model, result = solve_clean("adjustment")
+        model, result = _solve_clean(solver, flags, estimate, o, "adjustment")
         while o.estimate is None:
             pick = _select_parameter(model, result, estimate, o)
             if pick is None:
                 break
             name, why = pick
             fixed[name] = why
+            solver.hold_fixed(model, result, estimate.index(name))
             estimate.remove(name)
-            solver.params[INDEX[name]] = 0.0
             if progress:
                 progress(f"holding {name} fixed at 0: {why}")
-            model, result = solve_clean("re-adjustment")
+            model, result = _solve_clean(solver, flags, estimate, o, "re-adjustment")
         try:
             cov, s, corr = _interior_stats(model, result)
         except SingularSystemError as err:
@@ -810,24 +794,97 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     except SingularSystemError as err:
         raise GeometryError(_singular_diagnosis(err, solver.model)) from None
     # everything not used: reason 'initial outlier' left -> it is a blunder
-    reason[(reason == "initial outlier")] = "blunder"
-    params, R, C, X = model.unpack(result.x)
+    flags.reason[(flags.reason == "initial outlier")] = "blunder"
+    return _field_result(data, o, origin, solver, flags, model, result, (cov, s, corr), estimate, fixed, init)
+
+
+def _check_options(o: AdjustmentOptions) -> None:
+    if o.method not in ("lmqn", "lm"):
+        raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
+    if o.estimate is not None:
+        bad = [p for p in o.estimate if p not in FIELD_PARAMS]
+        if bad:
+            raise InputError(f"estimate names {bad}, not in the field method's set {list(FIELD_PARAMS)}",
+                             "adjustment options")
+
+
+def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
+    """The data translated so that the rounded centroid of the observed targets is the origin.
+
+    Returns the translated :class:`FieldData` (only the target coordinates change) and the
+    origin (3,) [m] in the data's frame. Rounding to whole metres keeps the subtraction
+    exact for coordinates of 10^5-10^6 m (Sterbenz), so a field in UTM and the same field
+    in local coordinates become the same numbers up to the rounding of their inputs.
+    """
+    observed = np.unique(data.obs.target)
+    origin = np.round(np.mean(data.targets.xyz_m[observed], axis=0)) if len(observed) else np.zeros(3)
+    targets = replace(data.targets, xyz_m=data.targets.xyz_m - origin)
+    return replace(data, targets=targets), origin
+
+
+@dataclass
+class _Flags:
+    """What the procedure decides per observation and survey (module docstring, step 3)."""
+
+    obs_active: np.ndarray        # (m,) bool
+    reason: np.ndarray            # (m,) object: '' or why the point is not used
+    test: np.ndarray              # (m,) snooping statistic
+    survey_active: np.ndarray     # (n_targets,) bool
+
+    def __init__(self, data: FieldData, init: InitialValues):
+        self.obs_active = ~init.outliers
+        self.reason = np.where(init.outliers, "initial outlier", "").astype(object)
+        self.test = np.full(len(data.obs), np.nan)
+        self.survey_active = np.ones(len(data.targets), bool)
+
+
+def _solve_clean(solver, flags: _Flags, estimate, o, label):
+    """Adjust, reject blunders, readmit what fits, adjust again until nothing changes."""
+    data = solver.data
+    for rnd in range(o.max_rounds):
+        _drop_undetermined_targets(data, flags.obs_active, flags.survey_active, flags.reason)
+        # before the very first solve: can this network determine f at all?
+        check = (lambda m, x, J: _check_f_determinable(m, x, J, o)) if not solver.rounds else None
+        model, result = solver.run(estimate, flags.obs_active, flags.survey_active, f"{label} {rnd + 1}",
+                                   before=check)
+        n = _gross_rejection(solver, model, result, flags.obs_active, flags.survey_active, flags.reason, o)
+        if n == 0:
+            n = _snooping(model, result, flags.obs_active, flags.survey_active, flags.reason, flags.test, o)
+        # readmit initial outliers that now fit (they were only suspects)
+        res = solver.residuals_all()
+        s = data.obs.sigma_px * max(result.sigma0, 1.0)
+        fits = (flags.reason == "initial outlier") & (np.hypot(res[:, 0], res[:, 1]) < 3.0 * s)
+        flags.obs_active[fits] = True
+        flags.reason[fits] = ""
+        # a target whose rejected image points agree with each other: its survey is wrong
+        if o.targets_adjusted:
+            n += _blame_the_survey(solver, flags.obs_active, flags.survey_active, flags.reason,
+                                   max(result.sigma0, 1.0))
+        if n == 0 and not fits.any():
+            return model, result
+    return model, result
+
+
+def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
+    """The :class:`FieldResult`, centres and targets translated back to the data's frame."""
+    cov, s, corr = stats
+    params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
-    n_int = model.n_int
-    ext_var = np.diag(cov)[n_int:].reshape(-1, 6)
+    ext_var = np.diag(cov)[model.n_int:].reshape(-1, 6)
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
         sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
         sigma_X[model.target_index] = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
-    survey_res = (data.targets.xyz_m - solver.X) * 1000.0
+    targets_m = solver.X + origin
+    survey_res = (solver.data.targets.xyz_m - solver.X) * 1000.0
+    init = replace(init, center_m=init.center_m + origin)
     return FieldResult(
         data=data, options=o, params=params, estimate=tuple(estimate), fixed_parameters=fixed,
         sigma=sigma, sigma0=result.sigma0, covariance=cov, covariance_names=model.column_names()[: model.n_reduced],
-        correlation_interior=corr, R_world_to_camera=R, center_m=C, sigma_center_m=sigma_C,
-        targets_m=solver.X, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
-        obs_used=obs_active.copy(), obs_reason=np.array([str(r) for r in reason]), obs_test=test,
-        survey_used=survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
+        correlation_interior=corr, R_world_to_camera=R, center_m=C + origin, sigma_center_m=sigma_C,
+        targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
+        obs_used=flags.obs_active.copy(), obs_reason=flags.reason.astype(str), obs_test=flags.test,
+        survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
         iterations_total=solver.iterations, initial=init, rounds=solver.rounds)
-

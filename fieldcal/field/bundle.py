@@ -35,8 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fieldcal.field import bundle_kernel
 from fieldcal.field.data import FieldData
-from fieldcal.model.camera import INDEX, Camera, _correct_terms, _param_columns, distort
+from fieldcal.model.camera import INDEX, Camera, correction_terms, distort, ideal_point_columns
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
 
 __all__ = ["BundleModel", "ObservationJacobian"]
@@ -53,6 +54,7 @@ class ObservationJacobian:
     d_int: np.ndarray
     d_ext: np.ndarray
     d_tgt: np.ndarray
+    combined: np.ndarray | None = None    # (m, 2, n_int + 6 [+ 3]): the blocks side by side, if so made
 
 
 class BundleModel:
@@ -162,6 +164,28 @@ class BundleModel:
         """Predicted pixels (m_active, 2) of the active image observations (NaN if behind)."""
         return self._predict(x, jacobian=False)[0]
 
+    def _predict_kernel(self, x, jacobian, kern):
+        """:meth:`_predict` by the compiled kernel (:mod:`fieldcal.field.bundle_kernel`): weighted
+        residuals (m, 2) and the blocks, in one pass."""
+        params, _, C, X = self.unpack(x)
+        ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
+        R = np.ascontiguousarray(R_from_rotvec(ext[:, :3]) @ self.R0)
+        Jl = np.ascontiguousarray(left_jacobian_so3(ext[:, :3]))
+        m, s = len(self.img), self.data.sensor
+        res = np.empty((m, 2))
+        combined = None
+        if jacobian:   # one array, the blocks side by side (the order of FieldProblem's columns)
+            n_int = self.n_int
+            combined = np.empty((m, 2, n_int + 6 + (3 if self.targets_adjusted else 0)))
+            d_int, d_ext = combined[:, :, :n_int], combined[:, :, n_int:n_int + 6]
+            d_tgt = combined[:, :, n_int + 6:] if self.targets_adjusted else np.empty((m, 2, 3))
+        else:
+            d_int = d_ext = d_tgt = np.empty((0, 2, 0))
+        kern(params, self.int_index, R, Jl, np.ascontiguousarray(C), np.ascontiguousarray(X), self.img,
+             self.tgt, self.uv, self.sigma_px, self._start_mm, float(s.width_px), float(s.height_px),
+             float(s.pixel_mm), 1e-10, 30, bool(jacobian), res, d_int, d_ext, d_tgt)
+        return res, (ObservationJacobian(d_int, d_ext, d_tgt, combined) if jacobian else None)
+
     def _predict(self, x, jacobian):
         params, _, C, X = self.unpack(x)
         ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
@@ -180,13 +204,13 @@ class BundleModel:
         if not jacobian:
             return uv, None
         xb, yb = xy[:, 0] - params[INDEX["xp_mm"]], xy[:, 1] - params[INDEX["yp_mm"]]
-        _, _, g00, g01, g10, g11, r2, xy_ = _correct_terms(xb, yb, params)
+        _, _, g00, g01, g10, g11, r2, xy_ = correction_terms(xb, yb, params)
         # A = dr/dq at fixed p: r = (uv_meas - uv)/sigma, d(uv)/d(x') = diag(1/d, -1/d), dx'/dq = G^-1
         w = -1.0 / (self.sigma_px * s.pixel_mm * (g00 * g11 - g01 * g10))
         a00, a01, a10, a11 = w * g11, -w * g01, w * g10, -w * g00
         # interior: dx'/dp = G^-1 (dq/dp - Q), with dq/df = q/f
         cols_t = np.empty((self.n_int, 2, len(z)))      # filled column by column (contiguous rows)
-        cols = _param_columns(xb, yb, params, (g00, g01, g10, g11), r2, xy_, self.int_index)
+        cols = ideal_point_columns(xb, yb, params, (g00, g01, g10, g11), r2, xy_, self.int_index)
         for j, (c0, c1) in enumerate(cols):
             e0, e1 = -c0, -c1
             if self.estimate[j] == "f_mm":
@@ -218,8 +242,12 @@ class BundleModel:
         d_ext[:, :, 3:] = -d_tgt
         return uv, ObservationJacobian(d_int, d_ext, d_tgt)
 
-    def residuals_and_blocks(self, x, jacobian=True):
+    def residuals_and_blocks(self, x, jacobian=True, *, implementation: str = "auto"):
         """Weighted residuals (n_rows,) and the derivative blocks.
+
+        ``implementation``: ``"numba"`` (the compiled kernel of
+        :mod:`fieldcal.field.bundle_kernel`), ``"numpy"`` (the reference, this module) or
+        ``"auto"`` (the kernel where it compiles).
 
         Returns
         -------
@@ -230,8 +258,15 @@ class BundleModel:
         survey_diag : (n_survey,) ndarray
             ``1/sigma`` [1/m] of each active survey (its Jacobian is ``I / sigma``).
         """
-        uv, jac = self._predict(x, jacobian)
-        r_img = ((self.uv - uv) / self.sigma_px[:, None]).ravel()
+        kern = None if implementation == "numpy" else bundle_kernel.kernel()
+        if implementation == "numba" and kern is None:
+            raise RuntimeError(bundle_kernel.status())
+        if kern is not None:
+            res, jac = self._predict_kernel(np.asarray(x, float), jacobian, kern)
+            r_img = res.ravel()
+        else:
+            uv, jac = self._predict(x, jacobian)
+            r_img = ((self.uv - uv) / self.sigma_px[:, None]).ravel()
         if self.targets_adjusted and len(self.survey_k):
             X = x[self.n_reduced:].reshape(-1, 3)
             t = self.survey_k

@@ -137,6 +137,34 @@ def distortion_lsq(
     xy = np.asarray(xy_measured_mm, dtype=float)
     q = np.asarray(q_ideal_mm, dtype=float)
     names = tuple(names)
+    _check_lsq_inputs(xy, q, xp_mm, yp_mm, names, where)
+    n, m = len(xy), len(names)
+    params = np.zeros(13)
+    params[XP], params[YP] = xp_mm, yp_mm
+    # Q (n, 2, 13): the columns of the coefficients do not depend on their values
+    _, _, Q = correct_jacobian(xy, params)
+    D = Q[:, :, [INDEX[k] for k in names]].reshape(2 * n, m)
+    d = (q - (xy - [xp_mm, yp_mm])).reshape(2 * n)
+    c, Ds, scale = _scaled_lstsq(D, d, names, where)
+    res = (d - D @ c).reshape(n, 2)
+    sq = float(np.sum(res**2))
+    rms = float(np.sqrt(sq / n))
+    dof = 2 * n - m
+    if dof > 0:
+        inv_scaled = np.linalg.inv(Ds.T @ Ds)
+        sig = np.sqrt(sq / dof * np.diag(inv_scaled)) / scale
+    else:
+        sig = np.full(m, np.nan)
+    return DistortionFit(
+        coefficients={k: float(v) for k, v in zip(names, c, strict=True)},
+        rms_mm=rms,
+        residuals_mm=res,
+        sigma={k: float(v) for k, v in zip(names, sig, strict=True)},
+    )
+
+
+def _check_lsq_inputs(xy, q, xp_mm, yp_mm, names, where):
+    """The refusals of :func:`distortion_lsq` (shapes, finiteness, names, count)."""
     if xy.ndim != 2 or xy.shape[1] != 2 or q.shape != xy.shape:
         raise InputError(
             f"distortion_lsq: measured and ideal points must both have shape (n, 2), "
@@ -165,13 +193,11 @@ def distortion_lsq(
             f"equations for {m} coefficients"
         )
 
-    params = np.zeros(13)
-    params[XP], params[YP] = xp_mm, yp_mm
-    # Q (n, 2, 13): the columns of the coefficients do not depend on their values
-    _, _, Q = correct_jacobian(xy, params)
-    D = Q[:, :, [INDEX[k] for k in names]].reshape(2 * n, m)
-    d = (q - (xy - [xp_mm, yp_mm])).reshape(2 * n)
 
+def _scaled_lstsq(D, d, names, where):
+    """``(c, D with unit columns, the column norms)``: the least squares of ``D c = d`` by SVD on
+    the equilibrated columns; raises GeometryError for columns the points do not separate."""
+    m = len(names)
     scale = np.linalg.norm(D, axis=0)
     if np.any(scale == 0):
         zero = [names[j] for j in np.flatnonzero(scale == 0)]
@@ -189,22 +215,7 @@ def distortion_lsq(
             f"{where + ': ' if where else ''}distortion_lsq: coefficients {dep} "
             "cannot be separated from each other by these points"
         )
-    c = sol / scale
-    res = (d - D @ c).reshape(n, 2)
-    sq = float(np.sum(res**2))
-    rms = float(np.sqrt(sq / n))
-    dof = 2 * n - m
-    if dof > 0:
-        inv_scaled = np.linalg.inv(Ds.T @ Ds)
-        sig = np.sqrt(sq / dof * np.diag(inv_scaled)) / scale
-    else:
-        sig = np.full(m, np.nan)
-    return DistortionFit(
-        coefficients={k: float(v) for k, v in zip(names, c, strict=True)},
-        rms_mm=rms,
-        residuals_mm=res,
-        sigma={k: float(v) for k, v in zip(names, sig, strict=True)},
-    )
+    return sol / scale, Ds, scale
 
 
 def fold_k0(f_mm: float, coefficients: dict):
@@ -223,6 +234,31 @@ def fold_k0(f_mm: float, coefficients: dict):
     k0 = float(coefficients.get("k0", 0.0))
     s = 1.0 + k0
     return f_mm / s, {k: v / s for k, v in coefficients.items() if k != "k0"}
+
+
+def _alternate(X, uv, sensor, first, fit_names, iterations, tol_px, where):
+    """The rounds of :func:`initial_camera`: ``(dlt, fit, rounds, converged)`` of the round with
+    the smallest fit RMS (DLT on corrected points, then the linear fit, until it stops improving)."""
+    xy = sensor.pixel_to_mm(uv)
+    inl = first.inliers
+    uv_c, prev_rms_px, converged, it, best = uv, np.inf, False, 0, None
+    for it in range(1, max(1, int(iterations)) + 1):
+        r = first if it == 1 else dlt(X[inl], uv_c[inl], sensor, where=where)
+        q = ideal_points_mm(X[inl], r.R_world_to_camera, r.center_m, r.f_mm)
+        fit = distortion_lsq(xy[inl], q, r.xp_mm, r.yp_mm, fit_names, where=where)
+        rms_px = fit.rms_mm / sensor.pixel_mm
+        if best is None or rms_px < best[0]:
+            best = (rms_px, r, fit)
+        if prev_rms_px - rms_px < tol_px:
+            converged = True
+            break
+        prev_rms_px = rms_px
+        p = np.zeros(13)
+        p[XP], p[YP] = r.xp_mm, r.yp_mm
+        for k, v in fit.coefficients.items():
+            p[INDEX[k]] = v
+        uv_c = sensor.mm_to_pixel(correct(xy, p) + p[[XP, YP]])
+    return best[1], best[2], it, converged
 
 
 @dataclass(frozen=True)
@@ -325,28 +361,8 @@ def initial_camera(
     fit_names = names + ("k0",) if add_k0 else names
 
     first = dlt_robust(X, uv, sensor, where=where) if robust else dlt(X, uv, sensor, where=where)
-    xy = sensor.pixel_to_mm(uv)
-    d = sensor.pixel_mm
     inl = first.inliers
-    uv_c, prev_rms_px, converged, it, best = uv, np.inf, False, 0, None
-    for it in range(1, max(1, int(iterations)) + 1):
-        r = first if it == 1 else dlt(X[inl], uv_c[inl], sensor, where=where)
-        q = ideal_points_mm(X[inl], r.R_world_to_camera, r.center_m, r.f_mm)
-        fit = distortion_lsq(xy[inl], q, r.xp_mm, r.yp_mm, fit_names, where=where)
-        rms_px = fit.rms_mm / d
-        if best is None or rms_px < best[0]:
-            best = (rms_px, r, fit)
-        if prev_rms_px - rms_px < tol_px:
-            converged = True
-            break
-        prev_rms_px = rms_px
-        p = np.zeros(13)
-        p[XP], p[YP] = r.xp_mm, r.yp_mm
-        for k, v in fit.coefficients.items():
-            p[INDEX[k]] = v
-        uv_c = sensor.mm_to_pixel(correct(xy, p) + p[[XP, YP]])
-
-    _, r, fit = best  # the round with the smallest fit RMS
+    r, fit, it, converged = _alternate(X, uv, sensor, first, fit_names, iterations, tol_px, where)
     if fit_names != names:
         f_mm, coef = fold_k0(r.f_mm, fit.coefficients)
     else:

@@ -306,6 +306,9 @@ def dlt_robust(
 ) -> DltResult:
     """The DLT with blunder rejection: LMedS on minimal 6-point sets, then iterative rejection.
 
+    0. Fast path: the least-squares DLT of all points; when step 2 keeps every point
+       with it, that is the answer (a fixed point of step 2, which is where the sampled
+       start ends too on data without blunders), and the sampling is skipped.
     1. Hypotheses: ``n_trials`` random 6-point samples (default: enough to draw one clean
        sample with probability ``confidence`` at ``max_outlier_fraction`` blunders), each
        solved in Hartley-normalised coordinates (batched SVD); the one with the least median
@@ -337,15 +340,42 @@ def dlt_robust(
     X, uv = check_points(X_world_m, uv_px, where, "robust DLT")
     _check_dlt_geometry(X, where, "robust DLT", tol_rel)
     n = len(X)
+    Tw, Ti = _normaliser(X), _normaliser(uv)
+    uvn = (_homogeneous(uv) @ Ti.T)[:, :2]
+    M = _detrend_basis(uvn, detrend_degree)
+    select = _InlierRule(X, uv, M, k_sigma, floor_px)
+    # fast path: the least-squares DLT of all points, kept when it rejects none of them (a
+    # fixed point of step 2, where the sampled start would end too on clean data)
+    P_all = _solve_P(X, uv)
+    if select(P_all, np.ones(n, bool)).all():
+        return _decompose(P_all, X, uv, sensor, np.ones(n, bool), where)
+    P = _lmeds(X, uv, Tw, Ti, uvn, n_trials, max_outlier_fraction, confidence, seed)
+    inliers = np.ones(n, bool)
+    for _ in range(max_rounds):
+        new = select(P, inliers)
+        if new.sum() < 6 or is_coplanar(X[new], tol_rel):
+            raise GeometryError(
+                at(
+                    where,
+                    f"robust DLT: only {new.sum()} of {n} points fit one "
+                    "projective camera in non-coplanar position",
+                )
+            )
+        P = _solve_P(X[new], uv[new])
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    return _decompose(P, X, uv, sensor, inliers, where)
+
+
+def _lmeds(X, uv, Tw, Ti, uvn, n_trials, max_outlier_fraction, confidence, seed):
+    """Step 1 of :func:`dlt_robust`: the least-median-of-squares P (3, 4) [px] of 6-point samples."""
+    n = len(X)
     if n_trials is None:
         p_clean = (1.0 - max_outlier_fraction) ** 6
         n_trials = int(np.ceil(np.log(1.0 - confidence) / np.log1p(-p_clean))) if p_clean < 1 else 1
     rng = np.random.default_rng(seed)
-
-    Tw, Ti = _normaliser(X), _normaliser(uv)
     Xn = _homogeneous(X) @ Tw.T
-    uvn = (_homogeneous(uv) @ Ti.T)[:, :2]
-
     best_P, best_med = None, np.inf
     if n > 6:
         for start in range(0, n_trials, 256):  # batches bound the (batch, n, 2) residual array
@@ -361,43 +391,37 @@ def dlt_robust(
             if med[k] < best_med:
                 best_med, best_P = med[k], Pn[k]
     if best_P is None:  # exactly 6 points: nothing to vote with
-        P = _solve_P(X, uv)
-    else:
-        P = np.linalg.solve(Ti, best_P) @ Tw
+        return _solve_P(X, uv)
+    return np.linalg.solve(Ti, best_P) @ Tw
 
-    # monomials x^i y^j (i + j <= detrend_degree) of the normalised pixel coordinates
-    ij = [(i, j) for i in range(detrend_degree + 1) for j in range(detrend_degree + 1 - i)]
-    M = (
-        np.stack([uvn[:, 0] ** i * uvn[:, 1] ** j for i, j in ij], axis=1)
-        if detrend_degree > 0
-        else None
-    )
-    inliers = np.ones(n, bool)
-    for _ in range(max_rounds):
-        hat, _ = _project_P(P, X)
-        res = uv - hat
+
+def _detrend_basis(uvn, degree):
+    """Monomials ``x^i y^j`` (i + j <= degree) of the normalised pixels (n, n_terms), or None."""
+    if degree <= 0:
+        return None
+    ij = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack([uvn[:, 0] ** i * uvn[:, 1] ** j for i, j in ij], axis=1)
+
+
+class _InlierRule:
+    """Step 2 of :func:`dlt_robust`: the points whose detrended residual is within the limit."""
+
+    def __init__(self, X, uv, M, k_sigma, floor_px):
+        self.X, self.uv, self.M, self.k_sigma, self.floor_px = X, uv, M, k_sigma, floor_px
+
+    def __call__(self, P, inliers):
+        hat, _ = _project_P(P, self.X)
+        res = self.uv - hat
         finite = np.all(np.isfinite(res), axis=1)
         res = np.where(finite[:, None], res, 0.0)
         local = res
-        if M is not None and np.count_nonzero(inliers & finite) >= 3 * len(ij):
-            coef, *_ = np.linalg.lstsq(M[inliers & finite], res[inliers & finite], rcond=None)
-            local = res - M @ coef
+        use = inliers & finite
+        if self.M is not None and np.count_nonzero(use) >= 3 * self.M.shape[1]:
+            coef, *_ = np.linalg.lstsq(self.M[use], res[use], rcond=None)
+            local = res - self.M @ coef
         e = np.linalg.norm(local, axis=1)
         sigma = _robust_sigma(local[finite])
-        new = finite & (e <= max(k_sigma * sigma, floor_px))
-        if new.sum() < 6 or is_coplanar(X[new], tol_rel):
-            raise GeometryError(
-                at(
-                    where,
-                    f"robust DLT: only {new.sum()} of {n} points fit one "
-                    "projective camera in non-coplanar position",
-                )
-            )
-        P = _solve_P(X[new], uv[new])
-        if np.array_equal(new, inliers):
-            break
-        inliers = new
-    return _decompose(P, X, uv, sensor, inliers, where)
+        return finite & (e <= max(self.k_sigma * sigma, self.floor_px))
 
 
 # ---------------------------------------------------------------------------------------

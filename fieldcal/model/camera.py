@@ -148,22 +148,44 @@ class Camera:
         return unproject(uv_px, self)
 
 
-def _terms(xb, yb, p):
-    """Shared pieces of the correction: r2, radial factor and its derivative d(radial)/d(r2)."""
+def correction_terms(xb, yb, p):
+    """The correction polynomial (CONTRACT section 2), written once for the whole package.
+
+    Parameters
+    ----------
+    xb, yb : ndarray
+        Measured points relative to the principal point [mm] (any equal shapes).
+    p : (13,) ndarray
+        Camera parameters.
+
+    Returns
+    -------
+    dx, dy : ndarray
+        The correction [mm]; the ideal point is ``q = (xb + dx, yb + dy)``.
+    g00, g01, g10, g11 : ndarray
+        The entries of ``G = dq/dx'``, the Jacobian of the correction with respect to the
+        measured point.
+    r2, xy_ : ndarray
+        ``xb^2 + yb^2`` and ``xb yb`` (shared with :func:`ideal_point_columns`).
+    """
     r2 = xb * xb + yb * yb
     radial = p[K0] + r2 * (p[K1] + r2 * (p[K2] + r2 * p[K3]))
     dradial = p[K1] + r2 * (2.0 * p[K2] + 3.0 * r2 * p[K3])
-    return r2, radial, dradial
+    xy_ = xb * yb
+    dx = xb * radial + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xy_ + p[B1] * xb + p[B2] * yb
+    dy = yb * radial + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xy_ + p[A1] * xb + p[A2] * yb
+    g00 = 1 + radial + 2 * xb * xb * dradial + 6 * p[P1] * xb + 2 * p[P2] * yb + p[B1]
+    g01 = 2 * xy_ * dradial + 2 * p[P1] * yb + 2 * p[P2] * xb + p[B2]
+    g10 = 2 * xy_ * dradial + 2 * p[P2] * xb + 2 * p[P1] * yb + p[A1]
+    g11 = 1 + radial + 2 * yb * yb * dradial + 6 * p[P2] * yb + 2 * p[P1] * xb + p[A2]
+    return dx, dy, g00, g01, g10, g11, r2, xy_
 
 
 def correction(xy_mm, params):
     """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
-    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    r2, radial, _ = _terms(xb, yb, p)
-    dx = xb * radial + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xb * yb + p[B1] * xb + p[B2] * yb
-    dy = yb * radial + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xb * yb + p[A1] * xb + p[A2] * yb
+    dx, dy = correction_terms(xy[..., 0] - p[XP], xy[..., 1] - p[YP], p)[:2]
     return np.stack([dx, dy], axis=-1)
 
 
@@ -174,27 +196,17 @@ def correct(xy_mm, params):
     """
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
-    return xy - p[[XP, YP]] + correction(xy, p)
+    xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
+    dx, dy = correction_terms(xb, yb, p)[:2]
+    return np.stack([xb + dx, yb + dy], axis=-1)
 
 
-def _correct_terms(xb, yb, p):
-    """Ideal point ``(qx, qy)`` and the entries of ``G = dq/dx'`` at ``xb, yb`` (arrays)."""
-    r2, radial, dradial = _terms(xb, yb, p)
-    xy_ = xb * yb
-    qx = xb * (1 + radial) + p[P1] * (r2 + 2 * xb * xb) + 2 * p[P2] * xy_ + p[B1] * xb + p[B2] * yb
-    qy = yb * (1 + radial) + p[P2] * (r2 + 2 * yb * yb) + 2 * p[P1] * xy_ + p[A1] * xb + p[A2] * yb
-    g00 = 1 + radial + 2 * xb * xb * dradial + 6 * p[P1] * xb + 2 * p[P2] * yb + p[B1]
-    g01 = 2 * xy_ * dradial + 2 * p[P1] * yb + 2 * p[P2] * xb + p[B2]
-    g10 = 2 * xy_ * dradial + 2 * p[P2] * xb + 2 * p[P1] * yb + p[A1]
-    g11 = 1 + radial + 2 * yb * yb * dradial + 6 * p[P2] * yb + 2 * p[P1] * xb + p[A2]
-    return qx, qy, g00, g01, g10, g11, r2, xy_
-
-
-def _param_columns(xb, yb, p, g, r2, xy_, columns):
+def ideal_point_columns(xb, yb, p, g, r2, xy_, columns):
     """``dq/dp_c`` at fixed measured point for each parameter index ``c``: a list of (x, y) pairs.
 
-    ``g = (g00, g01, g10, g11)`` are the entries of ``G`` (:func:`_correct_terms`); constant
-    zero columns are returned as the scalar 0.
+    ``g = (g00, g01, g10, g11)``, ``r2`` and ``xy_`` as :func:`correction_terms` returns
+    them; constant zero columns are returned as the scalar 0. (``dq/df`` is 0: f enters
+    through the collinearity side, ``q = -f Xc/Zc``.)
     """
     g00, g01, g10, g11 = g
     out = []
@@ -245,12 +257,12 @@ def correct_jacobian(xy_mm, params, columns=None):
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
     xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]
-    qx, qy, g00, g01, g10, g11, r2, xy_ = _correct_terms(xb, yb, p)
-    q = np.stack([qx, qy], axis=-1)
+    dx, dy, g00, g01, g10, g11, r2, xy_ = correction_terms(xb, yb, p)
+    q = np.stack([xb + dx, yb + dy], axis=-1)
     G = np.stack([np.stack([g00, g01], -1), np.stack([g10, g11], -1)], -2)
     cols = range(13) if columns is None else columns
     Q = np.empty(xb.shape + (2, len(cols)))
-    for j, (c0, c1) in enumerate(_param_columns(xb, yb, p, (g00, g01, g10, g11), r2, xy_, cols)):
+    for j, (c0, c1) in enumerate(ideal_point_columns(xb, yb, p, (g00, g01, g10, g11), r2, xy_, cols)):
         Q[..., 0, j], Q[..., 1, j] = c0, c1
     return q, G, Q
 
@@ -286,8 +298,8 @@ def distort(q_mm, params, *, tol_mm: float = 1e-10, max_iter: int = 30, check: b
         if idx.size == 0:
             break
         bx, by = xb[idx], yb[idx]
-        qx, qy, g00, g01, g10, g11, _, _ = _correct_terms(bx, by, p)
-        ex, ey = qx - qx_t[idx], qy - qy_t[idx]
+        dx, dy, g00, g01, g10, g11, _, _ = correction_terms(bx, by, p)
+        ex, ey = bx + dx - qx_t[idx], by + dy - qy_t[idx]
         det = g00 * g11 - g01 * g10
         sx = (g11 * ex - g01 * ey) / det
         sy = (g00 * ey - g10 * ex) / det

@@ -68,6 +68,7 @@ import scipy.linalg
 import scipy.sparse
 
 from fieldcal.errors import GeometryError, InputError
+from fieldcal.solver import blocksparse_kernels
 
 __all__ = [
     "SingularSystemError",
@@ -75,6 +76,7 @@ __all__ = [
     "BlockSparseJacobian",
     "JacobianStructure",
     "NormalEquations",
+    "equilibrated_cholesky",
 ]
 
 _EPS = np.finfo(float).eps
@@ -199,8 +201,12 @@ class ResidualBlock:
         return np.concatenate([np.broadcast_to(c, (k, c.shape[-1])) for c in self.part_cols],
                               axis=1)
 
-    def with_values(self, *values) -> ResidualBlock:
-        """The same rows and columns with new values, one (k, r_rows, c_i) array per part."""
+    def with_values(self, *values, combined=None) -> ResidualBlock:
+        """The same rows and columns with new values, one (k, r_rows, c_i) array per part.
+
+        ``combined`` (k, r_rows, c), optional: the parts side by side in one array, when the
+        caller made them so (the parts being views of it); spares :attr:`values` a copy.
+        """
         if len(values) != len(self.part_cols):
             raise InputError(f"with_values: expected {len(self.part_cols)} value arrays (one per "
                              f"part), got {len(values)}", "ResidualBlock")
@@ -217,6 +223,12 @@ class ResidualBlock:
             vals.append(v)
         block.part_values = tuple(vals)
         block._values = None
+        if combined is not None:
+            width = sum(c.shape[-1] for c in self.part_cols)
+            if combined.shape != (self.n_groups, self.r_rows, width):
+                raise InputError(f"with_values: combined values must have shape "
+                                 f"{(self.n_groups, self.r_rows, width)}, got {combined.shape}", "ResidualBlock")
+            block._values = combined
         return block
 
 
@@ -235,6 +247,31 @@ def _positions(mask: np.ndarray):
     if idx[-1] - idx[0] + 1 == len(idx):
         return slice(int(idx[0]), int(idx[-1]) + 1), idx
     return idx, idx
+
+
+def _unique_inverse(keys, n_max: int):
+    """``np.unique(keys, return_inverse=True)`` for integer keys in ``[0, n_max)``: by a marker
+    array (no sort) when ``n_max`` is modest, else by ``np.unique``."""
+    if n_max > 20_000_000:
+        uniq, inv = np.unique(keys, return_inverse=True)
+        return uniq, inv.reshape(-1)
+    mark = np.zeros(n_max, bool)
+    mark[keys] = True
+    rank = np.cumsum(mark, dtype=np.int32) - 1
+    return np.flatnonzero(mark), rank[keys]
+
+
+def _unique_rows(rows, n_cols: int):
+    """``(first index of each distinct row, id of every row's distinct row)``, ids ordered as
+    ``np.unique(rows, axis=0)`` orders them. Fast path: when the first column alone tells the
+    rows apart (as an image's columns do), a 1-D unique of it."""
+    first_col = rows[:, 0]
+    uniq, first, inv = np.unique(first_col, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    if rows.shape[1] == 1 or np.array_equal(rows[first][inv], rows):
+        return first, inv
+    _, first, inv = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    return first, inv.reshape(-1)
 
 
 class _BlockLayout:
@@ -267,6 +304,7 @@ class _BlockLayout:
                              "position is one or the other in every group", where)
         self.red_sel, red_pos = _positions(red_mask)
         self.elim_sel, elim_pos = _positions(elim_mask)
+        self.red_pos, self.elim_pos = red_pos.astype(np.intp), elim_pos.astype(np.intp)
         self.c_r, self.c_e = len(red_pos), len(elim_pos)
         red_cols = cols[:, red_pos]
         self.red_cols = red_cols
@@ -275,9 +313,7 @@ class _BlockLayout:
         if self.c_r and k:
             varying = ~(red_cols == red_cols[:1]).all(axis=0)
             if varying.any():
-                _, first, key_id = np.unique(red_cols[:, varying], axis=0, return_index=True,
-                                             return_inverse=True)
-                key_id = key_id.reshape(-1)
+                first, key_id = _unique_rows(red_cols[:, varying], n_params)
             else:
                 first, key_id = np.zeros(1, np.intp), np.zeros(k, np.intp)
             self.n_keys = len(first)
@@ -350,7 +386,8 @@ class JacobianStructure:
         nr = n_reduced
         keys = [lay.e[:, None] * nr + lay.red_cols for lay in self.layouts if lay.c_e and lay.c_r]
         if keys:
-            uniq, inv = np.unique(np.concatenate([kk.ravel() for kk in keys]), return_inverse=True)
+            uniq, inv = _unique_inverse(np.concatenate([kk.ravel() for kk in keys]),
+                                        self.n_blocks * max(nr, 1))
         else:
             uniq, inv = np.zeros(0, np.intp), np.zeros(0, np.intp)
         self.n_slots = len(uniq)
@@ -361,18 +398,26 @@ class JacobianStructure:
             if lay.c_e and lay.c_r:
                 n = lay.k * lay.c_r
                 lay.slot_idx = inv[pos:pos + n].reshape(lay.k, lay.c_r)
-                lay.W_dest = (lay.slot_idx[:, :, None] * b + np.arange(b)).ravel()
                 pos += n
             else:
                 lay.slot_idx = None
         counts = np.bincount(self.slot_e, minlength=self.n_blocks)
-        self.slot_ptr = np.concatenate([[0], np.cumsum(counts)])
-        self.buckets = self._make_buckets(counts)
-        self.dest_all = (np.concatenate([bk.dest for bk in self.buckets]) if self.buckets
-                         else np.zeros(0, np.intp))
-        for bk in self.buckets:
-            bk.dest = None
+        self.slot_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+        self._counts = counts
+        self._buckets = None
         self._workspace = None
+
+    @property
+    def buckets(self):
+        """The batches of the NumPy Schur complement (made on first use: the compiled loop
+        of :mod:`fieldcal.solver.blocksparse_kernels` does not need them)."""
+        if self._buckets is None:
+            self._buckets = self._make_buckets(self._counts)
+            self.dest_all = (np.concatenate([bk.dest for bk in self._buckets]) if self._buckets
+                             else np.zeros(0, np.intp))
+            for bk in self._buckets:
+                bk.dest = None
+        return self._buckets
 
     def workspace(self):
         """A reusable buffer for the Schur products of all batches, and its per-batch views.
@@ -509,6 +554,13 @@ class BlockSparseJacobian:
         """
         r = np.asarray(r, dtype=float)
         g = np.zeros(self.n_params)
+        kern = blocksparse_kernels.gradient()
+        if kern is not None:
+            r = np.ascontiguousarray(r)
+            for lay, blk in self._pairs():
+                if lay.k:
+                    kern(np.ascontiguousarray(blk.values), lay.rows, lay.cols, r, g)
+            return g
         for lay, blk in self._pairs():
             if not lay.k:
                 continue
@@ -525,6 +577,13 @@ class BlockSparseJacobian:
         """``J h`` (m,) for a parameter step ``h`` (n,)."""
         h = np.asarray(h, dtype=float)
         out = np.zeros(self.n_rows)
+        kern = blocksparse_kernels.matvec()
+        if kern is not None:
+            h = np.ascontiguousarray(h)
+            for lay, blk in self._pairs():
+                if lay.k:
+                    kern(np.ascontiguousarray(blk.values), lay.rows, lay.cols, h, out)
+            return out
         for lay, blk in self._pairs():
             if not lay.k:
                 continue
@@ -561,8 +620,11 @@ class BlockSparseJacobian:
         return scipy.sparse.csr_matrix((data, (rows, cols)), shape=self.shape)
 
     def normal_equations(self) -> NormalEquations:
-        """``N = J^T J`` in block form (see :class:`NormalEquations`)."""
-        return NormalEquations(self)
+        """``N = J^T J`` in block form (see :class:`NormalEquations`), made once per Jacobian
+        (its values never change) and shared by every caller, with its factorisations."""
+        if getattr(self, "_ne", None) is None:
+            self._ne = NormalEquations(self)
+        return self._ne
 
 
 # ----------------------------------------------------------------------------------------
@@ -573,7 +635,7 @@ class BlockSparseJacobian:
 class _Factor:
     """A factorisation of the damped system: V*^-1 blocks, Y = W V*^-1 per batch, chol(S)."""
 
-    __slots__ = ("Vinv", "Ys", "cho", "s_scale")
+    __slots__ = ("Vinv", "Ys", "Y_slots", "cho", "s_scale")
 
 
 class NormalEquations:
@@ -599,6 +661,7 @@ class NormalEquations:
         U = np.zeros(nr * nr)
         V = np.zeros(nb * b * b)
         Ws = np.zeros(st.n_slots * b)
+        kern = blocksparse_kernels.assemble()
         for lay, blk in jac._pairs():
             if not lay.k:
                 continue
@@ -621,18 +684,28 @@ class NormalEquations:
                     else:
                         M = np.add.reduceat(A.transpose(0, 2, 1) @ A, lay.starts[:-1], axis=0)
                     U += np.bincount(lay.U_dest, M.ravel(), minlength=nr * nr)
-            if lay.c_e:
+            if lay.c_e and kern is not None:         # V and W by the compiled loop
+                self._assemble_compiled(kern, lay, values, V.reshape(nb, b, b), Ws.reshape(st.n_slots, b))
+            elif lay.c_e:
                 B = lay.elim_values_full(values, b)
                 V += np.bincount(lay.V_dest, (B.transpose(0, 2, 1) @ B).ravel(),
                                  minlength=nb * b * b)
                 if lay.c_r:
                     A = lay.reduced_values(values)
-                    Ws += np.bincount(lay.W_dest, (A.transpose(0, 2, 1) @ B).ravel(),
+                    W_dest = (lay.slot_idx[:, :, None] * b + np.arange(b)).ravel()
+                    Ws += np.bincount(W_dest, (A.transpose(0, 2, 1) @ B).ravel(),
                                       minlength=st.n_slots * b)
         self.U = U.reshape(nr, nr)
         self.V = V.reshape(nb, b, b)
         self.W_slots = Ws.reshape(st.n_slots, b)
         self._zero = self._WT = self._Cr = self._Cee = self._cross = None
+
+    def _assemble_compiled(self, kern, lay, values, V, Ws):
+        """V and W_slots of one residual block by the compiled loop (U is formed by BLAS)."""
+        slot_idx = np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else np.zeros((0, 0), np.intp)
+        kern(np.ascontiguousarray(values), lay.red_pos, lay.elim_pos, np.zeros((1, 0), np.intp),
+             np.zeros(lay.k, np.intp), lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp), slot_idx,
+             np.zeros((0, 0)), V, Ws, False)
 
     # -- assembled views (for checks and small problems) ---------------------------------
 
@@ -670,8 +743,8 @@ class NormalEquations:
         else:
             f.Vinv = np.zeros((0, b, b))
         # S = U + D_r - sum_e W_e V*_e^-1 W_e^T
-        S, f.Ys = self._schur(d[:nr], f.Vinv)
-        f.cho, f.s_scale = _equilibrated_cholesky(S)
+        S, f.Ys, f.Y_slots = self._schur(d[:nr], f.Vinv)
+        f.cho, f.s_scale = equilibrated_cholesky(S)
         if damping is None:
             self._zero = f
         return f
@@ -681,6 +754,13 @@ class NormalEquations:
         nr, b, st = self.n_reduced, self.b, self.structure
         S = self.U.copy()
         S[np.diag_indices(nr)] += d_r
+        kern = blocksparse_kernels.schur()
+        if kern is not None:                       # W_s V*_e^-1 per slot, S -= W V*^-1 W^T
+            Y = np.empty_like(self.W_slots)
+            if st.n_slots:
+                kern(np.ascontiguousarray(self.W_slots), st.slot_col.astype(np.intp), st.slot_ptr,
+                     np.ascontiguousarray(Vinv), S, Y)
+            return 0.5 * (S + S.T), None, Y
         Ys = []
         if st.buckets:
             Wx = np.vstack([self.W_slots, np.zeros((1, b))])
@@ -691,7 +771,7 @@ class NormalEquations:
                 np.matmul(Y, Wg.transpose(0, 2, 1), out=T)          # W_e V*_e^-1 W_e^T
                 Ys.append(Y)
             S -= np.bincount(st.dest_all, T_all, minlength=nr * nr + 1)[:-1].reshape(nr, nr)
-        return 0.5 * (S + S.T), Ys
+        return 0.5 * (S + S.T), Ys, None
 
     def schur_complement(self, damping=None) -> np.ndarray:
         """``S = U + D_r - W (V + D_e)^-1 W^T`` (n_r, n_r) for damping ``D`` (n,) or scalar."""
@@ -768,6 +848,13 @@ class NormalEquations:
         Cr = self.covariance_reduced()
         st, b = self.structure, self.b
         Cee = f.Vinv.copy()
+        if f.Y_slots is not None:                  # the compiled path keeps Y per slot
+            cross = np.zeros((st.n_slots, b))
+            if st.n_slots and self.n_reduced:
+                blocksparse_kernels.elim_covariances()(f.Y_slots, st.slot_col.astype(np.intp), st.slot_ptr,
+                                                       np.ascontiguousarray(Cr), Cee, cross)
+            self._Cee, self._cross = 0.5 * (Cee + Cee.transpose(0, 2, 1)), cross
+            return self._Cee, self._cross
         cross = np.zeros((st.n_slots + 1, b))
         if st.n_slots and self.n_reduced:
             for bk, Y in zip(st.buckets, f.Ys, strict=True):
@@ -778,6 +865,44 @@ class NormalEquations:
         self._Cee = 0.5 * (Cee + Cee.transpose(0, 2, 1))
         self._cross = cross[:-1]
         return self._Cee, self._cross
+
+    def dense_matrix(self) -> np.ndarray:
+        """``N`` (n, n) assembled densely from ``U``, ``W`` and ``V`` (for modest n only)."""
+        nr, b, nb = self.n_reduced, self.b, self.n_blocks
+        n = nr + nb * b
+        N = np.zeros((n, n))
+        N[:nr, :nr] = self.U
+        if nb:
+            W = self.coupling().toarray()
+            N[:nr, nr:] = W
+            N[nr:, :nr] = W.T
+            idx = nr + np.arange(nb)[:, None] * b + np.arange(b)
+            N[idx[:, :, None], idx[:, None, :]] = self.V
+        return N
+
+    def covariance_dense(self) -> np.ndarray:
+        """``N^-1`` (n, n) from the blocks (for modest n only; see the module docstring).
+
+        ``(N^-1)_rr = S^-1``, ``(N^-1)_re = -S^-1 Y``, ``(N^-1)_ee = V^-1 + Y^T S^-1 Y``
+        with ``Y = W V^-1``; raises :class:`SingularSystemError` as :meth:`solve` does.
+        """
+        Cr = self.covariance_reduced()
+        nr, b, nb = self.n_reduced, self.b, self.n_blocks
+        if not nb:
+            return Cr.copy()
+        Vinv = self._factor(None).Vinv
+        W = self.coupling().toarray().reshape(nr, nb, b)
+        Y = np.einsum("rej,ejk->rek", W, Vinv).reshape(nr, nb * b)
+        n = nr + nb * b
+        C = np.zeros((n, n))
+        C[:nr, :nr] = Cr
+        C[:nr, nr:] = -Cr @ Y
+        C[nr:, :nr] = C[:nr, nr:].T
+        Cee = Y.T @ Cr @ Y
+        idx = np.arange(nb)[:, None] * b + np.arange(b)
+        Cee[idx[:, :, None], idx[:, None, :]] += Vinv
+        C[nr:, nr:] = 0.5 * (Cee + Cee.T)
+        return C
 
     def covariance_elim_blocks(self) -> np.ndarray:
         """(n_blocks, b, b) the diagonal blocks of ``N^-1`` for the eliminated parameters."""
@@ -797,6 +922,22 @@ class NormalEquations:
         values = self.jac.blocks[block_index].values
         Q = np.zeros((lay.k, lay.r, lay.r))
         if not lay.k:
+            return Q
+        kern = blocksparse_kernels.group_covariance()
+        if kern is not None:
+            empty2, empty3 = np.zeros((0, 0), np.intp), np.zeros((0, 0, 0))
+            Cr = self.covariance_reduced() if lay.c_r else np.zeros((0, 0))
+            key_cols, key_id = ((lay.key_cols.astype(np.intp), lay.key_id) if lay.c_r
+                                else (np.zeros((1, 0), np.intp), np.zeros(lay.k, np.intp)))
+            if lay.c_e:
+                Cee, cross = self._elim_covariances()
+                e, local = lay.e.astype(np.intp), np.ascontiguousarray(lay.local, np.intp)
+                slot_idx = np.ascontiguousarray(lay.slot_idx, np.intp) if lay.c_r else empty2
+                cross = np.ascontiguousarray(cross) if lay.c_r else np.zeros((0, 0))
+            else:
+                Cee, cross, e, local, slot_idx = empty3, np.zeros((0, 0)), np.zeros(0, np.intp), empty2, empty2
+            kern(np.ascontiguousarray(values), lay.red_pos, lay.elim_pos, key_cols, key_id, e, local, slot_idx,
+                 np.ascontiguousarray(Cr), np.ascontiguousarray(Cee), cross, Q)
             return Q
         if lay.c_r:
             Cr = self.covariance_reduced()
@@ -819,7 +960,7 @@ def _pivot_tol(n: int) -> float:
     return max(n, 1) * _EPS
 
 
-def _equilibrated_cholesky(S):
+def equilibrated_cholesky(S):
     """Cholesky of ``D S D`` with ``D = diag(S)^-1/2``; raises SingularSystemError."""
     nr = S.shape[0]
     if nr == 0:

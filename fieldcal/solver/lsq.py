@@ -52,8 +52,16 @@ The actual reduction ``F(x) - F(x_new)`` is computed as ``1/2 (r - r_new)^T (r +
 not as the difference of two large sums, so that near the optimum of a large-residual
 problem a genuine decrease is not lost to round-off in ``F``.
 
-Stopping. ``||g||_inf <= eps1`` (status 1), ``||h|| <= eps2 (||x|| + eps2)`` (status 2), or
-``max_iter`` iterations (status 0); all in scaled variables. A trial point whose
+Stopping. ``||g||_inf <= eps1`` (status 1), ``||h|| <= eps2 (||r|| + eps2)`` (status 2), or
+``max_iter`` iterations (status 0); all in scaled variables. The step test departs from
+the book's ``eps2 (||x|| + eps2)``: ``||x||`` depends on where the origin of the parameters
+lies (a camera centre in UTM coordinates, 5e5 m, makes every step "small"), whereas
+``J_z`` has unit columns, so ``h_z`` is in the units of the residuals and ``||r||`` is the
+scale-free yardstick. Optionally (``ftol``, ``sigma_tol``) a step whose predicted decrease
+is negligible ends the iteration (status 5): ``L(0) - L(h) <= ftol F``, or
+``<= sigma_tol^2 F / (m - n)``, i.e. (``L(0) - L(h) ~ 1/2 ||J h||^2``) the step is below
+``sigma_tol`` a-posteriori standard deviations in the metric of the normal matrix: a
+statistical tolerance that depends neither on units nor on origins. A trial point whose
 residuals or Jacobian are not finite is a rejected step (like SciPy), as is an LM system
 the Cholesky factorisation finds singular (the damping grows).
 
@@ -85,10 +93,10 @@ __all__ = [
 STATUS_MESSAGES: dict[int, str] = {
     0: "the maximum number of iterations was reached",
     1: "the gradient is small: ||g||_inf <= eps1 (scaled variables)",
-    2: "the step is small: ||h|| <= eps2 (||x|| + eps2) (scaled variables)",
+    2: "the step is small: ||h|| <= eps2 (||r|| + eps2) (scaled variables)",
     3: "stopped by the callback",
     4: "no acceptable step: the damping parameter overflowed",
-    5: "the predicted decrease of the cost is negligible: L(0) - L(h) <= ftol F(x)",
+    5: "the predicted decrease of the cost is negligible: L(0) - L(h) <= max(ftol, sigma_tol^2 / (m - n)) F(x)",
 }
 """The solver's status codes and their messages (``LsqResult.status``/``.message``)."""
 
@@ -264,7 +272,7 @@ def _evaluate(problem, x, n):
 
 def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float = 1e-12,
           max_iter: int = 200, tau: float = 1e-3, memory: int = 50, ftol: float = 0.0,
-          switch_ratio: float = _SWITCH_RATIO,
+          sigma_tol: float = 0.0, switch_ratio: float = _SWITCH_RATIO,
           callback: Callable[[IterationRecord], bool | None] | None = None) -> LsqResult:
     """Minimise ``1/2 ||r(x)||^2`` by the LMQN hybrid or plain LM (see the module docstring).
 
@@ -279,7 +287,7 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
     eps1 : float
         Stop when ``||g||_inf <= eps1`` (scaled variables; default 1e-10).
     eps2 : float
-        Stop when ``||h|| <= eps2 (||x|| + eps2)`` (scaled variables; default 1e-12).
+        Stop when ``||h|| <= eps2 (||r|| + eps2)`` (scaled variables; default 1e-12).
     max_iter : int
         At most this many iterations (default 200); each costs one evaluation.
     tau : float
@@ -293,6 +301,9 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
         most ``ftol F(x)`` (default 0: off; not in the book). Near the optimum in whitened
         units ``L(0) - L(h) = |dx|^2 / 2``: ``ftol = 1e-12`` on a cost of 10^4 stops within
         about 1e-4 standard deviations of the optimum instead of iterating at round-off.
+    sigma_tol : float
+        Stop (status 5) when a step's predicted decrease is at most ``sigma_tol^2 F / (m - n)``:
+        the step is below ``sigma_tol`` a-posteriori standard deviations (default 0: off).
     switch_ratio : float
         LM -> QN after three successful LM steps with ``||g||_inf < switch_ratio F``
         (default 0.02, the book's). The test is not invariant to the residuals' units: with
@@ -308,7 +319,7 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
     if method not in ("lmqn", "lm"):
         raise InputError(f"method must be 'lmqn' or 'lm', got {method!r}", "lsq.solve")
     for name, val in (("eps1", eps1), ("eps2", eps2), ("tau", tau), ("switch_ratio", switch_ratio),
-                      ("ftol", ftol)):
+                      ("ftol", ftol), ("sigma_tol", sigma_tol)):
         if not (np.isfinite(val) and val >= 0):
             raise InputError(f"{name} must be a finite number >= 0, got {val}", "lsq.solve")
     if int(max_iter) < 0 or int(memory) < 1:
@@ -318,13 +329,15 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
     if not np.all(np.isfinite(x)):
         raise InputError("x0 must be finite", "lsq.solve")
     st = _State(problem, x, tau, int(memory))
+    m, n = st.J.shape
+    ftol = max(ftol, sigma_tol**2 / (m - n) if m > n else 0.0)
     history: list[IterationRecord] = []
     status = 1 if st.ginf <= eps1 else None
     k = 0
     while status is None and k < max_iter:
         k += 1
         rec = (_step_lm(st, eps2, method, switch_ratio, ftol) if st.step == "lm"
-               else _step_qn(st, eps2))
+               else _step_qn(st, eps2, ftol))
         if rec.status is None and rec.accepted and st.ginf <= eps1:
             rec.status = 1
         status = rec.status
@@ -369,8 +382,8 @@ class _State:
         self.ne = None
 
     def small(self, eps2):
-        """``eps2 (||x|| + eps2)`` in scaled variables."""
-        return eps2 * (float(np.linalg.norm(self.d * self.x)) + eps2)
+        """``eps2 (||r|| + eps2)``: the step-size threshold in scaled variables (see Stopping)."""
+        return eps2 * (np.sqrt(2.0 * self.F) + eps2)
 
     def trial(self, h):
         """Evaluate ``x + h``: (x_new, r_new, J_new, g_new) or None when not finite."""
@@ -464,7 +477,7 @@ def _trial_gain(st: _State, r_new: np.ndarray, g_new: np.ndarray, dL: float, out
     return F_new, ginf_new, dF, rho
 
 
-def _step_qn(st: _State, eps2: float) -> _StepOutcome:
+def _step_qn(st: _State, eps2: float, ftol: float = 0.0) -> _StepOutcome:
     """One quasi-Newton iteration with a trust region (Algorithm 3.17)."""
     out = _StepOutcome("qn", st.mu, st.Delta)
     small = st.small(eps2)
@@ -498,6 +511,8 @@ def _step_qn(st: _State, eps2: float) -> _StepOutcome:
     if better:
         out.accepted = True
         st._set(x_new, r_new, J_new, g_new)
+        if dL <= ftol * st.F:
+            out.status = 5        # as in LM: the model expects no decrease worth having
     return out
 
 

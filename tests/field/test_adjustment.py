@@ -5,12 +5,20 @@ OpenCV's calib1 corners and PhotoModeler's marks of the DBAT calibration sheet, 
 compared with OpenCV's own calibration of the same points.
 """
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, validate_field_data
+from fieldcal.field.adjustment import (
+    AdjustmentOptions,
+    FieldProblem,
+    InitialValues,
+    adjust_field,
+    validate_field_data,
+)
 from fieldcal.field.bundle import BundleModel
 from fieldcal.model.camera import FIELD_PARAMS, INDEX
 from fieldcal.products.compare import ray_difference_px
@@ -290,3 +298,57 @@ def test_unknown_estimate_name_and_solver_are_refused():
         adjust_field(_small(), AdjustmentOptions(estimate=("f_mm", "b1")))
     with pytest.raises(InputError, match="method must be 'lmqn' or 'lm'"):
         adjust_field(_small(), AdjustmentOptions(method="gn"))
+
+
+# ---------------------------------------------------------------------------- where the origin is
+@pytest.fixture(scope="module")
+def local_and_far():
+    """A wide-angle field with 1 % blunders, in local coordinates and in a national grid (UTM-like
+    easting 5e5 m, northing 4.2e6 m): the same numbers up to the rounding of the inputs."""
+    sf, _ = add_blunders(wide_field(seed=5), fraction=0.01, seed=1)
+    offset = np.array([512_345.678, 4_212_345.321, 87.5])
+    data = sf.data
+    far = replace(data, targets=replace(data.targets, xyz_m=data.targets.xyz_m + offset))
+    return sf, offset, adjust_field(data), adjust_field(far)
+
+
+def test_a_national_grid_gives_the_same_rejections_as_local_coordinates(local_and_far):
+    _, _, a, b = local_and_far
+    assert (a.obs_reason == "blunder").sum() >= 20          # the blunders were found...
+    assert np.array_equal(a.obs_reason, b.obs_reason)       # ...the same ones, for the same reasons
+    assert np.array_equal(a.survey_used, b.survey_used)
+    assert a.fixed_parameters == b.fixed_parameters and a.estimate == b.estimate
+
+
+def test_a_national_grid_gives_the_same_calibration_as_local_coordinates(local_and_far):
+    sf, offset, a, b = local_and_far
+    for n in a.estimate:
+        i = INDEX[n]
+        # a thousandth of a sigma: the solver's tolerance (sigma_tol), not the origin, decides
+        assert abs(a.params[i] - b.params[i]) < 1e-3 * a.sigma[n], n
+        assert b.sigma[n] == pytest.approx(a.sigma[n], rel=1e-6), n
+    assert np.abs((b.center_m - offset) - a.center_m).max() < 1e-3 * a.sigma_center_m.min()
+    assert np.abs(b.R_world_to_camera - a.R_world_to_camera).max() < 1e-9   # rad, ~1e-3 sigma
+    seen = np.isfinite(a.sigma_targets_m).all(axis=1)
+    assert np.all(np.abs((b.targets_m - offset) - a.targets_m)[seen] < 1e-3 * a.sigma_targets_m[seen])
+    sd = np.sqrt(np.diag(a.covariance))               # covariances to 1e-6 of the sigmas' product
+    assert np.all(np.abs(b.covariance - a.covariance) <= 1e-6 * np.outer(sd, sd))
+    # and both are right: the truth within 3 sigma
+    assert np.all(np.abs(z_scores(sf, a)) < 3.0) and np.all(np.abs(z_scores(sf, b)) < 3.0)
+
+
+def test_a_warm_start_in_a_national_grid_is_translated_like_the_data(local_and_far):
+    """``initial=`` and ``initial_targets_m=`` are given in the data's frame: the same warm start
+    in local coordinates and 4e6 m away gives the same adjustment."""
+    _, offset, a, b = local_and_far
+    warm = InitialValues(params=a.params.copy(), R_world_to_camera=a.R_world_to_camera, center_m=a.center_m,
+                         outliers=a.obs_reason == "blunder", dlt_f_mm=np.full(len(a.data.images), np.nan),
+                         how="warm")
+    c = adjust_field(a.data, initial=warm, initial_targets_m=a.targets_m)
+    d = adjust_field(b.data, initial=replace(warm, center_m=a.center_m + offset),
+                     initial_targets_m=a.targets_m + offset)
+    assert np.array_equal(c.obs_reason, d.obs_reason)
+    for n in c.estimate:
+        assert abs(c.params[INDEX[n]] - d.params[INDEX[n]]) < 1e-3 * c.sigma[n], n
+    assert np.abs((d.center_m - offset) - c.center_m).max() < 1e-3 * c.sigma_center_m.min()
+    assert c.iterations_total < a.iterations_total          # it started next to the solution

@@ -1,0 +1,265 @@
+"""Initial values of the field adjustment (METHODS part A, steps 1-2).
+
+1. Per image, the DLT (eq. 1-6, Hartley normalised, robust to blunders:
+   :func:`fieldcal.field.dlt.dlt_robust`) on the surveyed targets it sees; the interior
+   starting point is the median of the per-image ``f, xp, yp`` (within 0.5-2x of the
+   nominal focal length, when the session gives one). Planar fields, or too few DLTs,
+   start from the nominal focal length (or Zhang's closed form) instead.
+2. Every image is oriented with that common interior orientation:
+   images with a DLT pose all at once by :func:`refine_poses` (a Levenberg-Marquardt per
+   image, vectorised over the images: the bundle with the interior and the targets held
+   fixed), the others one by one by :func:`fieldcal.field.resection.resect` (RANSAC,
+   planar pose for coplanar points). Points further than ``threshold_px`` from their
+   oriented image (the DLT's outliers, or, since the distortion is not known yet, points in
+   strongly distorted corners) are flagged as initial outliers: the adjustment readmits
+   those that fit once the distortion is estimated.
+3. The distortion coefficients start from the linear least squares of eq. 7-8
+   (:func:`fieldcal.field.distortion_init.distortion_lsq`) over the points not flagged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fieldcal.errors import GeometryError
+from fieldcal.field.bundle import BundleModel
+from fieldcal.field.data import FieldData
+from fieldcal.field.distortion_init import distortion_lsq
+from fieldcal.field.dlt import dlt_robust, zhang_focal
+from fieldcal.field.geometry import is_coplanar
+from fieldcal.field.resection import planar_pose, resect
+from fieldcal.model.camera import INDEX, Camera
+
+__all__ = ["InitialValues", "initial_values", "refine_poses", "per_image", "CORE_PARAMS"]
+
+CORE_PARAMS = ("f_mm", "xp_mm", "yp_mm")
+"""The interior parameters every start has (the rest start from the distortion fit)."""
+
+
+@dataclass
+class InitialValues:
+    """Starting point of the adjustment, with how it was obtained."""
+
+    params: np.ndarray
+    R_world_to_camera: np.ndarray
+    center_m: np.ndarray
+    outliers: np.ndarray          # (m,) observations flagged by the robust initialisers
+    dlt_f_mm: np.ndarray          # per image (NaN where no DLT)
+    how: str
+
+
+def per_image(data: FieldData) -> list[np.ndarray]:
+    """The observation indices of each image (a list of ``n_images`` int arrays)."""
+    order = np.argsort(data.obs.image, kind="stable")
+    bounds = np.searchsorted(data.obs.image[order], np.arange(len(data.images) + 1))
+    return [order[bounds[i]:bounds[i + 1]] for i in range(len(data.images))]
+
+
+def _dlts(data: FieldData, groups):
+    """Step 1: the robust DLT of every image that has non-coplanar targets (else NaN/None)."""
+    n_img = len(data.images)
+    dlt_f, dlt_pp = np.full(n_img, np.nan), np.full((n_img, 2), np.nan)
+    poses: list = [None] * n_img
+    outliers = np.zeros(len(data.obs), bool)
+    X_all = data.targets.xyz_m
+    if is_coplanar(X_all[np.unique(data.obs.target)]):
+        return dlt_f, dlt_pp, poses, outliers
+    for i, k in enumerate(groups):
+        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
+        if is_coplanar(X):
+            continue
+        try:
+            res = dlt_robust(X, uv, data.sensor, where=data.images[i].file, seed=i)
+        except GeometryError:
+            continue
+        dlt_f[i], dlt_pp[i] = res.f_mm, (res.xp_mm, res.yp_mm)
+        poses[i] = (res.R_world_to_camera, res.center_m)
+        outliers[k[~res.inliers]] = True
+    return dlt_f, dlt_pp, poses, outliers
+
+
+def _common_interior(data: FieldData, groups, dlt_f, dlt_pp):
+    """Step 1: ``(params (13,), how)``: median DLT interior, nominal f, or Zhang's f."""
+    n_img = len(data.images)
+    nominal = data.nominal_focal_mm
+    ok = np.isfinite(dlt_f)
+    if nominal is not None and ok.any():
+        ok &= (dlt_f > 0.5 * nominal) & (dlt_f < 2.0 * nominal)
+    params = np.zeros(13)
+    if ok.sum() >= max(1, n_img // 4):
+        params[INDEX["f_mm"]] = np.median(dlt_f[ok])
+        params[[INDEX["xp_mm"], INDEX["yp_mm"]]] = np.median(dlt_pp[ok], axis=0)
+        return params, f"DLT on {ok.sum()} of {n_img} images (median f, xp, yp)"
+    if nominal is not None:
+        params[INDEX["f_mm"]] = nominal
+        return params, "nominal focal length, principal point at the sensor centre"
+    X_all = data.targets.xyz_m
+    views = [(X_all[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
+    params[INDEX["f_mm"]] = zhang_focal(views, data.sensor, where="session")
+    return params, "Zhang's closed form from the planar views"
+
+
+def _segment_sums(a, starts, counts):
+    """Sums of ``a`` (m, ...) over consecutive segments (empty segments give 0)."""
+    out = np.add.reduceat(a, starts, axis=0) if len(a) else np.zeros((len(starts),) + a.shape[1:])
+    out[counts == 0] = 0.0
+    return out
+
+
+def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, tol: float = 1e-10):
+    """Poses of all images with the camera ``params`` and the targets held fixed.
+
+    A Levenberg-Marquardt iteration per image (its own damping and step acceptance),
+    vectorised over the images: each image's 6 unknowns (rotation increment, centre) are
+    solved from its 6x6 normal equations, built from the bundle's Jacobian blocks
+    (:class:`fieldcal.field.bundle.BundleModel` with no interior unknowns).
+
+    Parameters
+    ----------
+    data : FieldData
+    params : (13,) ndarray
+        The camera, held fixed.
+    R : (n_images, 3, 3) ndarray
+        Starting rotations (world to camera).
+    C : (n_images, 3) ndarray
+        Starting centres [m].
+    active : (m,) bool ndarray
+        Observations to orient on.
+    max_iter : int
+        At most this many iterations.
+    tol : float
+        An image has converged when its next step is predicted to lower its cost (the sum
+        of squared weighted residuals) by at most ``tol`` times it: in units of the image
+        noise the step is then below ``sqrt(2 tol cost)`` (1e-10: about 3e-4 sigma for
+        200 points).
+
+    Returns
+    -------
+    R, C : ndarray
+        The refined poses (images without active points keep theirs).
+    rms_px : (n_images,) ndarray
+        Reprojection RMS of each image's active points [px] (NaN where none).
+    """
+    model = BundleModel(data, params, (), R, targets_adjusted=False, obs_active=active)
+    n = model.n_images
+    bounds = np.searchsorted(model.img, np.arange(n + 1))
+    starts, counts = np.minimum(bounds[:-1], max(len(model.img) - 1, 0)), np.diff(bounds)
+    x = model.pack(params, C)
+    r, jb, _ = model.residuals_and_blocks(x)
+    cost = _segment_sums(r.reshape(-1, 2) ** 2, starts, counts).sum(axis=1)
+    mu = np.full(n, 1e-3)
+    done = counts == 0
+    eye = np.eye(6)
+    for _ in range(max_iter):
+        if done.all():
+            break
+        A2 = jb.d_ext.reshape(-1, 6)                 # rows of the images' points, image by image
+        N, g = np.zeros((n, 6, 6)), np.zeros((n, 6))
+        for i in np.flatnonzero(~done):             # one (2 k_i, 6) product per image (BLAS)
+            rows = slice(2 * bounds[i], 2 * bounds[i + 1])
+            N[i] = A2[rows].T @ A2[rows]
+            g[i] = A2[rows].T @ r[rows]
+        dg = np.einsum("kii->ki", N)
+        Nd = N + (mu[:, None] * np.maximum(dg, 1e-300))[:, :, None] * eye + done[:, None, None] * eye
+        h = -np.linalg.solve(Nd, g[:, :, None])[:, :, 0]
+        done |= -0.5 * np.einsum("ki,ki->k", h, g) <= tol * cost     # predicted decrease negligible
+        h[done] = 0.0
+        x_new = x + h.ravel()
+        r_new, jb_new, _ = model.residuals_and_blocks(x_new)
+        cost_new = _segment_sums(r_new.reshape(-1, 2) ** 2, starts, counts).sum(axis=1)
+        better = np.isfinite(cost_new) & (cost_new < cost) & ~done
+        done |= ~better & (mu > 1e10)
+        mu = np.where(better, mu / 3.0, mu * 4.0)
+        take = better[model.img]
+        x = np.where(np.repeat(better, 6), x_new, x)
+        r = np.where(np.repeat(take, 2), r_new, r)
+        jb.d_ext[take] = jb_new.d_ext[take]
+        cost = np.where(better, cost_new, cost)
+    _, R_new, C_new, _ = model.unpack(x)
+    sigma = _segment_sums(model.sigma_px ** 2, starts, counts) / np.maximum(counts, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.where(counts > 0, np.sqrt(cost * sigma / np.maximum(counts, 1)), np.nan)
+    return R_new, C_new, rms
+
+
+def _image_residuals_px(data: FieldData, params, R, C):
+    """|measured - projected| [px] of every observation (NaN behind the camera)."""
+    cam = Camera(data.sensor, params)
+    d = data.obs
+    Xc = np.einsum("kab,kb->ka", R[d.image], data.targets.xyz_m[d.target] - C[d.image])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
+    uv = data.sensor.mm_to_pixel(cam.distort(q, check=False))
+    return np.hypot(*(d.uv_px - uv).T)
+
+
+def _orient(data: FieldData, groups, params, poses, outliers, threshold_px):
+    """Step 2: every image oriented with the common camera; updates ``outliers`` in place."""
+    n_img = len(data.images)
+    R, C = np.zeros((n_img, 3, 3)), np.zeros((n_img, 3))
+    batch = np.array([p is not None for p in poses])
+    for i in np.flatnonzero(batch):
+        R[i], C[i] = poses[i]
+    if batch.any():
+        on = batch[data.obs.image]
+        use = on & ~outliers
+        for _ in range(2):            # orient, flag what lies beyond the threshold, orient again
+            R, C, rms = refine_poses(data, params, R, C, use)
+            far = ~(_image_residuals_px(data, params, R, C) <= threshold_px) & on
+            if not (far & use).any():
+                break
+            use &= ~far
+        batch &= np.isfinite(rms) & (rms <= threshold_px)    # the rest: resection, one by one
+        outliers |= far & batch[data.obs.image]
+    camera = Camera(data.sensor, params)
+    X_all = data.targets.xyz_m
+    for i in np.flatnonzero(~batch):
+        k = groups[i]
+        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
+        where = data.images[i].file
+        init = poses[i]
+        if init is None and is_coplanar(X):
+            R_i, C_i, _ = planar_pose(X, uv, camera, where=where)
+            init = (R_i, C_i)
+        res = resect(X, uv, camera, ransac=len(k) >= 8, where=where, init=init, threshold_px=threshold_px)
+        R[i], C[i] = res.R_world_to_camera, res.center_m
+        if res.inliers is not None:
+            outliers[k[~np.asarray(res.inliers, bool)]] = True
+    return R, C
+
+
+def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
+    """Initial interior and exterior orientation (module docstring).
+
+    Parameters
+    ----------
+    data : FieldData
+    estimate : sequence of str
+        The interior parameters to be estimated; those beyond ``f, xp, yp`` start from
+        the distortion fit (the rest are 0).
+
+    Returns
+    -------
+    InitialValues
+    """
+    sensor = data.sensor
+    groups = per_image(data)
+    dlt_f, dlt_pp, poses, outliers = _dlts(data, groups)
+    params, how = _common_interior(data, groups, dlt_f, dlt_pp)
+    threshold_px = max(8.0, 0.002 * max(sensor.width_px, sensor.height_px))
+    R, C = _orient(data, groups, params, poses, outliers, threshold_px)
+    # distortion initial values, eq. 7-8, from the inliers of all images
+    names = [n for n in estimate if n not in CORE_PARAMS]
+    if names:
+        use = ~outliers
+        img = data.obs.image[use]
+        Xc = np.einsum("kab,kb->ka", R[img], data.targets.xyz_m[data.obs.target[use]] - C[img])
+        q = -params[INDEX["f_mm"]] * Xc[:, :2] / Xc[:, 2:3]
+        xy = sensor.pixel_to_mm(data.obs.uv_px[use])
+        fit = distortion_lsq(xy, q, params[INDEX["xp_mm"]], params[INDEX["yp_mm"]], names)
+        for n in names:
+            params[INDEX[n]] = fit.coefficients[n]
+    return InitialValues(params, R, C, outliers, dlt_f, how)
