@@ -299,18 +299,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     diag = np.stack([np.linalg.norm(c[:, 2] - c[:, 0], axis=1),
                      np.linalg.norm(c[:, 3] - c[:, 1], axis=1)], axis=1)
 
-    inner = _side_samples(img, c, -0.5, n_cells)     # middle of the black border
-    outer = _side_samples(img, c, +0.5, n_cells)     # middle of the white quiet zone
-    contrast = np.abs(np.median(outer, axis=1) - np.median(inner, axis=1))
-    noise = np.maximum(robust_sigma(outer - np.median(outer, axis=1, keepdims=True), axis=1), 0.3)
-    snr = contrast / noise
-    H, W = img.shape
-    truncated = ((c[..., 0] < 1) | (c[..., 1] < 1) | (c[..., 0] > W - 2) | (c[..., 1] > H - 2)).any(1)
-    sat = np.iinfo(img.dtype).max
-    lo = np.clip(np.floor(c.min(axis=1)).astype(int), 0, [W - 1, H - 1])
-    hi = np.clip(np.ceil(c.max(axis=1)).astype(int) + 1, 1, [W, H])
-    saturated = np.array([bool((img[lo[k, 1]:hi[k, 1], lo[k, 0]:hi[k, 0]] >= sat).any())
-                          for k in range(len(ids))])
+    contrast, snr, saturated, truncated = _marker_quality(img, c, n_cells)
     # a-priori sigma: from the edge lines' scatter (refine="edges", with a floor for the
     # model), else the cornerSubPix bias dominates (~0.02 px at the centre, tests)
     sigma = np.where(np.isfinite(edge_sigma), np.hypot(edge_sigma, _SIGMA_FLOOR_PX),
@@ -327,6 +316,24 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
         "corners_px": pa.array(c.reshape(len(ids), 8).tolist(), pa.list_(pa.float64())),
     }
     return measurements_table(cols, image_name)
+
+
+def _marker_quality(img, c, n_cells):
+    """Contrast [DN] and SNR from the black border and the quiet zone around it, and the
+    saturated / truncated flags, of markers with corners ``c`` (n, 4, 2) [px]; each (n,)."""
+    inner = _side_samples(img, c, -0.5, n_cells)     # middle of the black border
+    outer = _side_samples(img, c, +0.5, n_cells)     # middle of the white quiet zone
+    contrast = np.abs(np.median(outer, axis=1) - np.median(inner, axis=1))
+    noise = np.maximum(robust_sigma(outer - np.median(outer, axis=1, keepdims=True), axis=1), 0.3)
+    snr = contrast / noise
+    H, W = img.shape
+    truncated = ((c[..., 0] < 1) | (c[..., 1] < 1) | (c[..., 0] > W - 2) | (c[..., 1] > H - 2)).any(1)
+    sat = np.iinfo(img.dtype).max
+    lo = np.clip(np.floor(c.min(axis=1)).astype(int), 0, [W - 1, H - 1])
+    hi = np.clip(np.ceil(c.max(axis=1)).astype(int) + 1, 1, [W, H])
+    saturated = np.array([bool((img[lo[k, 1]:hi[k, 1], lo[k, 0]:hi[k, 0]] >= sat).any())
+                          for k in range(len(c))], dtype=bool)
+    return contrast, snr, saturated, truncated
 
 
 def marker_exclusion_polygons(table: pa.Table, *, grow: float = 1.5) -> list[np.ndarray]:
