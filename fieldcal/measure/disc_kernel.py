@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 
 import numpy as np
 
@@ -662,6 +663,8 @@ def warm_up() -> bool:
     """
     if numba is None:
         return _fail(_IMPORT_PROBLEM)
+    if _STATE["checked"]:
+        return _STATE["problem"] is None
     yy, xx = np.mgrid[0:24, 0:24]
     disc = ((yy - 11.7) ** 2 + (xx - 12.2) ** 2) < 36.0
     try:
@@ -679,6 +682,7 @@ def warm_up() -> bool:
 
 
 def _fail(reason: str) -> bool:
+    reason = re.sub(r"\x1b\[[0-9;]*m", "", reason)          # Numba colours its messages
     if not _STATE["checked"]:
         log.warning("fieldcal: %s; measuring discs with the NumPy reference (slower)", reason)
     _STATE.update(checked=True, problem=reason)

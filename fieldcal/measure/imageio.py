@@ -33,7 +33,7 @@ import tifffile
 from fieldcal.errors import ImageError, InputError
 
 __all__ = ["ImageInfo", "ImageFile", "probe_image", "read_file", "read_image", "check_image",
-           "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES"]
+           "stat_stamp", "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES"]
 
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 MAX_PIXELS = 400_000_000
@@ -108,14 +108,20 @@ class ImageFile:
         SHA-256 of ``data``, 64 lower-case hex digits (as
         :func:`fieldcal.session.fingerprint.sha256_file` gives for the file).
     stamp : (int, int, int, int, int)
-        ``(size, mtime_ns, ctime_ns, inode, device)`` of the open file before it was read,
-        so a cache of hashes can tell whether the file was rewritten since.
+        :func:`stat_stamp` of the open file before it was read, so a cache of hashes can
+        tell whether the file was rewritten since.
     """
 
     path: str
     data: np.ndarray
     sha256: str
     stamp: tuple[int, int, int, int, int]
+
+
+def stat_stamp(st: os.stat_result) -> tuple[int, int, int, int, int]:
+    """A file's identity and stamp ``(size, mtime_ns, ctime_ns, inode, device)`` from its stat:
+    equal stamps mean the file was not rewritten (to the filesystem's time resolution)."""
+    return (int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino), int(st.st_dev))
 
 
 def read_file(path) -> ImageFile:
@@ -152,9 +158,8 @@ def read_file(path) -> ImageFile:
         raise ImageError("is a directory, not a file", where) from None
     except OSError as err:
         raise ImageError(f"cannot read the file ({_short(err)})", where) from None
-    stamp = (int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino), int(st.st_dev))
     # a file that shrank while it was read is hashed as read; decoding then finds it short
-    return ImageFile(where, data[:pos], digest.hexdigest(), stamp)
+    return ImageFile(where, data[:pos], digest.hexdigest(), stat_stamp(st))
 
 
 class _MemoryFile(io.RawIOBase):
