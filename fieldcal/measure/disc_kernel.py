@@ -41,7 +41,7 @@ from fieldcal.measure.disc_windows import (
     hat_sums,
 )
 
-__all__ = ["available", "problem", "warm_up", "measure_windows"]
+__all__ = ["available", "problem", "warm_up", "measure_windows", "component_sums"]
 
 log = logging.getLogger(__name__)
 
@@ -230,9 +230,10 @@ def _threshold_parts(S, g, c0, c1, c2, t, sign, colpart, rowpart):
 @_jit
 def _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask):
     """The mask of pixels beyond the ellipse method's threshold map (1: beyond, 0: not);
-    returns the window's largest and smallest pixel (one pass over the window)."""
+    returns the window's largest and smallest pixel and the mask's count (one pass)."""
     hi = img[oy, ox]
     lo = img[oy, ox]
+    count = 0
     for i in range(S):
         row = img[oy + i, ox:ox + S]
         rp = rowpart[i]
@@ -242,17 +243,79 @@ def _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask):
             lo = min(lo, v)
             lim = colpart[j] + rp
             if sign < 0:
-                mask[i * S + j] = np.float32(v) < lim
+                m = np.float32(v) < lim
             else:
-                mask[i * S + j] = np.float32(v) > lim
-    return hi, lo
+                m = np.float32(v) > lim
+            mask[i * S + j] = m
+            count += m
+    return hi, lo, count
 
 
 @_jit
 def _mask_centroid(Y, S, t32, mask):
-    """The mask of pixels whose signal is beyond the centroid method's threshold."""
+    """The mask of pixels whose signal is beyond the centroid method's threshold; its count."""
+    count = 0
     for p in range(S * S):
-        mask[p] = Y[p] > t32
+        m = Y[p] > t32
+        mask[p] = m
+        count += m
+    return count
+
+
+@_jit
+def _run_at(mask, base, S, a, b):
+    """The first run of mask pixels of the row at ``base`` that meets columns a..b, as
+    (lo, hi), and whether another one meets them too; (-1, -1) when none does."""
+    k = a
+    while k <= b and mask[base + k] == 0:
+        k += 1
+    if k > b:
+        return -1, -1, False
+    lo, hi = k, k
+    while lo > 0 and mask[base + lo - 1] != 0:
+        lo -= 1
+    while hi < S - 1 and mask[base + hi + 1] != 0:
+        hi += 1
+    k = hi + 2
+    while k <= b:
+        if mask[base + k] != 0:
+            return lo, hi, True
+        k += 1
+    return lo, hi, False
+
+
+@_jit
+def _grow_simple(mask, S, sy, sx, count, L, R, T, B):
+    """Region growing when the mask is one simple blob (the usual window): from the seed's
+    run, row by row down and then up, one run per row touching the run before it. When
+    those runs hold every mask pixel (``count``), they are the seed's 8-connected component
+    exactly; returns False (nothing decided) when they do not or a row has two runs."""
+    for k in range(S):
+        L[k], R[k], T[k], B[k] = S, -1, S, -1
+    if mask[sy * S + sx] == 0:
+        return False                      # empty region: the general fill says so
+    lo, hi, two = _run_at(mask, sy * S, S, sx, sx)
+    L[sy], R[sy] = lo, hi
+    area = hi - lo + 1
+    for d in (1, -1):
+        plo, phi, i = L[sy], R[sy], sy + d
+        while 0 <= i < S:
+            lo, hi, two = _run_at(mask, i * S, S, max(plo - 1, 0), min(phi + 1, S - 1))
+            if two:
+                return False
+            if lo < 0:
+                break
+            L[i], R[i] = lo, hi
+            area += hi - lo + 1
+            plo, phi, i = lo, hi, i + d
+    if area != count:
+        return False
+    for i in range(S):                    # one run per row: the column ends from the row ends
+        if R[i] >= 0:
+            for j in range(L[i], R[i] + 1):
+                T[j] = min(T[j], i)
+                B[j] = i
+    return True
 
 
 @_jit
@@ -503,15 +566,15 @@ def _fit_ellipse(px, py, n, N, r, out):
 
 
 @_jit
-def _squared_centroid(Y, mask, S, G0, G1, tmp):
-    """The centroid method on one window: the region (``mask == 2``) grown by GROW_PX, the
+def _squared_centroid(Y, mask, region, S, G0, G1, tmp):
+    """The centroid method on one window: the region (``mask == region``) grown by GROW_PX, the
     signal's positive part there, and the closed-form bilinear squared-weight centroid.
     ``Y`` is overwritten with the weights. Returns (u, v) in window coordinates [px]."""
     for i in range(S):                    # horizontal dilation
         for j in range(S):
             hit = 0
             for jj in range(max(j - GROW_PX, 0), min(j + GROW_PX + 1, S)):
-                if mask[i * S + jj] == 2:
+                if mask[i * S + jj] == region:
                     hit = 1
                     break
             tmp[i * S + j] = hit
@@ -615,12 +678,16 @@ def _measure_all(img, y0, x0, su, sv, sizes, sign, step, centroid, G0, G1, sat_l
         if centroid:
             hi, lo = _signal_window(img, oy, ox, S, g32, c0, c1, c2, sign, Y)
             t = _isodata(Y, S * S, contrast)
-            _mask_centroid(Y, S, np.float32(t), mask)
+            count = _mask_centroid(Y, S, np.float32(t), mask)
         else:
             t = 0.5 * contrast
             _threshold_parts(S, g, c0, c1, c2, t, sign, colpart, rowpart)
-            hi, lo = _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask)
-        _grow_region(mask, S, sy, sx, stack, L, R, T, B)
+            hi, lo, count = _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask)
+        # the region is the whole mask (value 1) when the simple growth decides it, else
+        # the general fill marks it (value 2)
+        whole = _grow_simple(mask, S, sy, sx, count, L, R, T, B)
+        if not whole:
+            _grow_region(mask, S, sy, sx, stack, L, R, T, B)
         at_t, at_b, at_l, at_r = oy == 0, oy + S == H, ox == 0, ox + S == W
         _border_flags(L, R, T, B, S, at_t, at_b, at_l, at_r, flags, out)
         n = _outline_points(img, oy, ox, S, g32, c0, c1, c2, t, sign, L, R, T, B, px, py)
@@ -629,10 +696,105 @@ def _measure_all(img, y0, x0, su, sv, sizes, sign, step, centroid, G0, G1, sat_l
         flags[_SATURATED] = hi >= sat_level or (sign < 0 and lo == 0)
         out[_NOISE], out[_CONTRAST], out[_THRESHOLD] = noise, contrast, t
         if centroid:
-            cu, cv = _squared_centroid(Y, mask, S, G0, G1, tmp)
+            cu, cv = _squared_centroid(Y, mask, 1 if whole else 2, S, G0, G1, tmp)
         else:
             cu, cv = out[_EU], out[_EV]
         out[_CU], out[_CV] = cu + ox, cv + oy
+
+
+# --------------------------------------------------------------------------------------
+# stage 1: components of the thresholded top-hat and their moments
+# --------------------------------------------------------------------------------------
+@_jit
+def _find(parent, k):
+    while parent[k] != k:
+        parent[k] = parent[parent[k]]
+        k = parent[k]
+    return k
+
+
+@_jit
+def _component_sums(hat, thr, base):
+    """The 8-connected components of ``hat > thr`` and their top-hat-weighted sums.
+
+    Runs of samples along each row are joined with the runs of the row above that touch
+    them (union-find); components are numbered in the order of their first sample (raster
+    order). The sums over each component's samples, in raster order (as ``np.bincount``
+    of the reference adds them), with ``w = hat - base``: ``sum w``, ``sum w c``,
+    ``sum w r``, ``sum w^2``, then about the weighted mean ``sum w dc dc``, ``sum w dr dr``,
+    ``sum w dc dr`` (c column, r row of the sample). Returns a (m, 7) array.
+    """
+    h, w = hat.shape
+    n_runs = 0
+    for r in range(h):                                    # count the runs
+        inside = False
+        for c in range(w):
+            above = hat[r, c] > thr
+            if above and not inside:
+                n_runs += 1
+            inside = above
+    run_r = np.empty(n_runs, np.int64)
+    run_a = np.empty(n_runs, np.int64)
+    run_b = np.empty(n_runs, np.int64)
+    parent = np.empty(n_runs, np.int64)
+    k = 0
+    prev0 = prev1 = 0                                     # the previous row's runs [prev0, prev1)
+    for r in range(h):
+        row0 = k
+        q0 = prev0                                        # first run above that may touch
+        c = 0
+        while c < w:
+            if hat[r, c] <= thr:
+                c += 1
+                continue
+            a = c
+            while c < w and hat[r, c] > thr:
+                c += 1
+            run_r[k], run_a[k], run_b[k], parent[k] = r, a, c - 1, k
+            while q0 < prev1 and run_b[q0] < a - 1:
+                q0 += 1
+            q = q0
+            while q < prev1 and run_a[q] <= c:            # 8-connected: [a - 1, c] overlaps
+                x, y = _find(parent, k), _find(parent, q)
+                if x != y:
+                    parent[max(x, y)] = min(x, y)
+                q += 1
+            k += 1
+        prev0, prev1 = row0, k
+    label = np.empty(n_runs, np.int64)
+    m = 0
+    for q in range(n_runs):                               # roots in order of first appearance
+        root = _find(parent, q)
+        if root == q:
+            label[q] = m
+            m += 1
+        else:
+            label[q] = label[root]
+    out = np.zeros((m, 7))
+    for q in range(n_runs):
+        j, r = label[q], run_r[q]
+        for c in range(run_a[q], run_b[q] + 1):
+            hv = float(hat[r, c]) - base
+            out[j, 0] += hv
+            out[j, 1] += hv * c
+            out[j, 2] += hv * r
+            out[j, 3] += hv * hv
+    for q in range(n_runs):
+        j, r = label[q], run_r[q]
+        mc, mr = out[j, 1] / out[j, 0], out[j, 2] / out[j, 0]
+        dr = r - mr
+        for c in range(run_a[q], run_b[q] + 1):
+            hv = float(hat[r, c]) - base
+            dc = c - mc
+            out[j, 4] += hv * dc * dc
+            out[j, 5] += hv * dr * dr
+            out[j, 6] += hv * dc * dr
+    return out
+
+
+def component_sums(hat, thr, base):
+    """Stage 1's components and sums, compiled (see ``_component_sums``); (m, 7) float64."""
+    return _component_sums(hat, int(thr), float(base))
 
 
 # --------------------------------------------------------------------------------------
@@ -671,6 +833,7 @@ def warm_up() -> bool:
         for dtype, hi in ((np.uint8, 200), (np.uint16, 40000)):
             for sign in (-1, 1):
                 img = np.where(disc == (sign < 0), hi // 4, hi).astype(dtype)
+                component_sums(img, hi // 2, 0.0)
                 for method in ("ellipse", "centroid"):
                     _call(img, np.zeros(1, int), np.zeros(1, int), np.array([12.2]), np.array([11.7]),
                           np.array([24]), sign=sign, step=3, method=method, upsample=4,

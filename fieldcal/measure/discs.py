@@ -151,9 +151,32 @@ class _Candidates:
     extent: np.ndarray   # (n,) upper bound of the blob's extent [px]
 
 
-def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contrast_dn):
+def _component_sums(hat, thr, base):
+    """The 8-connected components of ``hat > thr`` (OpenCV) and their top-hat-weighted sums
+    ``sum w, sum w c, sum w r, sum w^2``, then about the weighted mean ``sum w dc dc,
+    sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,)."""
+    binary = (hat > thr).view(np.uint8)
+    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
+    idx = np.flatnonzero(binary)
+    lab = labels.ravel()[idx] - 1
+    hv = hat.ravel()[idx].astype(np.float64) - base
+    r, c = np.divmod(idx, hat.shape[1])
+    m = n - 1
+
+    def total(w):
+        return np.bincount(lab, weights=w, minlength=m)
+
+    sh = total(hv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sc, sr = total(hv * c), total(hv * r)
+        dc, dr = c - (sc / sh)[lab], r - (sr / sh)[lab]
+        return sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr)
+
+
+def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contrast_dn, engine="numpy"):
     """Candidates on the image sampled every ``step`` pixels; returns them and the contrast
-    floor used (``min_contrast_dn``, or 2 % of the sample's 0.5-99.5 percentile range)."""
+    floor used (``min_contrast_dn``, or 2 % of the sample's 0.5-99.5 percentile range).
+    The components and their moments by OpenCV and NumPy (``engine="numpy"``) or compiled."""
     off = step // 2
     sub = np.ascontiguousarray(img[off::step, off::step]) if step > 1 else img
     if min_contrast_dn is None:
@@ -170,24 +193,15 @@ def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contr
     base = float(np.median(hat[:: max(1, hat.shape[0] // 128), :: max(1, hat.shape[1] // 128)]))
     thr = int(min(math.ceil(base + max(threshold_dn, 0.5 * min_contrast_dn)),
                   np.iinfo(img.dtype).max))
-    binary = (hat > thr).view(np.uint8)
-    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
-    # top-hat-weighted moments of each component (sums over its samples only)
-    idx = np.flatnonzero(binary)
-    lab = labels.ravel()[idx] - 1
-    hv = hat.ravel()[idx].astype(np.float64) - base
-    r, c = np.divmod(idx, sub.shape[1])
-    m = n - 1
-
-    def total(w):
-        return np.bincount(lab, weights=w, minlength=m)
-
-    sh = total(hv)
+    if engine == "numba":
+        sums = disc_kernel.component_sums(hat, thr, base)
+        sh, sc, sr, shh, scc, srr, scr = sums.T
+    else:
+        sh, sc, sr, shh, scc, srr, scr = _component_sums(hat, thr, base)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mc, mr = total(hv * c) / sh, total(hv * r) / sh
-        dc, dr = c - mc[lab], r - mr[lab]
-        vcc, vrr, vcr = total(hv * dc * dc) / sh, total(hv * dr * dr) / sh, total(hv * dc * dr) / sh
-        peak = total(hv * hv) / sh
+        mc, mr = sc / sh, sr / sh
+        vcc, vrr, vcr = scc / sh, srr / sh, scr / sh
+        peak = shh / sh
         # samples' worth of full contrast -> the area, and the diameter of a disc of that area
         d_est = 2.0 * step * np.sqrt(sh / peak / math.pi)
         # extent along the longest axis: 4 sigma (a disc's diameter; 1.15 x a bar's length)
@@ -446,13 +460,14 @@ def detect_targets(image, *, polarity: str = "dark", min_diameter_px: float = 8.
     noise_dn = estimate_noise_dn(img)
     step = coarse_step(min_diameter_px, psf_sigma_px)
     thr = max(0.5 * min_snr, 5.0) * noise_dn
-    cand, min_contrast_dn = _coarse_candidates(img, step, max_diameter_px, thr, sign, min_contrast)
+    engine = engine or default_engine()
+    cand, min_contrast_dn = _coarse_candidates(img, step, max_diameter_px, thr, sign, min_contrast, engine)
     if exclude is not None and len(cand.u):
         inside = inside_polygons(cand.u, cand.v, list(exclude))
         cand = _Candidates(cand.u[~inside], cand.v[~inside], cand.extent[~inside])
     if len(cand.u) == 0:
         return empty_measurements()
-    r = _measure_all(img, cand, engine=engine or default_engine(), sign=sign, step=step, method=method,
+    r = _measure_all(img, cand, engine=engine, sign=sign, step=step, method=method,
                      upsample=upsample, sat_level=sat_level, max_diameter_px=max_diameter_px,
                      min_snr=min_snr, noise_dn=noise_dn)
 

@@ -273,3 +273,40 @@ def test_the_default_engine_is_the_compiled_one_here():
     assert default_engine() == "numba"
     with pytest.raises(InputError, match="engine must be one of 'numba', 'numpy'"):
         detect_targets(np.zeros((20, 20), np.uint16), engine="cython")
+
+
+@needs_kernel
+def test_region_growing_is_the_8_connected_component_of_the_seed():
+    # the kernel's two ways of growing the region (one blob row by row, or the span fill)
+    # against SciPy's labelling, on blobs with noise, neighbours, holes and U shapes
+    rng = np.random.default_rng(23)
+    simple = 0
+    for trial in range(400):
+        S = int(rng.integers(6, 48))
+        yy, xx = np.mgrid[:S, :S]
+        m = ((yy - rng.uniform(0, S)) ** 2 + (xx - rng.uniform(0, S)) ** 2) < rng.uniform(4, S) ** 2
+        if trial % 2:
+            m ^= rng.random((S, S)) < rng.uniform(0.0, 0.3)      # noise, holes, bridges
+        if trial % 5 == 0:
+            m = (np.abs(yy - S / 2) + np.abs(xx - S / 2) < S / 2) & ~((yy < S / 2) & (np.abs(xx - S / 2) < S / 6))
+        m = m.astype(np.uint8)
+        sy, sx = int(rng.integers(S)), int(rng.integers(S))
+        lab, _ = ndimage.label(m, structure=np.ones((3, 3)))
+        ref = (lab == lab[sy, sx]) & (m == 1)
+        L, R, T, B = (np.empty(S, np.int64) for _ in range(4))
+        mask = m.ravel().copy()
+        whole = disc_kernel._grow_simple(mask, S, sy, sx, int(m.sum()), L, R, T, B)
+        if whole:
+            simple += 1
+            got = m == 1
+        else:
+            disc_kernel._grow_region(mask, S, sy, sx, np.empty((S * S, 4), np.int64), L, R, T, B)
+            got = mask.reshape(S, S) == 2
+        assert np.array_equal(got, ref), trial
+        rows, cols = np.flatnonzero(ref.any(1)), np.flatnonzero(ref.any(0))
+        assert (R[np.setdiff1d(np.arange(S), rows)] == -1).all()
+        for i in rows:
+            assert (L[i], R[i]) == (np.flatnonzero(ref[i])[0], np.flatnonzero(ref[i])[-1])
+        for j in cols:
+            assert (T[j], B[j]) == (np.flatnonzero(ref[:, j])[0], np.flatnonzero(ref[:, j])[-1])
+    assert 50 < simple < 350                                     # both ways were exercised
