@@ -62,11 +62,18 @@ assert sorted(_FLOAT_FIELDS + _BOOL_FIELDS) == sorted(RESULT_FIELDS)
 _TRUNCATED, _OVERFLOW, _TIGHT, _SATURATED, _FIT_OK = range(len(_BOOL_FIELDS))
 
 
-def _jit(fn):
-    """``numba.njit`` with the project's options; the plain function without Numba."""
+def _jit(fn=None, *, fastmath=False):
+    """``numba.njit`` with the project's options; the plain function without Numba.
+
+    ``fastmath=True`` lets LLVM reassociate sums and contract multiply-adds (vectorised
+    accumulation), never assume away NaN or infinity.
+    """
+    if fn is None:
+        return lambda f: _jit(f, fastmath=fastmath)
     if numba is None:
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)(fn)
+    flags = {"reassoc", "contract", "arcp"} if fastmath else False
+    return numba.njit(cache=True, nogil=True, error_model="numpy", boundscheck=False, fastmath=flags)(fn)
 
 
 # --------------------------------------------------------------------------------------
@@ -228,93 +235,130 @@ def _threshold_parts(S, g, c0, c1, c2, t, sign, colpart, rowpart):
 
 
 @_jit
-def _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask):
-    """The mask of pixels beyond the ellipse method's threshold map (1: beyond, 0: not);
-    returns the window's largest and smallest pixel and the mask's count (one pass)."""
+def _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask, row_count):
+    """The mask of pixels beyond the ellipse method's threshold map (1: beyond, 0: not) and
+    its count per row; returns the window's largest and smallest pixel (one pass)."""
     hi = img[oy, ox]
     lo = img[oy, ox]
-    count = 0
     for i in range(S):
         row = img[oy + i, ox:ox + S]
         rp = rowpart[i]
+        n = 0
+        if sign < 0:
+            for j in range(S):
+                v = row[j]
+                hi = max(hi, v)
+                lo = min(lo, v)
+                m = np.float32(v) < colpart[j] + rp
+                mask[i * S + j] = m
+                n += m
+        else:
+            for j in range(S):
+                v = row[j]
+                hi = max(hi, v)
+                lo = min(lo, v)
+                m = np.float32(v) > colpart[j] + rp
+                mask[i * S + j] = m
+                n += m
+        row_count[i] = n
+    return hi, lo
+
+
+@_jit
+def _mask_centroid(Y, S, t32, mask, row_count):
+    """The mask of pixels whose signal is beyond the centroid method's threshold, and its
+    count per row."""
+    for i in range(S):
+        n = 0
         for j in range(S):
-            v = row[j]
-            hi = max(hi, v)
-            lo = min(lo, v)
-            lim = colpart[j] + rp
-            if sign < 0:
-                m = np.float32(v) < lim
-            else:
-                m = np.float32(v) > lim
+            m = Y[i * S + j] > t32
             mask[i * S + j] = m
-            count += m
-    return hi, lo, count
+            n += m
+        row_count[i] = n
 
 
 @_jit
-def _mask_centroid(Y, S, t32, mask):
-    """The mask of pixels whose signal is beyond the centroid method's threshold; its count."""
-    count = 0
-    for p in range(S * S):
-        m = Y[p] > t32
-        mask[p] = m
-        count += m
-    return count
+def _row_run(mask, base, S, a, b, n):
+    """The run of the row at ``base`` that meets columns a..b when it holds all ``n`` mask
+    pixels of the row, as (lo, hi); (-1, -1) when the row has no mask pixel in a..b;
+    (-2, -2) when its mask pixels are not one such run. Walks only about the ends a and b."""
+    if n == 0:
+        return -1, -1
+    if mask[base + a]:
+        lo = a
+        while lo > 0 and mask[base + lo - 1]:
+            lo -= 1
+    else:
+        lo = a + 1
+        while lo <= b and not mask[base + lo]:
+            lo += 1
+        if lo > b:
+            return -1, -1
+    if mask[base + b]:
+        hi = b
+        while hi < S - 1 and mask[base + hi + 1]:
+            hi += 1
+    else:
+        hi = b - 1
+        while not mask[base + hi]:
+            hi -= 1
+    # lo and hi are mask pixels and lo - 1, hi + 1 are not: [lo, hi] is one run (and the
+    # row's only one) exactly when it holds the row's n mask pixels
+    if hi - lo + 1 != n:
+        return -2, -2
+    return lo, hi
 
 
 @_jit
-def _run_at(mask, base, S, a, b):
-    """The first run of mask pixels of the row at ``base`` that meets columns a..b, as
-    (lo, hi), and whether another one meets them too; (-1, -1) when none does."""
-    k = a
-    while k <= b and mask[base + k] == 0:
-        k += 1
-    if k > b:
-        return -1, -1, False
-    lo, hi = k, k
-    while lo > 0 and mask[base + lo - 1] != 0:
-        lo -= 1
-    while hi < S - 1 and mask[base + hi + 1] != 0:
-        hi += 1
-    k = hi + 2
-    while k <= b:
-        if mask[base + k] != 0:
-            return lo, hi, True
-        k += 1
-    return lo, hi, False
-
-
-@_jit
-def _grow_simple(mask, S, sy, sx, count, L, R, T, B):
-    """Region growing when the mask is one simple blob (the usual window): from the seed's
-    run, row by row down and then up, one run per row touching the run before it. When
-    those runs hold every mask pixel (``count``), they are the seed's 8-connected component
-    exactly; returns False (nothing decided) when they do not or a row has two runs."""
+def _grow_simple(mask, S, sy, sx, row_count, L, R, T, B):
+    """Region growing when the mask is one simple blob (the usual window): every row's mask
+    pixels form one run, and from the seed's row down and then up each row's run touches
+    the one before it, and no other row has mask pixels. Then those runs are the seed's
+    8-connected component exactly (they hold every mask pixel); returns False (nothing
+    decided) otherwise."""
     for k in range(S):
         L[k], R[k], T[k], B[k] = S, -1, S, -1
     if mask[sy * S + sx] == 0:
         return False                      # empty region: the general fill says so
-    lo, hi, two = _run_at(mask, sy * S, S, sx, sx)
+    lo, hi = _row_run(mask, sy * S, S, sx, sx, row_count[sy])
+    if lo < 0:
+        return False
     L[sy], R[sy] = lo, hi
-    area = hi - lo + 1
+    r0 = r1 = sy
     for d in (1, -1):
         plo, phi, i = L[sy], R[sy], sy + d
         while 0 <= i < S:
-            lo, hi, two = _run_at(mask, i * S, S, max(plo - 1, 0), min(phi + 1, S - 1))
-            if two:
+            a, b = _row_run(mask, i * S, S, max(plo - 1, 0), min(phi + 1, S - 1), row_count[i])
+            if a == -2:
                 return False
-            if lo < 0:
+            if a < 0:
                 break
-            L[i], R[i] = lo, hi
-            area += hi - lo + 1
-            plo, phi, i = lo, hi, i + d
-    if area != count:
-        return False
-    for i in range(S):                    # one run per row: the column ends from the row ends
-        if R[i] >= 0:
-            for j in range(L[i], R[i] + 1):
-                T[j] = min(T[j], i)
-                B[j] = i
+            L[i], R[i] = a, b
+            r0, r1 = min(r0, i), max(r1, i)
+            plo, phi, i = a, b, i + d
+    for i in range(S):                    # a mask pixel outside the rows reached: not one blob
+        if (i < r0 or i > r1) and row_count[i]:
+            return False
+    # first and last row of every column: the union of the runs from the top (bottom) down
+    # (up) to a row is one interval, each run touching the one before it
+    cl, cr = L[r0], R[r0]
+    for j in range(cl, cr + 1):
+        T[j] = r0
+    for i in range(r0 + 1, r1 + 1):
+        for j in range(L[i], cl):
+            T[j] = i
+        for j in range(cr + 1, R[i] + 1):
+            T[j] = i
+        cl, cr = min(cl, L[i]), max(cr, R[i])
+    cl, cr = L[r1], R[r1]
+    for j in range(cl, cr + 1):
+        B[j] = r1
+    for i in range(r1 - 1, r0 - 1, -1):
+        for j in range(L[i], cl):
+            B[j] = i
+        for j in range(cr + 1, R[i] + 1):
+            B[j] = i
+        cl, cr = min(cl, L[i]), max(cr, R[i])
     return True
 
 
@@ -474,7 +518,7 @@ def _solve5(N, r):
         r[k] = s / N[k, k]
 
 
-@_jit
+@_jit(fastmath=True)
 def _fit_ellipse(px, py, n, N, r, out):
     """Conic through n edge points (the reference's ``_fit_ellipses``, in float64); ``N``
     (5, 5) and ``r`` (5,) are scratch. Writes eu, ev, ea, eb, angle_deg, edge_rms,
@@ -665,6 +709,7 @@ def _measure_all(img, y0, x0, su, sv, sizes, sign, step, centroid, G0, G1, sat_l
     Y = np.empty(smax * smax if centroid else 1, np.float32)
     L, R = np.empty(smax, np.int64), np.empty(smax, np.int64)
     T, B = np.empty(smax, np.int64), np.empty(smax, np.int64)
+    row_count = np.empty(smax, np.int64)
     px, py = np.empty(4 * smax), np.empty(4 * smax)
     N, r = np.empty((5, 5)), np.empty(5)
     for w in range(sizes.size):
@@ -678,14 +723,14 @@ def _measure_all(img, y0, x0, su, sv, sizes, sign, step, centroid, G0, G1, sat_l
         if centroid:
             hi, lo = _signal_window(img, oy, ox, S, g32, c0, c1, c2, sign, Y)
             t = _isodata(Y, S * S, contrast)
-            count = _mask_centroid(Y, S, np.float32(t), mask)
+            _mask_centroid(Y, S, np.float32(t), mask, row_count)
         else:
             t = 0.5 * contrast
             _threshold_parts(S, g, c0, c1, c2, t, sign, colpart, rowpart)
-            hi, lo, count = _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask)
+            hi, lo = _mask_ellipse(img, oy, ox, S, sign, colpart, rowpart, mask, row_count)
         # the region is the whole mask (value 1) when the simple growth decides it, else
         # the general fill marks it (value 2)
-        whole = _grow_simple(mask, S, sy, sx, count, L, R, T, B)
+        whole = _grow_simple(mask, S, sy, sx, row_count, L, R, T, B)
         if not whole:
             _grow_region(mask, S, sy, sx, stack, L, R, T, B)
         at_t, at_b, at_l, at_r = oy == 0, oy + S == H, ox == 0, ox + S == W

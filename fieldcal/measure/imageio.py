@@ -42,6 +42,9 @@ MAX_FILE_BYTES = 8 * MAX_PIXELS
 """Refuse to read a file larger than this [bytes] (4 samples of 16 bits at :data:`MAX_PIXELS`)."""
 _CHUNK_BYTES = 1 << 22
 """Bytes read (and hashed while in the CPU's cache) per call."""
+_SEGMENT_BYTES = 1 << 22
+"""Compressed bytes tifffile reads at once before decoding them (its ``buffersize``): a
+zstd frame then peaks at ~1.15 x its pixels instead of ~2.6 x (bench/README_extract.md)."""
 _DECODE_THREADS = 1
 
 
@@ -278,7 +281,7 @@ def _decode(tif: tifffile.TiffFile, info: ImageInfo, source, maxworkers: int) ->
     if arr is not None:
         return arr
     try:
-        arr = tif.pages.first.asarray(maxworkers=maxworkers)
+        arr = tif.pages.first.asarray(maxworkers=maxworkers, buffersize=_SEGMENT_BYTES)
     except Exception as err:  # noqa: BLE001 - any decoder failure is a bad file, reported in one line
         raise ImageError(f"cannot decode pixels ({_short(err)}); truncated or corrupt file?", where) from None
     if arr.ndim == 3:

@@ -295,7 +295,7 @@ def test_region_growing_is_the_8_connected_component_of_the_seed():
         ref = (lab == lab[sy, sx]) & (m == 1)
         L, R, T, B = (np.empty(S, np.int64) for _ in range(4))
         mask = m.ravel().copy()
-        whole = disc_kernel._grow_simple(mask, S, sy, sx, int(m.sum()), L, R, T, B)
+        whole = disc_kernel._grow_simple(mask, S, sy, sx, m.sum(axis=1).astype(np.int64), L, R, T, B)
         if whole:
             simple += 1
             got = m == 1
