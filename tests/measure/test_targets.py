@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from fieldcal.errors import ImageError, InputError
 from fieldcal.measure.disc_windows import hat_sums, squared_centroid
 from fieldcal.measure.discs import DEFAULT_METHOD, METHODS, detect_targets
+from fieldcal.measure.imageio import read_file
 from fieldcal.measure.targets import measure_image
 from fieldcal.session.schemas import arrow_schema
 from tests.measure.peers import opencv_blob_centres
@@ -363,6 +364,9 @@ def test_measure_image_reads_fills_the_name_and_reports_bad_files(tmp_path):
     t = measure_image(p, polarity="dark", sensor=Sensor(100, 80, 5.3), name="images/a.tif")
     assert t.num_rows == 2 and set(t["image"].to_pylist()) == {"images/a.tif"}
     assert t["blob"].to_pylist() == [0, 1]
+    # the same from the bytes read once for hashing (the flow's path): the same table
+    assert measure_image(read_file(p), polarity="dark", sensor=Sensor(100, 80, 5.3),
+                         name="images/a.tif").equals(t)
     with pytest.raises(ImageError, match="the session's sensor is 120 x 80 px"):
         measure_image(p, sensor=Sensor(120, 80, 5.3))
     bad = tmp_path / "bad.tif"
