@@ -1,26 +1,34 @@
-"""Stage 3 of the disc detector compiled with Numba: one window at a time, no temporaries.
+"""The disc detector compiled with Numba: its window stage one window at a time, and the
+candidate stage's components, with no temporaries of the image's or the stack's size.
 
 The same procedure as the NumPy reference :mod:`fieldcal.measure.disc_windows` (and the
-module docstring of :mod:`fieldcal.measure.discs`, step 3), written as loops over one
-window's pixels that Numba compiles to machine code. Where the reference makes whole-window
-float maps and labels every window's mask, the kernel reads the pixels it needs straight
-from the image: the background ring, the box around the candidate, and, while it grows the
-region from the extreme pixel, each pixel once to test it against the threshold (the
-region's outline scans are kept up to date as it grows). Nothing of the size of a window
-stack is allocated; the scratch arrays of one window are reused for the next.
+module docstring of :mod:`fieldcal.measure.discs`, steps 1 and 3), written as loops that
+Numba compiles to machine code. Where the reference makes whole-window float maps and
+labels every window's mask, the kernel reads the pixels it needs straight from the image:
+the background ring, the box around the candidate, then one pass over the window for the
+threshold mask (with its count per row and the window's extremes for the saturation
+flag). The region is grown from the extreme pixel row by row when the mask is one simple
+blob (each row's mask pixels one run, each run touching the one before, no other mask
+pixel: then that is the 8-connected component exactly), else by a span fill; the outline
+scans come with it. Edge points and the conic fit follow. The scratch arrays of one
+window are reused for the next. Stage 1's connected components of the thresholded top-hat
+and their weighted moments (:func:`component_sums`) are found by a union-find over runs,
+adding the same terms in the same order as the reference's ``np.bincount``.
 
 Arithmetic follows the reference step by step, in the same precision where the reference
 decides a pixel (the threshold map and the edge interpolation in float32), so a window
-gives the same region; the conic is fitted in float64 (the reference sums in float32), so
-centres agree to ~1e-6 px, well inside the contract's tolerance
-(``tests/measure/test_disc_engines.py``).
+gives the same region; the conic is fitted in float64 with sums LLVM may reassociate (the
+reference sums in float32), so centres agree to ~2e-6 px, well inside the contract's
+tolerance (``tests/measure/test_disc_engines.py``).
 
 Compilation. The kernels are compiled with ``cache=True``: the machine code is written
 next to this file (or, where that is read-only, to Numba's user cache folder) and loaded by
-every later process in milliseconds. :func:`warm_up` compiles (or loads) them for uint8
-and uint16 images; a Dask worker calls it when it starts (``flows.worker``) so no task pays
-for compilation. If Numba is missing or cannot compile on a platform, :func:`available`
-says so in one logged line (:func:`problem`) and the detector uses the NumPy reference.
+every later process instead of compiled again (compiling takes 30-60 s on the 2-core test
+machine; loading ~0.25 s after Numba's own start-up, 1-6 s there depending on the load).
+:func:`warm_up` compiles (or loads) them for uint8 and uint16 images; a Dask worker calls
+it when it starts (``flows.worker``) so no task pays for compilation. If Numba is missing
+or cannot compile on a platform, :func:`available` says so in one logged line
+(:func:`problem`) and the detector uses the NumPy reference.
 """
 
 from __future__ import annotations

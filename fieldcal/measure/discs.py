@@ -37,7 +37,8 @@ full-image labelling is made (figures for a 8208 x 6280 frame: bench/README_extr
      ``[0.3, 0.7] C`` so that a stronger neighbour cannot capture it; ``"ellipse"`` uses
      ``C / 2``, where a blurred edge is steepest and where a symmetric blur leaves it;
    - region growing: the 8-connected component of pixels beyond the threshold that holds
-     the extreme pixel (all windows labelled in one call, stacked in a column);
+     the extreme pixel (the reference labels all windows in one call, stacked in a column;
+     the kernel grows it from the extreme pixel);
    - the centre, by one of two methods:
 
      ``"ellipse"``: sub-pixel edge points where the threshold level crosses the pixel
