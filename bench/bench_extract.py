@@ -5,21 +5,30 @@ Usage::
     python bench/bench_extract.py [--workdir DIR] [--repeat N] [--markdown FILE]
                                   [--eccentricity] [--methods]
 
-What it does, in one run:
+What it does, in one run (``OPENBLAS_NUM_THREADS=1``):
 
 1. Renders (once; cached in ``--workdir``) a dense planar field seen square-on by the
    paper's camera (IXU150-like, 5.3 um, Table 1 distortion) from 60 m: a 52 x 40 grid of
    60 mm dark discs (~28 px) filling the frame, PSF sigma 0.8 px, shot and read noise
-   (``fieldcal.synthetic.render.render_image``), written as an uncompressed TIFF and a zstd TIFF.
-2. In a fresh subprocess per measurement (so the peak memory is that of the measurement
-   alone): read time (uncompressed, zstd), one NumPy pass (``arr.max()``), extraction
-   time with the pixels in memory (all stages), and peak resident memory of
-   read + extraction relative to the image's size.
-3. ``cv2.SimpleBlobDetector`` with default settings on the same image (timed with and
-   without its 16 -> 8 bit conversion), and accuracy of both against the renderer's exact
-   image of each disc's centre (discs seen square-on: no perspective eccentricity beyond
-   the renderer's tiny distortion term; the exact ellipse centre is in the truth too).
-4. Optionally the eccentricity in the two synthetic scenarios (``--eccentricity``) and a
+   (``fieldcal.synthetic.render.render_image``), written as an uncompressed TIFF, a zstd
+   TIFF and in each layout of the renderer's TIFF mix.
+2. Extraction with the pixels in memory, all stages, in one process, interleaved round by
+   round: the floor (one NumPy pass, ``arr.max()``, best of 5 per round), the NumPy
+   reference (``engine="numpy"``), the Numba kernel (``engine="numba"``, loaded from its
+   cache before the first round) and ``cv2.SimpleBlobDetector`` with default settings
+   (three rounds; with and without its 16 -> 8 bit conversion); best times, ratios to the
+   floor (best over best, and the median of each round's ratio), accuracy of each against
+   the renderer's exact image of each disc's centre (discs seen square-on: no perspective
+   eccentricity beyond the renderer's tiny distortion term; the exact ellipse centre is in
+   the truth too).
+3. Peak resident memory in a fresh process per engine and file (``VmHWM``, reset between
+   the read and the extraction): of reading, of extracting (above the image) and of the
+   two, relative to the image's size.
+4. Per image of the renderer's TIFF mix, interleaved: read + hash + decode + extract as
+   the flow did before (hash the file, read it again, decode with one thread, NumPy
+   extraction) and as it does now (one read that hashes the bytes, decode from them with
+   1 or 2 codec threads, the Numba kernel). The files are in the page cache.
+5. Optionally the eccentricity in the two synthetic scenarios (``--eccentricity``) and a
    comparison of the two centre methods and SimpleBlobDetector on rendered images of
    both scenarios (``--methods``).
 
@@ -99,86 +108,181 @@ def make_images(workdir: Path):
     return raw, zst, truth_p
 
 
+# the renderer's mix of TIFF layouts (fieldcal.synthetic.render.write_field_session with
+# compression_mix=True: image k uses layout k mod 4)
+MIX = (
+    ("tiled 256, zstd", {"tile": (256, 256), "compression": "zstd", "bigtiff": False}),
+    ("striped, uncompressed", {"rowsperstrip": 64, "bigtiff": False}),
+    ("tiled 256, deflate, BigTIFF", {"tile": (256, 256), "compression": "adobe_deflate", "bigtiff": True}),
+    ("striped, uncompressed, BigTIFF", {"rowsperstrip": 64, "bigtiff": True}),
+)
+
+
+def make_mix(workdir: Path, raw: Path) -> list[Path]:
+    """The dense frame written in each layout of the renderer's mix (once; cached)."""
+    import tifffile
+
+    paths = [workdir / f"mix_{k}.tif" for k in range(len(MIX))]
+    if all(p.exists() for p in paths):
+        return paths
+    pixels = tifffile.imread(raw)
+    for p, (_, kw) in zip(paths, MIX, strict=True):
+        tifffile.imwrite(p, pixels, photometric="minisblack", metadata=None, **kw)
+    return paths
+
+
 # --------------------------------------------------------------------------------------
 # measurements, each in a fresh process
 # --------------------------------------------------------------------------------------
-def _child(task: str, path: str, repeat: int) -> dict:
+DETECT = {"polarity": "dark", "min_diameter_px": 16, "max_diameter_px": 48}
+
+
+def _status_mb(key):
+    # VmHWM is this process image's peak RSS (getrusage's maxrss survives fork + exec, so a
+    # child of a big parent would report the parent's peak)
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _reset_peak():
+    """Reset VmHWM to the current RSS (Linux >= 4.0: ``clear_refs`` 5)."""
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def _timed_cpu(fn):
+    """(wall time, CPU time of the process: every thread's, none of the waits) [s], result."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    out = fn()
+    return (time.perf_counter() - t0, time.process_time() - c0), out
+
+
+def _child_timing(path: str, rounds: int) -> dict:
+    """Floor, NumPy reference, Numba kernel and SimpleBlobDetector, interleaved round by round."""
     import cv2
 
+    from fieldcal.measure import disc_kernel
+    from fieldcal.measure.coded import to_uint8
+    from fieldcal.measure.discs import detect_targets
     from fieldcal.measure.imageio import read_image
-    from fieldcal.measure.targets import detect_targets
 
-    def status_mb(key):
-        # VmHWM is this process image's peak RSS (getrusage's maxrss survives fork + exec,
-        # so a child of a big parent would report the parent's peak)
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) / 1024.0
-        return float("nan")
-
-    def rss_mb():
-        return status_mb("VmRSS")
-
-    out = {"task": task, "cv2_threads": cv2.getNumThreads()}
-    base = rss_mb()
-    if task == "read":
-        times = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            arr = read_image(path)
-            times.append(time.perf_counter() - t0)
-            del arr
-        out["read_s"] = min(times)
-        return out
-    t0 = time.perf_counter()
+    assert disc_kernel.warm_up(), disc_kernel.problem()
     arr = read_image(path)
-    out["read_s"] = time.perf_counter() - t0
-    out["image_mb"] = arr.nbytes / 2**20
-    if task == "extract":
-        t_max = []
-        for _ in range(max(5, repeat)):
-            t0 = time.perf_counter()
-            arr.max()
-            t_max.append(time.perf_counter() - t0)
-        out["max_s"] = min(t_max)
-        times = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            table = detect_targets(arr, polarity="dark", min_diameter_px=16, max_diameter_px=48)
-            times.append(time.perf_counter() - t0)
-        out["extract_s"] = min(times)
-        out["extract_all_s"] = times
-        out["uv"] = np.stack([table["u_px"].to_numpy(), table["v_px"].to_numpy()], 1).tolist()
-        out["truncated"] = table["truncated"].to_numpy(zero_copy_only=False).tolist()
-        out["sigma_px"] = table["sigma_px"].to_numpy().tolist()
-    elif task == "peak":
-        # read + extraction, once, for the peak resident memory
-        detect_targets(arr, polarity="dark", min_diameter_px=16, max_diameter_px=48)
-    elif task == "blob":
-        import cv2 as _cv2
-
-        from fieldcal.measure.coded import to_uint8
-
-        times, times_conv = [], []
-        for _ in range(max(1, repeat // 2)):
-            t0 = time.perf_counter()
-            img8 = to_uint8(arr)
-            t1 = time.perf_counter()
-            kps = _cv2.SimpleBlobDetector_create().detect(img8)
-            t2 = time.perf_counter()
-            times_conv.append(t1 - t0)
-            times.append(t2 - t1)
-        out["blob_s"] = min(times)
-        out["to_uint8_s"] = min(times_conv)
-        out["uv"] = [list(k.pt) for k in kps]
-    out["peak_rss_mb"] = status_mb("VmHWM")
-    out["base_rss_mb"] = base
+    res = {k: [] for k in ("max", "numpy", "numba", "blob", "to_uint8")}
+    cpu = {k: [] for k in ("max", "numpy", "numba")}       # this thread's CPU time: not the waits
+    tables = {}
+    for r in range(rounds):
+        best = (np.inf, np.inf)
+        for _ in range(5):
+            c0 = time.thread_time()
+            t, _ = _timed(arr.max)
+            best = (min(best[0], t), min(best[1], time.thread_time() - c0))
+        res["max"].append(best[0])
+        cpu["max"].append(best[1])
+        for engine in ("numpy", "numba"):
+            c0 = time.thread_time()
+            t, tables[engine] = _timed(lambda e=engine: detect_targets(arr, engine=e, **DETECT))
+            cpu[engine].append(time.thread_time() - c0)
+            res[engine].append(t)
+        if r < 3:                                  # ~2 s each: three rounds are enough
+            t8, img8 = _timed_cpu(lambda: to_uint8(arr))
+            tb, kps = _timed_cpu(lambda i=img8: cv2.SimpleBlobDetector_create().detect(i))
+            res["to_uint8"].append(t8[0])
+            res["blob"].append(tb[0])
+            cpu.setdefault("blob", []).append(tb[1] + t8[1])
+    out = {"times": res, "cpu": cpu, "image_mb": arr.nbytes / 2**20, "cv2_threads": cv2.getNumThreads(),
+           "blob_uv": [list(k.pt) for k in kps]}
+    for engine, table in tables.items():
+        out[engine] = {"uv": np.stack([table["u_px"].to_numpy(), table["v_px"].to_numpy()], 1).tolist(),
+                       "truncated": table["truncated"].to_numpy(zero_copy_only=False).tolist(),
+                       "sigma_px": table["sigma_px"].to_numpy().tolist()}
     return out
 
 
-def run_child(task, path, repeat):
-    cmd = [sys.executable, __file__, "--child", task, str(path), "--repeat", str(repeat)]
+def _child_peak(path: str, how: str) -> dict:
+    """Peak resident memory of reading one image, then of extracting its targets.
+
+    ``how``: ``"before"`` (the file read by path, NumPy reference) or ``"after"`` (one read
+    that hashes the bytes, ``read_file``, decoded from them; the Numba kernel).
+    """
+    from fieldcal.measure import disc_kernel
+    from fieldcal.measure.discs import detect_targets
+    from fieldcal.measure.imageio import read_file, read_image
+
+    before = _status_mb("VmRSS")
+    if how == "after":
+        assert disc_kernel.warm_up(), disc_kernel.problem()
+    base = _status_mb("VmRSS")
+    _reset_peak()
+    source = read_file(path) if how == "after" else path
+    arr = read_image(source)
+    read_peak = _status_mb("VmHWM")
+    after_read = _status_mb("VmRSS")
+    _reset_peak()
+    detect_targets(arr, engine="numba" if how == "after" else "numpy", **DETECT)
+    return {"image_mb": arr.nbytes / 2**20, "kernel_mb": base - before, "base_mb": base,
+            "read_peak_mb": read_peak - base, "after_read_mb": after_read - base,
+            "extract_peak_mb": _status_mb("VmHWM") - base}
+
+
+def _child_per_image(paths: list[str], rounds: int) -> dict:
+    """Per image of the renderer's TIFF mix: read + hash + decode + extract, before and after.
+
+    Before: the file hashed (``sha256_file``), then read again and decoded with one codec
+    thread, extraction by the NumPy reference. After: one read that hashes the bytes on the
+    way (``read_file``), decoding from those bytes with 1 or 2 codec threads, extraction
+    by the Numba kernel.
+    """
+    from fieldcal.measure import disc_kernel
+    from fieldcal.measure.discs import detect_targets
+    from fieldcal.measure.imageio import read_file, read_image
+    from fieldcal.session.fingerprint import sha256_file
+
+    assert disc_kernel.warm_up(), disc_kernel.problem()
+
+    def before(p):
+        t_hash, _ = _timed_cpu(lambda: sha256_file(p))
+        t_dec, arr = _timed_cpu(lambda: read_image(p, maxworkers=1))
+        t_ext, _ = _timed_cpu(lambda: detect_targets(arr, engine="numpy", **DETECT))
+        return {"hash": t_hash, "read+decode": t_dec, "extract": t_ext}
+
+    def after(p, threads):
+        t_read, f = _timed_cpu(lambda: read_file(p))
+        t_dec, arr = _timed_cpu(lambda: read_image(f, maxworkers=threads))
+        t_ext, _ = _timed_cpu(lambda: detect_targets(arr, engine="numba", **DETECT))
+        return {"read+hash": t_read, "decode": t_dec, "extract": t_ext}
+
+    runs = {"before": before, "after, 1 codec thread": lambda p: after(p, 1),
+            "after, 2 codec threads": lambda p: after(p, 2)}
+    out = {str(k): {name: [] for name in runs} for k in range(len(paths))}
+    for _ in range(rounds):
+        for k, p in enumerate(paths):
+            for name, fn in runs.items():
+                out[str(k)][name].append(fn(p))
+    return out
+
+
+def _child(task: str, args: list[str], repeat: int) -> dict:
+    if task == "timing":
+        return _child_timing(args[0], repeat)
+    if task == "peak":
+        return _child_peak(args[0], args[1])
+    if task == "per_image":
+        return _child_per_image(args, repeat)
+    raise ValueError(task)
+
+
+def run_child(task, args, repeat):
+    cmd = [sys.executable, __file__, "--child", task, *map(str, args), "--repeat", str(repeat)]
     res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=os.environ.copy())
     return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -244,9 +348,10 @@ def methods_table():
     from scipy.spatial import cKDTree
 
     from fieldcal.measure.coded import detect_aruco, marker_exclusion_polygons
-    from fieldcal.measure.targets import detect_targets, opencv_blob_centres
+    from fieldcal.measure.discs import detect_targets, inside_polygons
     from fieldcal.synthetic.field import paper_field, wide_field
     from fieldcal.synthetic.render import render_image, scaled_field
+    from tests.measure.peers import opencv_blob_centres
 
     cases = [("paper x0.25, img 5", "paper", 0.25, 5, {}), ("paper x0.25, img 13", "paper", 0.25, 13, {}),
              ("paper x0.25, dim (SNR ~15)", "paper", 0.25, 5, {"exposure": 0.02}),
@@ -265,9 +370,7 @@ def methods_table():
         disc = (tr["kind"] == "disc") & tr["fully_inside"]
         ell = np.stack([tr["u_ellipse_px"], tr["v_ellipse_px"]], 1)
         if polys:
-            from fieldcal.measure.targets import _inside_any
-
-            near = _inside_any(ell[:, 0], ell[:, 1], [p * 1.0 for p in polys])
+            near = inside_polygons(ell[:, 0], ell[:, 1], [p * 1.0 for p in polys])
             disc &= ~near
         out = [label, f"{int(disc.sum())}", f"{np.median(tr['snr'][disc]):.0f}"]
         for method in ("ellipse", "centroid"):
@@ -289,63 +392,110 @@ def methods_table():
     return "\n".join(head + rows) + "\n"
 
 
+def _ms(x):
+    return f"{1e3 * x:.1f}" if x < 0.1 else f"{1e3 * x:.0f}"
+
+
+def timing_table(tm, truth):
+    """The extraction table: floor, the two engines, SimpleBlobDetector; ratios; accuracy."""
+    t = {k: np.asarray(v) for k, v in tm["times"].items()}
+    c = {k: np.asarray(v) for k, v in tm["cpu"].items()}
+    floor = t["max"].min()
+    rounds = len(t["max"])
+    ratio = {e: np.median(t[e] / t["max"]) for e in ("numpy", "numba")}
+    acc = {e: accuracy(tm[e]["uv"], truth, tm[e]["truncated"]) for e in ("numpy", "numba")}
+    acc_b = accuracy(tm["blob_uv"], truth)
+    blob = t["blob"].min() + t["to_uint8"].min()
+    a, b = acc["numpy"], acc["numba"]
+    return [
+        "| quantity | NumPy reference | Numba kernel (default) | SimpleBlobDetector |",
+        "|---|---|---|---|",
+        f"| image | 8208 x 6280 uint16 ({tm['image_mb']:.0f} MiB), {a['n_truth_inside']} discs fully inside, "
+        "~28 px, PSF sigma 0.8 px, SNR ~95 | | |",
+        f"| one NumPy pass `arr.max()` (floor), best of {rounds} rounds x 5 | {_ms(floor)} ms | | |",
+        f"| extraction, pixels in memory, all stages, best of {rounds} | {_ms(t['numpy'].min())} ms | "
+        f"{_ms(t['numba'].min())} ms | {_ms(t['blob'].min())} ms (+ {_ms(t['to_uint8'].min())} ms 16->8 bit) |",
+        f"| ratio to the floor (best / best) | {t['numpy'].min() / floor:.1f} x | {t['numba'].min() / floor:.1f} x "
+        f"| {blob / floor:.0f} x |",
+        f"| ratio to the floor (median of the rounds' ratios) | {ratio['numpy']:.1f} x | {ratio['numba']:.1f} x | |",
+        f"| kernel / reference (median of the rounds) | | {np.median(t['numba'] / t['numpy']):.2f} | |",
+        f"| CPU time of the thread, best of {rounds} (floor {_ms(c['max'].min())} ms): what the load "
+        "does not inflate | "
+        f"{_ms(c['numpy'].min())} ms = {c['numpy'].min() / c['max'].min():.1f} x | "
+        f"{_ms(c['numba'].min())} ms = {c['numba'].min() / c['max'].min():.1f} x | "
+        f"{_ms(c['blob'].min())} ms (process, with the stretch) |",
+        f"| detected (fully inside) | {a['detected'] * 100:.2f} % | {b['detected'] * 100:.2f} % | "
+        f"{acc_b['detected'] * 100:.2f} % |",
+        f"| false detections | {a['false']} | {b['false']} | {acc_b['false']} |",
+        f"| RMS error vs exact image of the centre | {a['rms_centre_px']:.4f} px | {b['rms_centre_px']:.4f} px | "
+        f"{acc_b['rms_centre_px']:.4f} px |",
+        f"| RMS error vs exact ellipse centre | {a['rms_ellipse_px']:.4f} px | {b['rms_ellipse_px']:.4f} px | "
+        f"{acc_b['rms_ellipse_px']:.4f} px |",
+        f"| max error vs centre | {a['max_centre_px']:.4f} px | {b['max_centre_px']:.4f} px | "
+        f"{acc_b['max_centre_px']:.4f} px |",
+        f"| largest difference of a centre, kernel vs reference | | "
+        f"{np.max(np.abs(np.asarray(tm['numba']['uv']) - np.asarray(tm['numpy']['uv']))):.1e} px | |",
+        f"| median a-priori sigma_px (per axis) | {np.median(tm['numpy']['sigma_px']):.4f} px | "
+        f"{np.median(tm['numba']['sigma_px']):.4f} px | |",
+        f"| OpenCV threads | {tm['cv2_threads']} | | |",
+    ]
+
+
+def peak_table(peaks):
+    rows = ["| peak resident memory (x the image) | read | extraction (above the image) | "
+            "read + extraction | the kernel's code (MiB) |", "|---|---|---|---|---|"]
+    what = {"before": "read by path, NumPy reference", "after": "read once + hashed (`read_file`), Numba kernel"}
+    for (label, how), pk in peaks.items():
+        img = pk["image_mb"]
+        rows.append(f"| {label}, {what[how]} | {pk['read_peak_mb'] / img:.2f} x | "
+                    f"{(pk['extract_peak_mb'] - pk['after_read_mb']) / img:.2f} x | "
+                    f"{max(pk['read_peak_mb'], pk['extract_peak_mb']) / img:.2f} x | "
+                    f"{pk['kernel_mb']:.0f} |")
+    return rows
+
+
+def per_image_table(per):
+    rows = ["| layout (renderer's mix) | before: hash + read/decode + extract (NumPy) | "
+            "after: read+hash + decode + extract (Numba), 1 codec thread | same, 2 codec threads | "
+            "after (1 thread) / before |", "|---|---|---|---|---|"]
+    for clock, label_clock in ((0, "wall"), (1, "CPU of the process")):
+        for k, (label, _) in enumerate(MIX):
+            cells, totals = [], {}
+            for name in ("before", "after, 1 codec thread", "after, 2 codec threads"):
+                runs = per[str(k)][name]
+                parts = {p: min(r[p][clock] for r in runs) for p in runs[0]}
+                totals[name] = min(sum(v[clock] for v in r.values()) for r in runs)
+                cells.append(" + ".join(_ms(v) for v in parts.values()) + f" = **{_ms(totals[name])} ms**")
+            rows.append(f"| {label} ({label_clock}) | {cells[0]} | {cells[1]} | {cells[2]} | "
+                        f"{totals['after, 1 codec thread'] / totals['before']:.2f} |")
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", default="/tmp/fieldcal_bench_extract")
-    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=9, help="interleaved rounds")
     ap.add_argument("--markdown", default=None, help="write the results table to this file")
     ap.add_argument("--eccentricity", action="store_true", help="add the eccentricity table")
     ap.add_argument("--methods", action="store_true",
                     help="add the table comparing the centre methods on rendered images")
-    ap.add_argument("--child", nargs=2, metavar=("TASK", "PATH"), help=argparse.SUPPRESS)
+    ap.add_argument("--child", nargs="+", metavar="ARG", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        res = _child(args.child[0], args.child[1], args.repeat)
+        res = _child(args.child[0], args.child[1:], args.repeat)
         print(json.dumps(res))
         return 0
 
-    raw, zst, truth_p = make_images(Path(args.workdir))
+    workdir = Path(args.workdir)
+    raw, zst, truth_p = make_images(workdir)
+    mix = make_mix(workdir, raw)
     with open(truth_p, "rb") as fh:
         truth = pickle.load(fh)
-    r_raw = run_child("read", raw, args.repeat)
-    r_zst = run_child("read", zst, args.repeat)
-    ext = run_child("extract", raw, args.repeat)
-    peak = run_child("peak", raw, 1)
-    peak_z = run_child("peak", zst, 1)
-    blob = run_child("blob", raw, args.repeat)
-    acc = accuracy(ext["uv"], truth, ext["truncated"])
-    acc_b = accuracy(blob["uv"], truth)
-    img_mb = ext["image_mb"]
-    floor = ext["max_s"]
-    lines = [
-        "| quantity | value |",
-        "|---|---|",
-        f"| image | 8208 x 6280 uint16 ({img_mb:.0f} MiB), {acc['n_truth_inside']} discs fully "
-        f"inside, ~28 px, PSF sigma 0.8 px, SNR ~95 |",
-        f"| read, uncompressed TIFF | {r_raw['read_s'] * 1e3:.0f} ms |",
-        f"| read, zstd TIFF (tiled 512) | {r_zst['read_s'] * 1e3:.0f} ms |",
-        f"| one NumPy pass, `arr.max()` (floor) | {floor * 1e3:.1f} ms |",
-        f"| extraction, pixels in memory, all stages (`detect_targets`, best of {args.repeat}) | "
-        f"{ext['extract_s'] * 1e3:.0f} ms = {ext['extract_s'] / floor:.1f} x the floor |",
-        f"| cv2.SimpleBlobDetector, default settings (+ 16->8 bit stretch) | "
-        f"{blob['blob_s'] * 1e3:.0f} ms (+ {blob['to_uint8_s'] * 1e3:.0f} ms) = "
-        f"{(blob['blob_s'] + blob['to_uint8_s']) / ext['extract_s']:.1f} x ours |",
-        f"| peak RSS, read + extract (uncompressed) | {peak['peak_rss_mb'] - peak['base_rss_mb']:.0f} MiB "
-        f"above start = {(peak['peak_rss_mb'] - peak['base_rss_mb']) / img_mb:.2f} x the image |",
-        f"| peak RSS, read + extract (zstd) | {peak_z['peak_rss_mb'] - peak_z['base_rss_mb']:.0f} MiB "
-        f"= {(peak_z['peak_rss_mb'] - peak_z['base_rss_mb']) / img_mb:.2f} x the image |",
-        f"| detected (fully inside), ours / SimpleBlob | {acc['detected'] * 100:.2f} % / "
-        f"{acc_b['detected'] * 100:.2f} % |",
-        f"| false detections, ours / SimpleBlob | {acc['false']} / {acc_b['false']} |",
-        f"| RMS error vs exact image of the centre, ours / SimpleBlob | {acc['rms_centre_px']:.4f} px / "
-        f"{acc_b['rms_centre_px']:.4f} px |",
-        f"| RMS error vs exact ellipse centre, ours / SimpleBlob | {acc['rms_ellipse_px']:.4f} px / "
-        f"{acc_b['rms_ellipse_px']:.4f} px |",
-        f"| max error vs centre, ours / SimpleBlob | {acc['max_centre_px']:.4f} px / "
-        f"{acc_b['max_centre_px']:.4f} px |",
-        f"| median a-priori sigma_px (per axis) | {np.median(ext['sigma_px']):.4f} px |",
-        f"| OpenCV threads | {ext['cv2_threads']} |",
-    ]
+    tm = run_child("timing", [raw], args.repeat)
+    peaks = {(label, how): run_child("peak", [path, how], 1)
+             for label, path in (("uncompressed", raw), ("zstd tiled 512", zst)) for how in ("before", "after")}
+    per = run_child("per_image", mix, max(3, args.repeat // 3))
+    lines = timing_table(tm, truth) + [""] + peak_table(peaks) + [""] + per_image_table(per)
     text = "\n".join(lines) + "\n"
     if args.eccentricity:
         ecc = ["", "| scenario | disc | pairs | median | 95 % | max |", "|---|---|---|---|---|---|"]
@@ -355,7 +505,9 @@ def main(argv=None):
     if args.methods:
         text += methods_table()
     print(text)
-    print("extraction times:", [round(t * 1e3) for t in ext["extract_all_s"]], "ms", file=sys.stderr)
+    t = tm["times"]
+    for k in ("max", "numpy", "numba"):
+        print(k, "per round:", [round(x * 1e3, 1) for x in t[k]], "ms", file=sys.stderr)
     if args.markdown:
         Path(args.markdown).write_text(text)
     return 0

@@ -113,10 +113,15 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
     return Prepared(sess, settings, names, tables, frames)
 
 
-def measure(prepared: Prepared, name: str) -> pa.Table:
-    """Measure one image of the session (see the module docstring)."""
+def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
+    """Measure one image of the session (see the module docstring).
+
+    ``source``: the image file's bytes already read and hashed
+    (:func:`fieldcal.measure.imageio.read_file`), decoded without reading the file again;
+    default: read the image from the session folder.
+    """
     sess = prepared.session
-    path = sess.image_path(name)
+    path = sess.image_path(name) if source is None else source
     if prepared.method == "goniometer":
         row = goniometer.measure_frame(path, sess.sensor, name=name)
         return goniometer.measurements_table([row])

@@ -27,6 +27,8 @@ import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
 
+from fieldcal.measure.imageio import stat_stamp
+
 __all__ = ["HashCache", "file_stamp", "default_path"]
 
 ENV = "FIELDCAL_HASH_CACHE"
@@ -51,7 +53,7 @@ def file_stamp(path) -> tuple[int, int, int, int, int] | None:
         return None
     if not os.path.isfile(path):
         return None
-    return (int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino), int(st.st_dev))
+    return stat_stamp(st)
 
 
 class HashCache:

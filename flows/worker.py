@@ -1,11 +1,13 @@
-"""Dask worker preload: import the measuring code once, when the worker starts.
+"""Dask worker preload: import the measuring code and load its compiled kernels once, when the worker starts.
 
 ``dask worker --preload flows.worker`` (and the local clusters the flows start) load this
 module in every worker process, so the first measuring task does not pay for importing
-Prefect's task engine, fieldcal and OpenCV (several seconds per process), and the batch
-size the flow derives from its first tasks measures the work rather than the imports.
-It also gives OpenCV as many threads as the worker has Dask threads (one by default), so
-that workers sharing a machine do not oversubscribe its cores.
+Prefect's task engine, fieldcal and OpenCV (several seconds per process), nor for
+compiling the disc kernel (:func:`fieldcal.measure.disc_kernel.warm_up` loads it from
+Numba's cache), and the batch size the flow derives from its first tasks measures the
+work rather than the imports. It also gives OpenCV and the TIFF codecs as many threads as
+the worker has Dask threads (one by default), so that workers sharing a machine do not
+oversubscribe its cores.
 """
 
 from __future__ import annotations
@@ -18,8 +20,14 @@ import fieldcal.goniometer.method  # noqa: F401
 import fieldcal.measure.targets  # noqa: F401
 import fieldcal.pipeline  # noqa: F401
 import flows.calibrate  # noqa: F401
+from fieldcal.measure import disc_kernel
+from fieldcal.measure.imageio import set_decode_threads
 
 
 def dask_setup(worker) -> None:
-    """Called by Dask when the worker starts: one OpenCV thread per Dask thread."""
-    cv2.setNumThreads(max(1, int(worker.state.nthreads)))
+    """Called by Dask when the worker starts: one OpenCV and one codec thread per Dask
+    thread, and the compiled disc kernel loaded (or the one-line reason it cannot be)."""
+    threads = max(1, int(worker.state.nthreads))
+    cv2.setNumThreads(threads)
+    set_decode_threads(threads)
+    disc_kernel.warm_up()

@@ -1,7 +1,11 @@
 """Measuring images: pixels in, image coordinates out.
 
-- :mod:`.imageio`: reading and checking TIFF images.
-- :mod:`.targets`: sub-pixel centroids of circular targets, the per-image measurement.
+- :mod:`.imageio`: reading and checking TIFF images, in one pass with their content hash.
+- :mod:`.measurements`: the ``measurements`` table every detector returns, and the
+  a-priori precision of a centre.
+- :mod:`.discs`: sub-pixel centres of circular targets; its window stage in two engines,
+  :mod:`.disc_windows` (the NumPy reference) and :mod:`.disc_kernel` (compiled with Numba).
 - :mod:`.coded`: ArUco coded targets.
+- :mod:`.targets`: the per-image composition (coded targets, then discs).
 - :mod:`.spots`: the goniometer's collimated spot centroids.
 """

@@ -38,11 +38,12 @@ import numpy as np
 import pyarrow as pa
 
 from fieldcal.errors import InputError
-from fieldcal.measure.targets import _apriori_sigma, _check_image, empty_measurements, measurements_table
+from fieldcal.measure.imageio import check_image
+from fieldcal.measure.measurements import apriori_sigma, empty_measurements, measurements_table
 from fieldcal.robust import robust_sigma
 
 __all__ = ["to_uint8", "detect_aruco", "diagonal_crossing", "marker_exclusion_polygons",
-           "DEFAULT_DICTIONARY"]
+           "aruco_dictionary", "DEFAULT_DICTIONARY"]
 
 DEFAULT_DICTIONARY = "DICT_4X4_1000"
 _MAX_DETECT_SIDE_PX = 4200
@@ -59,7 +60,7 @@ def to_uint8(image, *, low_percent: float = 0.5, high_percent: float = 99.5,
     subtract and a scaled conversion, both OpenCV). An 8-bit image is returned unchanged
     (no copy).
     """
-    img = _check_image(image)
+    img = check_image(image)
     if img.dtype == np.uint8:
         return img
     step = max(1, int(math.sqrt(img.size / n_samples)))
@@ -70,7 +71,14 @@ def to_uint8(image, *, low_percent: float = 0.5, high_percent: float = 99.5,
 
 
 @functools.cache
-def _dictionary(name: str):
+def aruco_dictionary(name: str):
+    """OpenCV's predefined ArUco dictionary of that name (``"DICT_4X4_1000"``, ...).
+
+    Raises
+    ------
+    InputError
+        Not a name of OpenCV's predefined dictionaries.
+    """
     if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
         raise InputError(f"unknown ArUco dictionary {name!r} (an OpenCV name such as "
                          f"'{DEFAULT_DICTIONARY}')")
@@ -81,7 +89,7 @@ def _detector(dictionary: str, refine_subpix: bool):
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = (cv2.aruco.CORNER_REFINE_SUBPIX if refine_subpix
                                      else cv2.aruco.CORNER_REFINE_NONE)
-    return cv2.aruco.ArucoDetector(_dictionary(dictionary), params)
+    return cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
 
 
 def diagonal_crossing(corners) -> np.ndarray:
@@ -249,7 +257,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
         ``diameter_px`` the mean side, ``contrast`` and ``snr`` from the black border and the
         quiet zone around it.
     """
-    img = _check_image(image)
+    img = check_image(image)
     if downscale is None:
         downscale = max(1, math.ceil(max(img.shape) / _MAX_DETECT_SIDE_PX))
     if not (isinstance(downscale, (int, np.integer)) and 1 <= downscale <= 32):
@@ -270,7 +278,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     ids = np.asarray(ids).reshape(-1)
     c = np.concatenate([np.asarray(k, float).reshape(1, 4, 2) for k in corners])
     side = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).mean(axis=1)
-    n_cells = _dictionary(dictionary).markerSize + 2
+    n_cells = aruco_dictionary(dictionary).markerSize + 2
     if downscale > 1:
         c = downscale * c + (downscale - 1) / 2.0
         side = side * downscale
@@ -291,22 +299,11 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     diag = np.stack([np.linalg.norm(c[:, 2] - c[:, 0], axis=1),
                      np.linalg.norm(c[:, 3] - c[:, 1], axis=1)], axis=1)
 
-    inner = _side_samples(img, c, -0.5, n_cells)     # middle of the black border
-    outer = _side_samples(img, c, +0.5, n_cells)     # middle of the white quiet zone
-    contrast = np.abs(np.median(outer, axis=1) - np.median(inner, axis=1))
-    noise = np.maximum(robust_sigma(outer - np.median(outer, axis=1, keepdims=True), axis=1), 0.3)
-    snr = contrast / noise
-    H, W = img.shape
-    truncated = ((c[..., 0] < 1) | (c[..., 1] < 1) | (c[..., 0] > W - 2) | (c[..., 1] > H - 2)).any(1)
-    sat = np.iinfo(img.dtype).max
-    lo = np.clip(np.floor(c.min(axis=1)).astype(int), 0, [W - 1, H - 1])
-    hi = np.clip(np.ceil(c.max(axis=1)).astype(int) + 1, 1, [W, H])
-    saturated = np.array([bool((img[lo[k, 1]:hi[k, 1], lo[k, 0]:hi[k, 0]] >= sat).any())
-                          for k in range(len(ids))])
+    contrast, snr, saturated, truncated = _marker_quality(img, c, n_cells)
     # a-priori sigma: from the edge lines' scatter (refine="edges", with a floor for the
     # model), else the cornerSubPix bias dominates (~0.02 px at the centre, tests)
     sigma = np.where(np.isfinite(edge_sigma), np.hypot(edge_sigma, _SIGMA_FLOOR_PX),
-                     np.hypot(_apriori_sigma(snr, 4.0 * side / math.pi), 0.02))
+                     np.hypot(apriori_sigma(snr, 4.0 * side / math.pi), 0.02))
     cols = {
         "kind": ["aruco"] * len(ids), "code": pa.array(ids.astype(np.int32)),
         "u_px": centre[:, 0], "v_px": centre[:, 1],
@@ -319,6 +316,24 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
         "corners_px": pa.array(c.reshape(len(ids), 8).tolist(), pa.list_(pa.float64())),
     }
     return measurements_table(cols, image_name)
+
+
+def _marker_quality(img, c, n_cells):
+    """Contrast [DN] and SNR from the black border and the quiet zone around it, and the
+    saturated / truncated flags, of markers with corners ``c`` (n, 4, 2) [px]; each (n,)."""
+    inner = _side_samples(img, c, -0.5, n_cells)     # middle of the black border
+    outer = _side_samples(img, c, +0.5, n_cells)     # middle of the white quiet zone
+    contrast = np.abs(np.median(outer, axis=1) - np.median(inner, axis=1))
+    noise = np.maximum(robust_sigma(outer - np.median(outer, axis=1, keepdims=True), axis=1), 0.3)
+    snr = contrast / noise
+    H, W = img.shape
+    truncated = ((c[..., 0] < 1) | (c[..., 1] < 1) | (c[..., 0] > W - 2) | (c[..., 1] > H - 2)).any(1)
+    sat = np.iinfo(img.dtype).max
+    lo = np.clip(np.floor(c.min(axis=1)).astype(int), 0, [W - 1, H - 1])
+    hi = np.clip(np.ceil(c.max(axis=1)).astype(int) + 1, 1, [W, H])
+    saturated = np.array([bool((img[lo[k, 1]:hi[k, 1], lo[k, 0]:hi[k, 0]] >= sat).any())
+                          for k in range(len(c))], dtype=bool)
+    return contrast, snr, saturated, truncated
 
 
 def marker_exclusion_polygons(table: pa.Table, *, grow: float = 1.5) -> list[np.ndarray]:

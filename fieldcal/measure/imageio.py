@@ -1,4 +1,4 @@
-"""Reading session images (CONTRACT section 3, "Images") with tifffile.
+"""Reading session images (CONTRACT section 3, "Images") with tifffile, in one pass.
 
 Single-channel TIFF or BigTIFF, 8- or 16-bit unsigned, striped or tiled, any codec that
 tifffile decodes. Multi-channel images are converted to luminance (ITU-R BT.601 weights
@@ -7,10 +7,21 @@ naming the file and the reason.
 
 The pixel array is returned in its stored unsigned dtype (no float copy of a 100 MB
 image is made here); measurement code converts small windows as it needs them.
+
+**One pass per image.** The lake's observation cache and the inputs' fingerprint are keyed
+by the SHA-256 of each image file's bytes (:mod:`fieldcal.session.fingerprint`). Hashing
+the file and then decoding it would read a 100 MB file twice; :func:`read_file` reads it
+once into memory and hashes those bytes as they arrive, and :func:`read_image` decodes
+from them (an :class:`ImageFile` is accepted wherever a path is). An uncompressed image
+is not even copied: its pixel array is a view of the bytes read. Compressed images are
+decoded with :func:`decode_threads` codec threads (tifffile's ``maxworkers``; the Dask
+worker sets it to its own thread count, :func:`set_decode_threads`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import struct
 from dataclasses import dataclass
@@ -19,13 +30,57 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from fieldcal.errors import ImageError
+from fieldcal.errors import ImageError, InputError
 
-__all__ = ["ImageInfo", "probe_image", "read_image", "LUMA_WEIGHTS"]
+__all__ = ["ImageInfo", "ImageFile", "probe_image", "read_file", "read_image", "check_image",
+           "stat_stamp", "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES"]
 
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 MAX_PIXELS = 400_000_000
 """Refuse images claiming more pixels than this (a corrupt header must not allocate it)."""
+MAX_FILE_BYTES = 8 * MAX_PIXELS
+"""Refuse to read a file larger than this [bytes] (4 samples of 16 bits at :data:`MAX_PIXELS`)."""
+_CHUNK_BYTES = 1 << 22
+"""Bytes read (and hashed while in the CPU's cache) per call."""
+_SEGMENT_BYTES = 1 << 22
+"""Compressed bytes tifffile reads at once before decoding them (its ``buffersize``): a
+zstd frame then peaks at ~1.15 x its pixels instead of ~2.6 x (bench/README_extract.md)."""
+_DECODE_THREADS = 1
+
+
+def set_decode_threads(n: int) -> None:
+    """Codec threads for decoding a compressed image (tifffile's ``maxworkers``), >= 1.
+
+    A Dask worker calls it with its own thread count (``flows.worker``), as it does for
+    OpenCV, so that workers sharing a machine do not oversubscribe its cores.
+    """
+    global _DECODE_THREADS
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise InputError(f"decode threads must be an integer >= 1, got {n!r}")
+    _DECODE_THREADS = int(n)
+
+
+def decode_threads() -> int:
+    """The codec threads :func:`read_image` uses by default (see :func:`set_decode_threads`)."""
+    return _DECODE_THREADS
+
+
+def check_image(image) -> np.ndarray:
+    """The pixel array a measurement accepts: 2-D, uint8 or uint16, at least 8 x 8 px.
+
+    Raises
+    ------
+    InputError
+        Naming what is wrong (dimensions, dtype, size).
+    """
+    arr = np.asarray(image)
+    if arr.ndim != 2:
+        raise InputError(f"image must be a 2-D array (rows, columns), got shape {arr.shape}")
+    if arr.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
+        raise InputError(f"image must be uint8 or uint16, got {arr.dtype}")
+    if min(arr.shape) < 8:
+        raise InputError(f"image of {arr.shape[1]} x {arr.shape[0]} px is too small to measure")
+    return arr
 
 
 @dataclass(frozen=True)
@@ -42,33 +97,134 @@ class ImageInfo:
     bigtiff: bool
 
 
-def _name(path) -> str:
-    return os.fspath(path)
+@dataclass(frozen=True, eq=False)
+class ImageFile:
+    """The bytes of one image file, read once (:func:`read_file`), and their SHA-256.
+
+    Attributes
+    ----------
+    path : str
+        The file it was read from.
+    data : (n_bytes,) uint8 ndarray
+        The file's content.
+    sha256 : str
+        SHA-256 of ``data``, 64 lower-case hex digits (as
+        :func:`fieldcal.session.fingerprint.sha256_file` gives for the file).
+    stamp : (int, int, int, int, int)
+        :func:`stat_stamp` of the open file before it was read, so a cache of hashes can
+        tell whether the file was rewritten since.
+    """
+
+    path: str
+    data: np.ndarray
+    sha256: str
+    stamp: tuple[int, int, int, int, int]
 
 
-def probe_image(path) -> ImageInfo:
-    """Read and check the header of the first page without decoding pixels."""
+def stat_stamp(st: os.stat_result) -> tuple[int, int, int, int, int]:
+    """A file's identity and stamp ``(size, mtime_ns, ctime_ns, inode, device)`` from its stat:
+    equal stamps mean the file was not rewritten (to the filesystem's time resolution)."""
+    return (int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino), int(st.st_dev))
+
+
+def read_file(path) -> ImageFile:
+    """Read a file once and hash its bytes on the way (see the module docstring).
+
+    Each chunk is hashed right after it is read, while it is in the CPU's cache.
+
+    Raises
+    ------
+    ImageError
+        The file is missing, a directory, unreadable or larger than :data:`MAX_FILE_BYTES`.
+        Its content is not checked here (:func:`read_image` does).
+    """
     where = _name(path)
-    if not Path(path).is_file():
-        raise ImageError("file not found", where)
-    if Path(path).stat().st_size == 0:
-        raise ImageError("empty file (0 bytes)", where)
     try:
-        with tifffile.TiffFile(path) as tif:
-            if not tif.pages:
-                raise ImageError("TIFF has no image pages", where)
-            page = tif.pages.first
-            depth = int(getattr(page, "imagedepth", 1) or 1)
-            dtype = np.dtype(page.dtype) if page.dtype is not None else None
-            info = ImageInfo(
-                path=where, width_px=int(page.imagewidth), height_px=int(page.imagelength),
-                samples=int(page.samplesperpixel), dtype=dtype, tiled=bool(page.is_tiled),
-                compression=str(page.compression.name) if hasattr(page.compression, "name") else str(page.compression),
-                bigtiff=bool(tif.is_bigtiff))
-    except ImageError:
-        raise
-    except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError, struct.error) as err:
-        raise ImageError(f"not a readable TIFF ({_short(err)})", where) from None
+        with open(path, "rb", buffering=0) as f:
+            st = os.fstat(f.fileno())
+            if st.st_size > MAX_FILE_BYTES:
+                raise ImageError(f"file of {st.st_size} bytes is larger than any image fieldcal reads "
+                                 f"({MAX_FILE_BYTES} bytes)", where)
+            data = np.empty(st.st_size, np.uint8)
+            view = memoryview(data)
+            digest = hashlib.sha256()
+            pos = 0
+            while pos < st.st_size:
+                n = f.readinto(view[pos:pos + _CHUNK_BYTES])
+                if not n:
+                    break
+                digest.update(view[pos:pos + n])
+                pos += n
+    except FileNotFoundError:
+        raise ImageError("file not found", where) from None
+    except IsADirectoryError:
+        raise ImageError("is a directory, not a file", where) from None
+    except OSError as err:
+        raise ImageError(f"cannot read the file ({_short(err)})", where) from None
+    # a file that shrank while it was read is hashed as read; decoding then finds it short
+    return ImageFile(where, data[:pos], digest.hexdigest(), stat_stamp(st))
+
+
+class _MemoryFile(io.RawIOBase):
+    """A read-only, seekable binary stream over bytes in memory, without copying them
+    (``io.BytesIO`` copies a writable buffer)."""
+
+    def __init__(self, buffer):
+        super().__init__()
+        self._view = memoryview(buffer).cast("B")
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: len(self._view)}[whence]
+        self._pos = max(0, base + int(offset))
+        return self._pos
+
+    def readinto(self, buffer) -> int:
+        out = memoryview(buffer).cast("B")
+        n = max(0, min(len(out), len(self._view) - self._pos))
+        out[:n] = self._view[self._pos:self._pos + n]
+        self._pos += n
+        return n
+
+
+def _name(source) -> str:
+    return source.path if isinstance(source, ImageFile) else os.fspath(source)
+
+
+def _open(source, where: str) -> tifffile.TiffFile:
+    """A TiffFile over an :class:`ImageFile`'s bytes or a path (checked to be a non-empty file)."""
+    if isinstance(source, ImageFile):
+        if source.data.size == 0:
+            raise ImageError("empty file (0 bytes)", where)
+        return tifffile.TiffFile(_MemoryFile(source.data), name=os.path.basename(where))
+    if not Path(source).is_file():
+        raise ImageError("file not found", where)
+    if Path(source).stat().st_size == 0:
+        raise ImageError("empty file (0 bytes)", where)
+    return tifffile.TiffFile(source)
+
+
+def _header(tif: tifffile.TiffFile, where: str) -> ImageInfo:
+    """The first page's :class:`ImageInfo`, checked against what the contract allows."""
+    if not tif.pages:
+        raise ImageError("TIFF has no image pages", where)
+    page = tif.pages.first
+    depth = int(getattr(page, "imagedepth", 1) or 1)
+    dtype = np.dtype(page.dtype) if page.dtype is not None else None
+    info = ImageInfo(
+        path=where, width_px=int(page.imagewidth), height_px=int(page.imagelength),
+        samples=int(page.samplesperpixel), dtype=dtype, tiled=bool(page.is_tiled),
+        compression=str(page.compression.name) if hasattr(page.compression, "name") else str(page.compression),
+        bigtiff=bool(tif.is_bigtiff))
     if info.dtype is None or info.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
         raise ImageError(f"unsupported sample type {info.dtype} (8- or 16-bit unsigned integers only)", where)
     if info.samples not in (1, 3, 4):
@@ -80,35 +236,52 @@ def probe_image(path) -> ImageInfo:
     return info
 
 
+_HEADER_ERRORS = (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError, struct.error)
+
+
+def probe_image(source) -> ImageInfo:
+    """Read and check the header of the first page without decoding pixels.
+
+    ``source`` is a path or an :class:`ImageFile`.
+    """
+    where = _name(source)
+    try:
+        with _open(source, where) as tif:
+            return _header(tif, where)
+    except ImageError:
+        raise
+    except _HEADER_ERRORS as err:
+        raise ImageError(f"not a readable TIFF ({_short(err)})", where) from None
+
+
 def _short(err: Exception) -> str:
     text = str(err).strip().splitlines()
     return (text[0] if text else type(err).__name__)[:160]
 
 
-def read_image(path, *, expect_size: tuple[int, int] | None = None) -> np.ndarray:
-    """Pixels of a session image as a 2-D unsigned array (rows, columns).
+def _view_of_bytes(tif: tifffile.TiffFile, info: ImageInfo, data: np.ndarray) -> np.ndarray | None:
+    """The pixels as a view of the file's bytes, when they are stored as they are used
+    (one sample, uncompressed, contiguous, native byte order, aligned); else None."""
+    page = tif.pages.first
+    if info.samples != 1 or not page.is_final:
+        return None
+    offset, size = int(page.dataoffsets[0]), info.width_px * info.height_px * info.dtype.itemsize
+    if offset % info.dtype.itemsize or offset + size > data.size:
+        return None
+    dtype = info.dtype.newbyteorder(tif.byteorder)
+    if not dtype.isnative and dtype.itemsize > 1:
+        return None
+    return data[offset:offset + size].view(info.dtype).reshape(info.height_px, info.width_px)
 
-    Parameters
-    ----------
-    path : str or path-like
-        The TIFF file.
-    expect_size : (width_px, height_px), optional
-        The sensor size from the session; a different image size is an error.
 
-    Raises
-    ------
-    ImageError
-        Missing, empty, corrupt, truncated or unsupported file, or wrong size; the message
-        names the file and the reason in one line.
-    """
-    info = probe_image(path)
+def _decode(tif: tifffile.TiffFile, info: ImageInfo, source, maxworkers: int) -> np.ndarray:
+    """The first page's pixels, 2-D, in the stored dtype (luminance of a colour image)."""
     where = info.path
-    if expect_size is not None and (info.width_px, info.height_px) != tuple(expect_size):
-        raise ImageError(
-            f"image is {info.width_px} x {info.height_px} px, the session's sensor is "
-            f"{expect_size[0]} x {expect_size[1]} px", where)
+    arr = _view_of_bytes(tif, info, source.data) if isinstance(source, ImageFile) else None
+    if arr is not None:
+        return arr
     try:
-        arr = tifffile.imread(path, key=0, maxworkers=1)
+        arr = tif.pages.first.asarray(maxworkers=maxworkers, buffersize=_SEGMENT_BYTES)
     except Exception as err:  # noqa: BLE001 - any decoder failure is a bad file, reported in one line
         raise ImageError(f"cannot decode pixels ({_short(err)}); truncated or corrupt file?", where) from None
     if arr.ndim == 3:
@@ -124,3 +297,48 @@ def read_image(path, *, expect_size: tuple[int, int] | None = None) -> np.ndarra
     if arr.shape != (info.height_px, info.width_px):
         raise ImageError(f"decoded shape {arr.shape} does not match the header", where)
     return arr
+
+
+def read_image(source, *, expect_size: tuple[int, int] | None = None,
+               maxworkers: int | None = None) -> np.ndarray:
+    """Pixels of a session image as a 2-D unsigned array (rows, columns).
+
+    Parameters
+    ----------
+    source : str, path-like or ImageFile
+        The TIFF file, or its bytes read by :func:`read_file` (not read again).
+    expect_size : (width_px, height_px), optional
+        The sensor size from the session; a different image size is an error.
+    maxworkers : int, optional
+        Codec threads for a compressed image; default :func:`decode_threads`.
+
+    Returns
+    -------
+    (H, W) uint8 or uint16 ndarray
+        For an :class:`ImageFile` of an uncompressed image, a view of its bytes.
+
+    Raises
+    ------
+    ImageError
+        Missing, empty, corrupt, truncated or unsupported file, or wrong size; the message
+        names the file and the reason in one line.
+    """
+    where = _name(source)
+    try:
+        tif = _open(source, where)
+    except ImageError:
+        raise
+    except _HEADER_ERRORS as err:
+        raise ImageError(f"not a readable TIFF ({_short(err)})", where) from None
+    with tif:
+        try:
+            info = _header(tif, where)
+        except ImageError:
+            raise
+        except _HEADER_ERRORS as err:
+            raise ImageError(f"not a readable TIFF ({_short(err)})", where) from None
+        if expect_size is not None and (info.width_px, info.height_px) != tuple(expect_size):
+            raise ImageError(
+                f"image is {info.width_px} x {info.height_px} px, the session's sensor is "
+                f"{expect_size[0]} x {expect_size[1]} px", where)
+        return _decode(tif, info, source, decode_threads() if maxworkers is None else int(maxworkers))

@@ -204,6 +204,42 @@ def measure_spot(image, *, window_px: int = 24, upsample: int = 4, min_snr: floa
     InputError
         ``image`` is not a 2-D array of numbers, or an option is out of range.
     """
+    img = _check_frame(image, window_px, upsample, min_snr)
+    if saturation_dn is None:
+        saturation_dn = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else np.inf
+    w = _grow_window(img, int(window_px), max_window_px)
+    # background and noise from the whole window (the spot is a small part of it)
+    bg = float(np.median(w.win))
+    noise = float(np.sqrt(robust_sigma(w.win - bg) ** 2 + 1.0 / 12.0))
+    if not w.mask[w.pr, w.pc]:
+        return _missing(f"no spot: the brightest area is not above the threshold {w.thr:.0f} DN",
+                        w.win.max(), bg, noise, w.thr)
+    region = w.labels == w.lab
+    peak = float(w.win[region].max())
+    snr = (peak - bg) / noise
+    n_pix = int(w.stats[w.lab, cv2.CC_STAT_AREA])
+    if snr < min_snr:
+        return _missing(f"no spot: peak {peak - bg:.0f} DN above background, SNR {snr:.1f} "
+                        f"< {min_snr:g}", peak, bg, noise, w.thr, n_pix, snr)
+    if n_pix < _MIN_PIXELS:
+        return _missing(f"no spot: region of {n_pix} pixel(s) only (hot pixel?)",
+                        peak, bg, noise, w.thr, n_pix, snr)
+
+    # sub-pixel centroid on the region's bounding box, padded by one pixel
+    x, y, bw, bh = w.box
+    y0, y1 = max(y - 1, 0), min(y + bh + 1, w.win.shape[0])
+    x0, x1 = max(x - 1, 0), min(x + bw + 1, w.win.shape[1])
+    patch = np.where(region[y0:y1, x0:x1], w.win[y0:y1, x0:x1] - w.thr, 0.0)
+    cu, cv = _weighted_centroid(patch, upsample)
+    u, v = w.c0 + x0 + cu, w.r0 + y0 + cv
+    common = (float(u), float(v), peak, bg, noise, float(w.thr), n_pix, float(snr))
+    flag, reason = _verdict(img, w, region, patch, (u, v), (x0, y0), peak, saturation_dn=saturation_dn,
+                            double_ratio=double_ratio, max_elongation=max_elongation)
+    return Spot(*common, flag, reason)
+
+
+def _check_frame(image, window_px, upsample, min_snr) -> np.ndarray:
+    """The frame as an array, checked (2-D numbers, finite) with the options."""
     img = np.asarray(image)
     if img.ndim != 2 or img.size == 0 or not (np.issubdtype(img.dtype, np.integer)
                                                or np.issubdtype(img.dtype, np.floating)):
@@ -211,13 +247,37 @@ def measure_spot(image, *, window_px: int = 24, upsample: int = 4, min_snr: floa
     if upsample < 1 or window_px < 2 or min_snr <= 0:
         raise InputError(f"measure_spot: upsample >= 1, window_px >= 2 and min_snr > 0 required "
                          f"(got {upsample}, {window_px}, {min_snr})")
-    if saturation_dn is None:
-        saturation_dn = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else np.inf
     if np.issubdtype(img.dtype, np.floating) and not np.isfinite(img).all():
         raise InputError("measure_spot: the image has NaN or infinite pixels")
+    return img
 
+
+@dataclass
+class _Window:
+    """The window around the spot and its threshold, mask and labelled regions."""
+
+    r0: int          # window bounds in the frame [px]
+    r1: int
+    c0: int
+    c1: int
+    win: np.ndarray  # the window's pixels, float
+    pr: int          # the brightest (3 x 3 averaged) pixel, window coordinates
+    pc: int
+    thr: float       # the iterative threshold [DN]
+    mask: np.ndarray
+    n_lab: int = 0
+    labels: np.ndarray | None = None
+    stats: np.ndarray | None = None
+    centres: np.ndarray | None = None
+    lab: int = 0     # the label of the region holding (pr, pc)
+    box: tuple = (0, 0, 0, 0)   # the region's bounding box (x, y, width, height) in the window
+
+
+def _grow_window(img, half: int, max_window_px: int) -> _Window:
+    """Steps 1-2 in a window around the coarse peak: threshold, region growing; the window's
+    half-size doubles (up to ``max_window_px``) while the region reaches its edge or is
+    wider than half of it (the threshold and the background need background around the spot)."""
     row, col = _coarse_peak(img)
-    half = int(window_px)
     while True:
         r0, r1, c0, c1 = _window(img.shape, row, col, half)
         win = img[r0:r1, c0:c1].astype(float)
@@ -226,75 +286,58 @@ def measure_spot(image, *, window_px: int = 24, upsample: int = 4, min_snr: floa
         pr, pc = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
         thr = iterative_threshold(win)
         mask = (win > thr).astype(np.uint8)
+        w = _Window(r0, r1, c0, c1, win, int(pr), int(pc), thr, mask)
         if not mask[pr, pc]:
-            break
-        n_lab, labels, stats, centres = cv2.connectedComponentsWithStats(mask, connectivity=8)
-        lab = labels[pr, pc]
-        x, y, w, h = (int(stats[lab, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
-                                                    cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            return w
+        w.n_lab, w.labels, w.stats, w.centres = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        w.lab = int(w.labels[pr, pc])
+        x, y, bw, bh = (int(w.stats[w.lab, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                                          cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+        w.box = (x, y, bw, bh)
         at_window_edge = ((x == 0 and c0 > 0) or (y == 0 and r0 > 0)
-                          or (x + w == win.shape[1] and c1 < img.shape[1])
-                          or (y + h == win.shape[0] and r1 < img.shape[0]))
-        # grow while the region reaches the window's edge or fills more than half of it
-        # (the threshold and the background need background pixels around the spot)
-        if (at_window_edge or max(w, h) > half) and 2 * half <= max_window_px:
+                          or (x + bw == win.shape[1] and c1 < img.shape[1])
+                          or (y + bh == win.shape[0] and r1 < img.shape[0]))
+        if (at_window_edge or max(bw, bh) > half) and 2 * half <= max_window_px:
             half *= 2
             row, col = r0 + pr, c0 + pc
             continue
-        break
-    # background and noise from the whole window (the spot is a small part of it)
-    bg = float(np.median(win))
-    noise = float(np.sqrt(robust_sigma(win - bg) ** 2 + 1.0 / 12.0))
-    if not mask[pr, pc]:
-        return _missing(f"no spot: the brightest area is not above the threshold {thr:.0f} DN",
-                        win.max(), bg, noise, thr)
-    region = labels == lab
-    peak = float(win[region].max())
-    snr = (peak - bg) / noise
-    n_pix = int(stats[lab, cv2.CC_STAT_AREA])
-    if snr < min_snr:
-        return _missing(f"no spot: peak {peak - bg:.0f} DN above background, SNR {snr:.1f} "
-                        f"< {min_snr:g}", peak, bg, noise, thr, n_pix, snr)
-    if n_pix < _MIN_PIXELS:
-        return _missing(f"no spot: region of {n_pix} pixel(s) only (hot pixel?)",
-                        peak, bg, noise, thr, n_pix, snr)
+        return w
 
-    # sub-pixel centroid on the region's bounding box, padded by one pixel
-    y0, y1 = max(y - 1, 0), min(y + h + 1, win.shape[0])
-    x0, x1 = max(x - 1, 0), min(x + w + 1, win.shape[1])
-    patch = np.where(region[y0:y1, x0:x1], win[y0:y1, x0:x1] - thr, 0.0)
-    cu, cv = _weighted_centroid(patch, upsample)
-    u, v = c0 + x0 + cu, r0 + y0 + cv
-    common = (float(u), float(v), peak, bg, noise, float(thr), n_pix, float(snr))
 
-    # what makes the position untrustworthy, most serious first
-    if (x == 0 and c0 == 0) or (y == 0 and r0 == 0) or (x + w == win.shape[1] and c1 == img.shape[1]) \
-            or (y + h == win.shape[0] and r1 == img.shape[0]):
-        return Spot(*common, "truncated", f"the spot's region touches the image border "
-                                          f"(around u={u:.0f}, v={v:.0f})")
-    n_sat = int(np.count_nonzero(win[region] >= saturation_dn))
+def _verdict(img, w: _Window, region, patch, uv, patch_origin, peak, *, saturation_dn, double_ratio,
+             max_elongation) -> tuple[str, str]:
+    """What makes the position untrustworthy, most serious first: ``(flag, reason)``."""
+    u, v = uv
+    x, y, bw, bh = w.box
+    if (x == 0 and w.c0 == 0) or (y == 0 and w.r0 == 0) or (x + bw == w.win.shape[1] and w.c1 == img.shape[1]) \
+            or (y + bh == w.win.shape[0] and w.r1 == img.shape[0]):
+        return "truncated", f"the spot's region touches the image border (around u={u:.0f}, v={v:.0f})"
+    n_sat = int(np.count_nonzero(w.win[region] >= saturation_dn))
     if n_sat:
-        return Spot(*common, "saturated", f"{n_sat} pixel(s) at the saturation level "
-                                          f"{saturation_dn:.0f} DN")
-    signal = peak - thr
-    others = np.arange(1, n_lab)
-    others = others[(others != lab) & (stats[others, cv2.CC_STAT_AREA] >= _MIN_PIXELS)]
+        return "saturated", f"{n_sat} pixel(s) at the saturation level {saturation_dn:.0f} DN"
+    signal = peak - w.thr
+    others = np.arange(1, w.n_lab)
+    others = others[(others != w.lab) & (w.stats[others, cv2.CC_STAT_AREA] >= _MIN_PIXELS)]
     if others.size:
-        other_signal = np.asarray(ndimage.maximum(win, labels, others)) - thr
+        other_signal = np.asarray(ndimage.maximum(w.win, w.labels, others)) - w.thr
         k = int(np.argmax(other_signal))
         if other_signal[k] >= double_ratio * signal:
-            ou, ov = centres[others[k]]
-            dist = float(np.hypot(c0 + ou - u, r0 + ov - v))
-            return Spot(*common, "double", f"a second spot {dist:.0f} px away, "
-                                           f"{100 * other_signal[k] / signal:.0f}% as bright")
+            ou, ov = w.centres[others[k]]
+            dist = float(np.hypot(w.c0 + ou - u, w.r0 + ov - v))
+            return "double", (f"a second spot {dist:.0f} px away, "
+                              f"{100 * other_signal[k] / signal:.0f}% as bright")
+    ratio = _axis_ratio(patch, u - w.c0 - patch_origin[0], v - w.r0 - patch_origin[1])
+    if ratio > max_elongation:
+        return "double", f"elongated region (axis ratio {ratio:.1f} > {max_elongation:g}): two spots merged?"
+    return "ok", ""
+
+
+def _axis_ratio(patch, cu, cv) -> float:
+    """Major / minor axis of the squared-weight second moments of ``patch`` about (cu, cv)."""
     wgt = np.square(patch)
     ii, jj = np.mgrid[0:patch.shape[0], 0:patch.shape[1]]
-    du, dv = jj - (u - c0 - x0), ii - (v - r0 - y0)
+    du, dv = jj - cu, ii - cv
     m = np.array([[np.sum(wgt * du * du), np.sum(wgt * du * dv)],
                   [np.sum(wgt * du * dv), np.sum(wgt * dv * dv)]]) / wgt.sum()
     ev = np.linalg.eigvalsh(m)
-    ratio = float(np.sqrt(ev[1] / max(ev[0], 1e-12)))
-    if ratio > max_elongation:
-        return Spot(*common, "double", f"elongated region (axis ratio {ratio:.1f} > "
-                                       f"{max_elongation:g}): two spots merged?")
-    return Spot(*common, "ok", "")
+    return float(np.sqrt(ev[1] / max(ev[0], 1e-12)))

@@ -234,10 +234,10 @@ def load_session(folder) -> Session:
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
         if sess.coded is not None:
-            from fieldcal.measure.coded import _dictionary
+            from fieldcal.measure.coded import aruco_dictionary
 
             try:
-                _dictionary(sess.coded["dictionary"])
+                aruco_dictionary(sess.coded["dictionary"])
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):

@@ -25,6 +25,7 @@ from fieldcal.goniometer import method as gon
 from fieldcal.lake import history
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES
+from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.render import write_field_session
@@ -111,7 +112,7 @@ def test_observations_are_one_parquet_file_per_image_and_the_version_has_one_cat
     meta = pq.read_schema(files[0]).metadata
     name = meta[b"fieldcal.image"].decode()
     # keyed by the image's content hash (with the measuring settings); the hash is in the file
-    assert meta[b"fieldcal.image_sha256"].decode() == flow_mod.sha256_file(gonio[0].folder / name)
+    assert meta[b"fieldcal.image_sha256"].decode() == sha256_file(gonio[0].folder / name)
     assert json.loads(meta[b"fieldcal.measure"])["method"] == "goniometer"
     assert Lake(lake_dir).catalog()["version"].to_pylist() == [r["version"]]
 
@@ -123,7 +124,7 @@ def test_rerun_of_the_same_session_is_a_no_op_that_reads_no_image(first_run, gon
     def must_not_run(*a, **k):
         raise AssertionError("an image was read")
 
-    monkeypatch.setattr(flow_mod, "sha256_file", must_not_run)
+    monkeypatch.setattr(flow_mod, "read_file", must_not_run)     # reads (and hashes) an image
     monkeypatch.setattr(flow_mod.pipeline, "measure", must_not_run)
     again = calibrate_session(str(gonio[0].folder), str(lake_dir))
     assert again["status"] == "unchanged" and again["new"] is False

@@ -1,11 +1,23 @@
 """Reading TIFFs: every layout the contract allows, and one clear line for anything else."""
 
+import hashlib
+import os
+
 import numpy as np
 import pytest
 import tifffile
 
-from fieldcal.errors import ImageError
-from fieldcal.measure.imageio import probe_image, read_image
+from fieldcal.errors import ImageError, InputError
+from fieldcal.measure.imageio import (
+    ImageFile,
+    decode_threads,
+    probe_image,
+    read_file,
+    read_image,
+    set_decode_threads,
+    stat_stamp,
+)
+from fieldcal.session.fingerprint import sha256_file
 
 RNG = np.random.default_rng(0)
 IMG16 = RNG.integers(0, 65535, (120, 160), dtype=np.uint16)
@@ -18,11 +30,47 @@ IMG16 = RNG.integers(0, 65535, (120, 160), dtype=np.uint16)
     {"compression": "lzw"},
     {"bigtiff": True, "tile": (32, 32)},
 ])
-def test_reads_16bit_layouts_exactly(tmp_path, kw):
+@pytest.mark.parametrize("source", ["path", "bytes read once"])
+def test_reads_16bit_layouts_exactly(tmp_path, kw, source):
     p = tmp_path / "a.tif"
     tifffile.imwrite(p, IMG16, **kw)
-    out = read_image(p, expect_size=(160, 120))
+    out = read_image(p if source == "path" else read_file(p), expect_size=(160, 120))
     assert out.dtype == np.uint16 and np.array_equal(out, IMG16)
+
+
+@pytest.mark.parametrize("kw", [{}, {"tile": (64, 64), "compression": "zstd"}, {"byteorder": ">"},
+                                {"compression": "deflate", "rowsperstrip": 7}])
+def test_one_pass_hash_is_the_file_hash_and_the_pixels_are_decoded_from_those_bytes(tmp_path, kw):
+    p = tmp_path / "a.tif"
+    tifffile.imwrite(p, IMG16, **kw)
+    st = os.stat(p)
+    f = read_file(p)
+    assert f.sha256 == sha256_file(p) == hashlib.sha256(p.read_bytes()).hexdigest()
+    assert f.stamp == stat_stamp(st) and f.path == str(p) and f.data.size == st.st_size
+    p.unlink()                                          # nothing is read from the file again
+    out = read_image(f, expect_size=(160, 120), maxworkers=2)
+    assert np.array_equal(out, IMG16) and out.flags.writeable and out.flags.c_contiguous
+    # an uncompressed native-order image is a view of the bytes read, not a copy
+    assert np.shares_memory(out, f.data) == (kw == {})
+    assert probe_image(f).compression == ("NONE" if "compression" not in kw else kw["compression"].upper())
+
+
+def test_read_file_names_a_missing_file_and_a_folder(tmp_path):
+    with pytest.raises(ImageError, match="nope.tif: file not found"):
+        read_file(tmp_path / "nope.tif")
+    with pytest.raises(ImageError, match="is a directory, not a file"):
+        read_file(tmp_path)
+
+
+def test_decode_threads_are_set_for_the_process():
+    before = decode_threads()
+    try:
+        set_decode_threads(3)
+        assert decode_threads() == 3
+        with pytest.raises(InputError, match="decode threads must be an integer >= 1, got 0"):
+            set_decode_threads(0)
+    finally:
+        set_decode_threads(before)
 
 
 def test_reads_8bit_and_rgb_as_luminance(tmp_path):
@@ -39,21 +87,26 @@ def test_reads_8bit_and_rgb_as_luminance(tmp_path):
     (lambda p: tifffile.imwrite(p, np.zeros((8, 8), np.float32)), "unsupported sample type float32"),
     (lambda p: tifffile.imwrite(p, np.zeros((8, 8), np.uint32)), "unsupported sample type uint32"),
 ])
-def test_bad_files_give_one_line_naming_the_file(tmp_path, make, match):
+@pytest.mark.parametrize("source", ["path", "bytes read once"])
+def test_bad_files_give_one_line_naming_the_file(tmp_path, make, match, source):
     p = tmp_path / "bad.tif"
     make(p)
     with pytest.raises(ImageError, match=match) as info:
-        read_image(p)
+        read_image(p if source == "path" else read_file(p))
     assert str(p) in str(info.value) and "\n" not in str(info.value)
 
 
-def test_truncated_file_is_reported(tmp_path):
+@pytest.mark.parametrize("kw", [{}, {"tile": (64, 64), "compression": "zstd"}])
+def test_truncated_file_is_reported(tmp_path, kw):
     p = tmp_path / "t.tif"
-    tifffile.imwrite(p, IMG16)
+    tifffile.imwrite(p, IMG16, **kw)
     data = p.read_bytes()
     p.write_bytes(data[: len(data) // 2])
     with pytest.raises(ImageError, match="t.tif"):
         read_image(p)
+    with pytest.raises(ImageError, match="t.tif"):
+        read_image(read_file(p))
+    assert isinstance(read_file(p), ImageFile)          # reading the bytes is not decoding them
 
 
 def test_wrong_size_and_missing_file(tmp_path):

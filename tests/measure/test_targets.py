@@ -17,16 +17,12 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from fieldcal.errors import ImageError, InputError
-from fieldcal.measure.targets import (
-    DEFAULT_METHOD,
-    METHODS,
-    _hat_sums,
-    _squared_centroid,
-    detect_targets,
-    measure_image,
-    opencv_blob_centres,
-)
+from fieldcal.measure.disc_windows import hat_sums, squared_centroid
+from fieldcal.measure.discs import DEFAULT_METHOD, METHODS, detect_targets
+from fieldcal.measure.imageio import read_file
+from fieldcal.measure.targets import measure_image
 from fieldcal.session.schemas import arrow_schema
+from tests.measure.peers import opencv_blob_centres
 
 BG, FIG = 40000.0, 4000.0
 
@@ -234,7 +230,7 @@ def test_centroid_upsampling_closed_form_equals_explicit_bilinear_grid():
     Y[:, :, [0, -1]] = 0.0
     support = np.ones_like(Y, bool)
     for k in (1, 3, 4):
-        cu, cv = _squared_centroid(Y, support, k)
+        cu, cv = squared_centroid(Y, support, k)
         for w in range(3):
             x = np.arange(0, 8 * k + 1) / k                       # fine grid in pixel units
             i0 = np.minimum(np.floor(x).astype(int), 7)
@@ -248,7 +244,7 @@ def test_centroid_upsampling_closed_form_equals_explicit_bilinear_grid():
             ref_v = (W2 * x[:, None]).sum() / W2.sum()
             assert cu[w] == pytest.approx(ref_u, abs=1e-6)
             assert cv[w] == pytest.approx(ref_v, abs=1e-6)
-    assert _hat_sums(None) == pytest.approx((2 / 3, 1 / 6))
+    assert hat_sums(None) == pytest.approx((2 / 3, 1 / 6))
 
 
 # --------------------------------------------------------------------------------------
@@ -368,6 +364,9 @@ def test_measure_image_reads_fills_the_name_and_reports_bad_files(tmp_path):
     t = measure_image(p, polarity="dark", sensor=Sensor(100, 80, 5.3), name="images/a.tif")
     assert t.num_rows == 2 and set(t["image"].to_pylist()) == {"images/a.tif"}
     assert t["blob"].to_pylist() == [0, 1]
+    # the same from the bytes read once for hashing (the flow's path): the same table
+    assert measure_image(read_file(p), polarity="dark", sensor=Sensor(100, 80, 5.3),
+                         name="images/a.tif").equals(t)
     with pytest.raises(ImageError, match="the session's sensor is 120 x 80 px"):
         measure_image(p, sensor=Sensor(120, 80, 5.3))
     bad = tmp_path / "bad.tif"
