@@ -26,7 +26,7 @@ from fieldcal.goniometer import method as goniometer
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
 from fieldcal.session.fingerprint import fingerprint, sha256_file
-from fieldcal.session.loader import Session, field_data_from_observations, load_session, read_targets_csv
+from fieldcal.session.loader import Session, field_data_from_observations, load_session
 
 __all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "image_hash",
            "input_fingerprint"]
@@ -86,7 +86,7 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
     sess = load_session(folder)
     tables = {"session.json": (sess.folder / "session.json").read_bytes()}
     if sess.method == "field":
-        targets = read_targets_csv(sess.targets_path)          # validates now
+        targets = sess.targets()                                # validates now (read once)
         tables[sess.targets_path.name] = sess.targets_path.read_bytes()
         if sess.observations_path is not None:
             field_data_from_observations(sess)                  # validates now

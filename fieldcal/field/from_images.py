@@ -59,7 +59,7 @@ from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
 from fieldcal.model.camera import INDEX, Camera
-from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv
+from fieldcal.session.loader import Session, read_marks_csv
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of"]
 
@@ -274,7 +274,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     say = progress or (lambda _line: None)
     options = options or AdjustmentOptions()
     nominal = nominal_camera(session)
-    targets = read_targets_csv(session.targets_path)
+    targets = session.targets()
     images = list(session.images)
     names = [im.file for im in images]
     marks = read_marks_csv(session.marks_path, targets, images) if session.marks_path is not None else {}

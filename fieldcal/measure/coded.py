@@ -41,7 +41,7 @@ from fieldcal.errors import InputError
 from fieldcal.measure.targets import _apriori_sigma, _check_image, empty_measurements, measurements_table
 from fieldcal.robust import robust_sigma
 
-__all__ = ["to_uint8", "detect_aruco", "diagonal_crossing", "marker_exclusion_polygons",
+__all__ = ["to_uint8", "aruco_dictionary", "detect_aruco", "diagonal_crossing", "marker_exclusion_polygons",
            "DEFAULT_DICTIONARY"]
 
 DEFAULT_DICTIONARY = "DICT_4X4_1000"
@@ -70,7 +70,8 @@ def to_uint8(image, *, low_percent: float = 0.5, high_percent: float = 99.5,
 
 
 @functools.cache
-def _dictionary(name: str):
+def aruco_dictionary(name: str):
+    """The OpenCV ArUco dictionary of that name (``"DICT_4X4_1000"``); InputError if unknown."""
     if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
         raise InputError(f"unknown ArUco dictionary {name!r} (an OpenCV name such as "
                          f"'{DEFAULT_DICTIONARY}')")
@@ -81,7 +82,7 @@ def _detector(dictionary: str, refine_subpix: bool):
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = (cv2.aruco.CORNER_REFINE_SUBPIX if refine_subpix
                                      else cv2.aruco.CORNER_REFINE_NONE)
-    return cv2.aruco.ArucoDetector(_dictionary(dictionary), params)
+    return cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
 
 
 def diagonal_crossing(corners) -> np.ndarray:
@@ -270,7 +271,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     ids = np.asarray(ids).reshape(-1)
     c = np.concatenate([np.asarray(k, float).reshape(1, 4, 2) for k in corners])
     side = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).mean(axis=1)
-    n_cells = _dictionary(dictionary).markerSize + 2
+    n_cells = aruco_dictionary(dictionary).markerSize + 2
     if downscale > 1:
         c = downscale * c + (downscale - 1) / 2.0
         side = side * downscale
