@@ -125,8 +125,12 @@ def measure(prepared: Prepared, name: str) -> pa.Table:
 
 
 def input_fingerprint(prepared: Prepared, image_hashes: Mapping[str, str]) -> str:
-    """The inputs' fingerprint: tables, image contents and settings (canonical JSON, SHA-256)."""
+    """The inputs' fingerprint: the session's identity, tables, image contents and settings
+    (canonical JSON, SHA-256). Two folders with the same files are two sessions when their
+    ``session_id`` differs (a default one is the folder's name), so each gets its version."""
+    sess = prepared.session
     return fingerprint({
+        "session": {"camera_id": sess.camera_id, "session_id": sess.session_id},
         "tables": {k: v for k, v in sorted(prepared.tables.items())},
         "images": dict(sorted(image_hashes.items())),
         "settings": prepared.settings.to_dict(),
