@@ -227,7 +227,9 @@ def read_csv_table(path, required: tuple[str, ...], optional: tuple[str, ...] = 
     kind : str
         The kind of file (``"targets.csv"``, ...): its limits (:data:`MAX_BYTES`, :data:`MAX_ROWS`).
     tokeniser : {"auto", "arrow", "python"}
-        ``"auto"``: pyarrow for a file without a double quote, else Python's csv module.
+        ``"auto"``: pyarrow for a file without a double quote, else (or when pyarrow cannot
+        read it) Python's csv module. ``"arrow"`` and ``"python"`` force one (tests compare
+        them); ``"arrow"`` refuses what it cannot split.
 
     Returns
     -------
@@ -265,6 +267,8 @@ def read_csv_table(path, required: tuple[str, ...], optional: tuple[str, ...] = 
     got = None
     if tokeniser == "arrow" or (tokeniser == "auto" and b'"' not in raw):
         got = _tokenise_arrow(raw, len(header), keep, kind, where)
+    if got is None and tokeniser == "arrow":
+        raise InputError("pyarrow cannot split this file (quotes, or a line it does not read)", where)
     if got is None:
         try:
             got = _tokenise_python(raw, len(header), keep, kind, where)
