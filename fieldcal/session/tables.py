@@ -351,13 +351,15 @@ def _codes(t: CsvTable) -> np.ndarray:
     return out
 
 
-def read_targets_csv(path) -> TargetField:
+def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
     """``targets.csv``: ``id,X,Y,Z,sigma_mm,code`` -> :class:`TargetField`.
 
     ``X, Y, Z`` [m]; an empty ``sigma_mm`` is 5 mm; an empty ``code`` a plain target. Ids are
     names of the kind ``label`` (:mod:`fieldcal.session.names`), unique; codes unique.
+    ``tokeniser``: see :func:`read_csv_table`.
     """
-    t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code"), kind="targets.csv")
+    t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code"), kind="targets.csv",
+                       tokeniser=tokeniser)
     ids = t.text("id")
     for k, tid in enumerate(ids):
         if not tid:
@@ -420,7 +422,8 @@ def _image_targets(t: CsvTable, targets: TargetField, images: list[FieldImage], 
 
 
 def read_observations_csv(path, targets: TargetField, images: list[FieldImage], *,
-                          default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None):
+                          default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None,
+                          tokeniser: str = "auto"):
     """``observations.csv``: ``image,target_id,u,v,sigma_px`` -> :class:`FieldObservations`.
 
     ``images`` is extended in place with images the file names (when ``allow_new_images``,
@@ -428,7 +431,8 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
     spellings of one image's path (``images/./a.tif``) are the same image. With ``sensor``,
     a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px, CONTRACT section 1).
     """
-    t = read_csv_table(path, ("image", "target_id", "u", "v"), ("sigma_px",), kind="observations.csv")
+    t = read_csv_table(path, ("image", "target_id", "u", "v"), ("sigma_px",), kind="observations.csv",
+                       tokeniser=tokeniser)
     img, tgt = _image_targets(t, targets, images, allow_new_images, "observed")
     sigma = _positive(t, _numbers(t, "sigma_px", default=default_sigma_px), "sigma_px")
     u, v = _numbers(t, "u"), _numbers(t, "v")
