@@ -113,18 +113,17 @@ def test_fieldcal_run_of_two_copies_prints_two_versions(prefect_server, session,
                FIELDCAL_HASH_CACHE=str(tmp_path / "hashes.sqlite"), PYTHONPATH=str(ROOT))
     env.pop("FIELDCAL_LAKE", None)
     lake = tmp_path / "lake"
-    out = {}
-    for name in ("wall-a", "wall-b", "wall-b"):
-        folder = tmp_path / name
-        if not folder.exists():
-            shutil.copytree(session, folder)
+    printed = []
+    for name in ("wall-a", "wall-b"):            # (reruns are unchanged: the library test above)
+        folder = shutil.copytree(session, tmp_path / name)
         proc = subprocess.run([FIELDCAL, "run", str(folder), "--lake", str(lake)], capture_output=True,
                               text=True, env=env, cwd=tmp_path, timeout=300)
         assert proc.returncode == 0, proc.stderr
-        out.setdefault(name, []).append(proc.stdout.strip())
-    assert out["wall-a"][0] != out["wall-b"][0] and out["wall-b"][0] == out["wall-b"][1]
+        printed.append(proc.stdout.strip())
+    assert printed[0] != printed[1]
     cat = Lake(str(lake)).catalog()
-    assert sorted(cat["session_id"].to_pylist()) == ["wall-a", "wall-b"]
+    assert sorted(zip(cat["session_id"].to_pylist(), cat["version"].to_pylist(), strict=True)) == \
+        [("wall-a", printed[0]), ("wall-b", printed[1])]
 
 
 # --------------------------------------------------------------------------------------
