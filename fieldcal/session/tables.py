@@ -198,7 +198,7 @@ def _tokenise_arrow(raw: bytes, width: int, keep: dict[str, int], kind: str, whe
         return None
     columns = {name: table.column(f"c{i}").combine_chunks() for name, i in keep.items()}
     extra = []
-    for number, text in sorted(odd):                   # short, long or blank rows: at most a few
+    for number, text in sorted(odd):                   # short, long or blank rows, in line order
         cells = text.split(",")
         if _blank(cells):
             continue
