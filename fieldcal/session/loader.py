@@ -224,11 +224,17 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
             continue
         by_sample: dict[str, list[str]] = defaultdict(list)
         for name in group:
-            by_sample[_sample_digest(folder / name, size)].append(name)
+            try:
+                by_sample[_sample_digest(folder / name, size)].append(name)
+            except OSError:                  # unreadable: measuring reports it
+                continue
         for same in (g for g in by_sample.values() if len(g) > 1):
             by_hash: dict[str, str] = {}
             for name in same:
-                h = sha256_file(folder / name)
+                try:
+                    h = sha256_file(folder / name)
+                except (OSError, InputError):
+                    continue
                 if h in by_hash:
                     raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
                                      f"(SHA-256 {h[:12]}...): a photograph counts once", where)

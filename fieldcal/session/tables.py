@@ -41,6 +41,7 @@ and frames.csv are bounded by :data:`MAX_BYTES` too (read elsewhere).
 
 from __future__ import annotations
 
+import codecs
 import csv
 import io
 import os
@@ -254,8 +255,9 @@ def read_csv_table(path, required: tuple[str, ...], optional: tuple[str, ...] = 
         raise InputError("file not found", where) from None
     except OSError as err:
         raise InputError(f"cannot read: {err.strerror or err}", where) from None
-    try:
-        first = next(csv.reader(io.StringIO(raw.decode("utf-8-sig"), newline="")), None)
+    try:                                            # the header, from the first 64 KiB
+        head = codecs.getincrementaldecoder("utf-8-sig")().decode(raw[:1 << 16], final=len(raw) <= 1 << 16)
+        first = next(csv.reader(io.StringIO(head, newline="")), None)
     except UnicodeDecodeError:
         raise InputError("not UTF-8 text", where) from None
     except csv.Error as err:
@@ -272,6 +274,8 @@ def read_csv_table(path, required: tuple[str, ...], optional: tuple[str, ...] = 
     if got is None:
         try:
             got = _tokenise_python(raw, len(header), keep, kind, where)
+        except UnicodeDecodeError:
+            raise InputError("not UTF-8 text", where) from None
         except csv.Error as err:
             raise InputError(f"not a valid CSV file ({err})", where) from None
     columns, lines = got
