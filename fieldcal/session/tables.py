@@ -55,7 +55,7 @@ import pyarrow.csv as pacsv
 from fieldcal.errors import InputError
 from fieldcal.field.data import DEFAULT_TARGET_SIGMA_MM, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Sensor
-from fieldcal.session.names import check_name, normal_file_name
+from fieldcal.session.names import check_name, first_invalid, normal_file_name
 from fieldcal.session.schemas import shown
 
 __all__ = ["MAX_BYTES", "MAX_ROWS", "MAX_IMAGES", "CsvTable", "check_size", "read_csv_table",
@@ -340,14 +340,15 @@ def _codes(t: CsvTable) -> np.ndarray:
     out = np.full(len(t), -1, np.int64)
     if "code" not in t.columns:
         return out
-    text = t.text("code")
-    for k, c in enumerate(text):
-        if c == "":
-            continue
-        if not pc.match_substring_regex(pa.array([c]), _CODE)[0].as_py() or int(c) > MAX_CODE:
-            raise InputError(f"'code' must be an ArUco id (a whole number from 0 to {MAX_CODE}), "
-                             f"got {shown(c)}", t.where(k))
-        out[k] = int(c)
+    col = t.columns["code"]
+    given = np.flatnonzero(np.asarray(pc.not_equal(col, "").to_numpy(zero_copy_only=False), bool))
+    good = np.asarray(pc.match_substring_regex(col, _CODE).to_numpy(zero_copy_only=False), bool)[given]
+    if good.all():
+        out[given] = np.asarray(pc.cast(pc.utf8_ltrim(col.take(given), "+"), pa.int64()), np.int64)
+    bad = given[~good | (out[given] > MAX_CODE)]
+    if len(bad):
+        raise InputError(f"'code' must be an ArUco id (a whole number from 0 to {MAX_CODE}), "
+                         f"got {shown(col[int(bad[0])].as_py())}", t.where(int(bad[0])))
     coded = np.flatnonzero(out >= 0)
     if (hit := _first_repeat(out[coded])) is not None:
         k, first = coded[hit[0]], coded[hit[1]]
@@ -365,11 +366,11 @@ def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
     t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code"), kind="targets.csv",
                        tokeniser=tokeniser)
     ids = t.text("id")
-    for k, tid in enumerate(ids):
-        if not tid:
+    if (k := first_invalid(ids, "label")) is not None:
+        if not ids[k]:
             raise InputError("empty target id", t.where(k))
-        check_name(tid, "label", "target id", t.where(k))
-    if (hit := _first_repeat(np.array(ids, dtype=object))) is not None:
+        check_name(ids[k], "label", "target id", t.where(k))
+    if len(pc.unique(t.columns["id"])) < len(ids) and (hit := _first_repeat(np.array(ids, dtype=object))):
         k, first = hit
         raise InputError(f"duplicate target id {ids[k]!r} (first on line {t.lines[first]})", t.where(k))
     xyz = np.column_stack([_numbers(t, c) for c in ("X", "Y", "Z")])
@@ -402,11 +403,8 @@ def _image_index(t: CsvTable, images: list[FieldImage], allow_new: bool, what: s
 
 
 def _target_index(t: CsvTable, targets: TargetField) -> np.ndarray:
-    encoded = t.columns["target_id"].dictionary_encode()
-    rows = np.asarray(encoded.indices.to_numpy(zero_copy_only=False), np.int64)
-    index = targets.index()
-    mapping = np.array([index.get(tid, -1) for tid in encoded.dictionary.to_pylist()], np.int64)
-    out = mapping[rows]
+    found = pc.index_in(t.columns["target_id"], value_set=pa.array(targets.ids.tolist(), pa.string()))
+    out = np.asarray(found.fill_null(-1).to_numpy(zero_copy_only=False), np.int64)
     if (k := _first(out < 0)) is not None:
         raise InputError(f"target_id {shown(t.columns['target_id'][k].as_py())} is not in targets.csv",
                          t.where(k))

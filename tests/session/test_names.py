@@ -14,6 +14,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fieldcal import pipeline
 from fieldcal.errors import InputError
@@ -168,3 +170,11 @@ def test_a_session_folder_with_glob_characters_lists_its_own_images(tmp_path, na
     sess = load_session(parent / "s")
     assert [im.file for im in sess.images] == ["images/mine.tif"]
     assert load_session(Path(str(parent / "s"))).session_id == "s-1"
+
+
+@settings(max_examples=300)
+@given(values=st.lists(st.one_of(st.text(max_size=12), st.sampled_from(sorted(HOSTILE.values()))), max_size=8),
+       kind=st.sampled_from(names.KINDS))
+def test_the_bulk_check_finds_the_first_invalid_name_as_the_single_check_does(values, kind):
+    expect = next((k for k, v in enumerate(values) if not names.is_valid(v, kind)), None)
+    assert names.first_invalid(values, kind) == expect
