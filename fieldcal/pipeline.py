@@ -9,7 +9,7 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
   targets (field method) or the collimator spot (goniometer). A bad image raises
   :class:`ImageError`; the flow reports it and goes on without that image.
 - :func:`solve` turns all measurements into an :class:`Outcome`: the calibration
-  document (CONTRACT section 4, without its version: the lake assigns it), the arrays and
+  document (docs/conventions.md section 4, without its version: the lake assigns it), the arrays and
   the residual table the lake stores, and a human summary.
 """
 

@@ -8,7 +8,7 @@ calibration (:func:`calibrate_from_measurements`):
    (:func:`fieldcal.field.identify.identify_image`) with the camera the session describes: the
    nominal focal length (``lens.nominal_focal_mm``), principal point at the sensor centre, no
    distortion. It starts from the coded targets (ArUco markers named in targets.csv) or, in
-   fields without coded targets, from the hand marks of marks.csv (CONTRACT section 3).
+   fields without coded targets, from the hand marks of marks.csv (docs/conventions.md section 3).
    Images whose measurement table is missing (the file could not be read or measured) or
    with too few identified targets are left out and reported.
 2. **First adjustment** (:func:`fieldcal.field.adjustment.adjust_field`) of the identified points,

@@ -2,7 +2,7 @@ r"""The laboratory goniometer method (METHODS.md part B; Yuan et al. 2016, eq. 1
 
 A collimated point target on a turning arm is photographed at known arm angles ``W_i``
 while its image sweeps the sensor's centre row (``x`` sweep) and, with the camera turned,
-its centre column (``y`` sweep); several frames per angle (CONTRACT section 3, frames.csv).
+its centre column (``y`` sweep); several frames per angle (docs/conventions.md section 3, frames.csv).
 
 Measurement (per frame, fan-out friendly)
 -----------------------------------------
@@ -15,7 +15,7 @@ interpolation, squared-weight centroid). It never raises for a bad frame: the ro
 Principal distance and point per axis: minimum sum of squared distortion (eq. 1-7)
 -----------------------------------------------------------------------------------
 Along one sweep let ``L_i`` be the spot's measured coordinate [mm] along the axis (x for
-the ``x`` sweep, y -- up -- for the ``y`` sweep; CONTRACT section 1) and ``t_i = tan W_i``.
+the ``x`` sweep, y -- up -- for the ``y`` sweep; docs/conventions.md section 1) and ``t_i = tan W_i``.
 With principal distance ``f`` and principal-point offset ``p`` along the axis, the ideal
 image of the target is ``p + f tan(W_i - dW)`` (eq. 1) and its distortion
 
@@ -54,7 +54,7 @@ linearisation changes.
 
 The final ``f`` is that of the sweep spanning the wider angle; the other sweep's
 distortions use it too, so its scale difference is carried by ``k0`` (and ``b1``), as
-CONTRACT section 4 says.
+docs/conventions.md section 4 says.
 
 Distortion fit (eq. 8-10)
 -------------------------
@@ -141,7 +141,7 @@ _AXES = ("x", "y")
 
 # --------------------------------------------------------------------------- frames.csv
 def read_frames_csv(path, *, strict: bool = True) -> pa.Table:
-    """Read and check ``frames.csv`` (CONTRACT section 3).
+    """Read and check ``frames.csv`` (docs/conventions.md section 3).
 
     Parameters
     ----------
@@ -485,7 +485,7 @@ def along_axis_difference_px(params_a, params_b, sensor: Sensor, uv_px, axis) ->
 # --------------------------------------------------------------------------- result
 @dataclass
 class GoniometerResult:
-    """A goniometer calibration (CONTRACT sections 2 and 4).
+    """A goniometer calibration (docs/conventions.md sections 2 and 4).
 
     Attributes
     ----------
@@ -521,7 +521,7 @@ class GoniometerResult:
         return cam.Camera(self.sensor, self.parameters)
 
     def document_fields(self) -> dict:
-        """The method's part of the calibration document (CONTRACT section 4): ``method,
+        """The method's part of the calibration document (docs/conventions.md section 4): ``method,
         sensor, model, parameters, sigma, stats, images``; the caller adds ``schema,
         camera_id, session_id, version, created, inputs``."""
         return {"method": self.method, "sensor": self.sensor.to_dict(), "model": cam.MODEL,

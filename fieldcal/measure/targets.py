@@ -63,7 +63,7 @@ full-image labelling is made (figures for a 8208 x 6280 frame: bench/README_extr
 The default method is the one that measured more accurately on rendered images (see
 ``bench/README_extract.md``): :data:`DEFAULT_METHOD`.
 
-Pixel convention: CONTRACT section 1, the centre of the top-left pixel is ``(0, 0)``; the
+Pixel convention: docs/conventions.md section 1, the centre of the top-left pixel is ``(0, 0)``; the
 pixel at row ``i``, column ``j`` of a window whose top-left pixel is ``(x0, y0)`` has its
 centre at ``(u, v) = (x0 + j, y0 + i)``.
 """
@@ -820,7 +820,7 @@ def detect_targets(image, *, polarity: str = "dark", min_diameter_px: float = 8.
     -------
     pyarrow.Table
         Schema ``measurements`` (``schemas/measurements.arrow.json``), one row per target,
-        ``kind = "disc"``; positions in the pixel convention of CONTRACT section 1.
+        ``kind = "disc"``; positions in the pixel convention of docs/conventions.md section 1.
     """
     img = _check_image(image)
     _check_choice("polarity", polarity, POLARITIES)
@@ -997,7 +997,7 @@ def opencv_blob_centres(image, *, polarity: str = "dark") -> np.ndarray:
     The peer that :func:`detect_targets` is compared with (tests, bench). A 16-bit image
     is first stretched to 8 bits (:func:`fieldcal.measure.coded.to_uint8`), which the detector
     needs; ``blobColor`` follows ``polarity``, every other setting is OpenCV's default.
-    OpenCV's keypoints use the same pixel convention as CONTRACT section 1.
+    OpenCV's keypoints use the same pixel convention as docs/conventions.md section 1.
     """
     from fieldcal.measure.coded import to_uint8
 

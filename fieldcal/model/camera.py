@@ -1,4 +1,4 @@
-"""The camera model ``fieldcal-brown/1`` (CONTRACT sections 1-2).
+"""The camera model ``fieldcal-brown/1`` (docs/conventions.md sections 1-2).
 
 Frames
 ------
@@ -157,7 +157,7 @@ def _terms(xb, yb, p):
 
 
 def correction(xy_mm, params):
-    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
+    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (docs/conventions.md section 2)."""
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
     xb, yb = xy[..., 0] - p[XP], xy[..., 1] - p[YP]

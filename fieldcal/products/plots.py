@@ -2,7 +2,7 @@
 
 Every function returns a :class:`matplotlib.figure.Figure` made without pyplot (no global
 state, safe in threads and servers); :func:`to_png` renders one to PNG bytes. Pixel
-coordinates follow CONTRACT section 1 (u right, v down: sensor plots have v increasing
+coordinates follow docs/conventions.md section 1 (u right, v down: sensor plots have v increasing
 downwards); image-plane quantities are in mm or um as their labels say.
 
 The numbers drawn come from :mod:`fieldcal.products.uncertainty` (propagated uncertainty and

@@ -1,4 +1,4 @@
-"""Loading and validating a calibration session folder (CONTRACT section 3).
+"""Loading and validating a calibration session folder (docs/conventions.md section 3).
 
 Everything is checked before anything is computed or written: the manifest against
 ``schemas/session.schema.json`` (errors name the JSON pointer of the bad field), every
@@ -107,7 +107,7 @@ class Session:
 
     @property
     def parameter_set(self) -> tuple[str, ...]:
-        """The method's set of estimable parameters (CONTRACT section 2)."""
+        """The method's set of estimable parameters (docs/conventions.md section 2)."""
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
 
 
@@ -246,7 +246,7 @@ def default_session_id(manifest: dict, folder) -> str:
 
     The folder's name is taken as given (``os.path.abspath``, not following links), so a
     folder and the fleet's scan of it (:mod:`flows.fleet`) agree. This is the one place that
-    defines the default (CONTRACT section 3).
+    defines the default (docs/conventions.md section 3).
     """
     sid = manifest.get("session_id")
     if sid is not None:

@@ -1,4 +1,4 @@
-"""The CSV tables of a field session (CONTRACT section 3): targets.csv, observations.csv, marks.csv.
+"""The CSV tables of a field session (docs/conventions.md section 3): targets.csv, observations.csv, marks.csv.
 
 Each table is read once, in one pass, into Arrow string columns with the line number of
 every row, and then checked column by column (vectorised): required columns, names as the
@@ -431,7 +431,7 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
     ``images`` is extended in place with images the file names (when ``allow_new_images``,
     i.e. the manifest's glob matched no file). A (image, target) pair may appear once; two
     spellings of one image's path (``images/./a.tif``) are the same image. With ``sensor``,
-    a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px, CONTRACT section 1).
+    a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px, docs/conventions.md section 1).
     """
     t = read_csv_table(path, ("image", "target_id", "u", "v"), ("sigma_px",), kind="observations.csv",
                        tokeniser=tokeniser)
