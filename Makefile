@@ -1,5 +1,6 @@
 # The two set-up commands of fieldcal: `make demo` and `make test`.
 # Both create .venv on a fresh machine and install the pinned set (requirements.lock).
+# `make check` is the fast tier for daily work (tests/conftest.py: not slow, not heavy).
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -9,7 +10,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test check lint bench clean
 
 $(STAMP): requirements.lock pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,6 +24,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+check: $(STAMP)
+	$(PY) -m pytest -q -m "not slow and not heavy"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -9,7 +9,7 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
   targets (field method) or the collimator spot (goniometer). A bad image raises
   :class:`ImageError`; the flow reports it and goes on without that image.
 - :func:`solve` turns all measurements into an :class:`Outcome`: the calibration
-  document (CONTRACT section 4, without its version: the lake assigns it), the arrays and
+  document (docs/conventions.md section 4, without its version: the lake assigns it), the arrays and
   the residual table the lake stores, and a human summary.
 """
 
@@ -26,7 +26,7 @@ from fieldcal.goniometer import method as goniometer
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
 from fieldcal.session.fingerprint import fingerprint, sha256_file
-from fieldcal.session.loader import Session, field_data_from_observations, load_session, read_targets_csv
+from fieldcal.session.loader import Session, field_data_from_observations, load_session
 
 __all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "image_hash",
            "input_fingerprint"]
@@ -87,7 +87,7 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
     sess = load_session(folder)
     tables = {"session.json": (sess.folder / "session.json").read_bytes()}
     if sess.method == "field":
-        targets = read_targets_csv(sess.targets_path)          # validates now
+        targets = sess.targets()                                # validates now (read once)
         tables[sess.targets_path.name] = sess.targets_path.read_bytes()
         field_data = None
         if sess.observations_path is not None:
@@ -132,8 +132,12 @@ def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
 
 
 def input_fingerprint(prepared: Prepared, image_hashes: Mapping[str, str]) -> str:
-    """The inputs' fingerprint: tables, image contents and settings (canonical JSON, SHA-256)."""
+    """The inputs' fingerprint: the session's identity, tables, image contents and settings
+    (canonical JSON, SHA-256). Two folders with the same files are two sessions when their
+    ``session_id`` differs (a default one is the folder's name), so each gets its version."""
+    sess = prepared.session
     return fingerprint({
+        "session": {"camera_id": sess.camera_id, "session_id": sess.session_id},
         "tables": {k: v for k, v in sorted(prepared.tables.items())},
         "images": dict(sorted(image_hashes.items())),
         "settings": prepared.settings.to_dict(),

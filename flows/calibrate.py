@@ -453,7 +453,7 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
     Parameters
     ----------
     session : str
-        The session folder (CONTRACT section 3), on a filesystem the Dask workers see
+        The session folder (docs/conventions.md section 3), on a filesystem the Dask workers see
         under the same path.
     lake : str
         The lake: a local path or an fsspec URL (``s3://bucket/prefix``).

@@ -1,4 +1,4 @@
-"""The command line ``fieldcal`` (CONTRACT section 5 and beyond).
+"""The command line ``fieldcal`` (docs/conventions.md section 5 and beyond).
 
 Commands
 --------

@@ -34,6 +34,7 @@ from prefect.cache_policies import NO_CACHE
 
 from fieldcal.errors import one_line
 from fieldcal.lake.store import Lake
+from fieldcal.session.loader import default_session_id
 
 from . import cluster
 from .calibrate import calibrate_session
@@ -86,7 +87,6 @@ def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundS
     found = []
     for m in manifests:
         folder = posixpath.dirname(m) if fs is not None else os.path.dirname(m)
-        name = folder.rstrip("/").rsplit("/", 1)[-1]
         url = fs.unstrip_protocol(folder) if fs is not None else folder
         try:
             if fs is None:
@@ -102,7 +102,7 @@ def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundS
             camera_id = manifest.get("camera_id")
             if not isinstance(camera_id, str) or not camera_id:
                 raise ValueError("session.json has no camera_id")
-            session_id = manifest.get("session_id") or name
+            session_id = default_session_id(manifest, folder)
             has_images = manifest.get("method") == "goniometer" or not has_obs
             found.append(FoundSession(url, camera_id, str(session_id), has_images))
         except (OSError, ValueError) as e:

@@ -1,5 +1,10 @@
 """Loaders of the real measured data in ../shared/data (see each folder's README.md).
 
+The data live outside the repository. ``$FIELDCAL_SHARED_DATA`` names the folder when set
+(and then only it is looked at); otherwise ``../shared/data`` beside the checkout, then
+``/work/shared/data``. When a data set is not there, the tests that need it skip with the
+reason (:func:`require`; every loader below calls it), and the rest of the suite runs.
+
 - ``opencv-calib1``: OpenCV's calib1.dat inputs: 7 views of a planar 7 x 5 chessboard
   (2.54 cm squares) seen by a 640 x 480 camera, corner pixels in OpenCV's convention
   (centre of the top-left pixel at (0, 0), the same as fieldcal's).
@@ -13,26 +18,49 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Sensor
 
 
 def _data_dir() -> Path:
-    """``../shared/data`` beside the checkout (or ``$FIELDCAL_SHARED_DATA``, or /work/shared/data)."""
+    """``$FIELDCAL_SHARED_DATA`` when set, else ``../shared/data`` beside the checkout, else
+    /work/shared/data (the first that holds a data set; the first candidate if none does)."""
     import os
 
-    candidates = [os.environ.get("FIELDCAL_SHARED_DATA"),
-                  Path(__file__).resolve().parents[2] / "shared" / "data", "/work/shared/data"]
+    if os.environ.get("FIELDCAL_SHARED_DATA"):
+        return Path(os.environ["FIELDCAL_SHARED_DATA"])
+    candidates = [Path(__file__).resolve().parents[2] / "shared" / "data", Path("/work/shared/data")]
     for c in candidates:
-        if c and (Path(c) / "opencv-calib1").is_dir():
-            return Path(c)
-    return Path(__file__).resolve().parents[2] / "shared" / "data"
+        if (c / "opencv-calib1").is_dir():
+            return c
+    return candidates[0]
 
 
 DATA = _data_dir()
 CALIB1 = DATA / "opencv-calib1" / "calib1_inputs.dat"
 DBAT = DATA / "dbat-camcal"
+FILES = {"opencv-calib1": ["calib1_inputs.dat"],
+         "dbat-camcal": ["images.txt", "objpts-pm.txt", "markpts.txt", "images"]}
+"""What each data set must hold for its tests."""
+
+
+def missing(name: str) -> str | None:
+    """Why the data set ``name`` cannot be used here, or None when it is complete."""
+    absent = [f for f in FILES[name] if not (DATA / name / f).exists()]
+    if absent:
+        return (f"real data {name} not found in {DATA} (missing {', '.join(absent)}); set "
+                "FIELDCAL_SHARED_DATA to the folder holding opencv-calib1/ and dbat-camcal/")
+    return None
+
+
+def require(name: str) -> Path:
+    """The folder of the data set ``name``; skips the calling test when it is absent."""
+    reason = missing(name)
+    if reason is not None:
+        pytest.skip(reason)
+    return DATA / name
 
 CALIB1_PIXEL_UM = 5.0
 """calib1 gives no pixel size; any value works (f in mm = f in px times this)."""
@@ -40,7 +68,7 @@ CALIB1_PIXEL_UM = 5.0
 
 def calib1_raw():
     """(width, height, object points (views, 35, 3) [cm], image points (views, 35, 2) [px], flags)."""
-    tok = CALIB1.read_text().split()
+    tok = (require("opencv-calib1") / "calib1_inputs.dat").read_text().split()
     w, h, nx, ny, nviews, flags = (int(t) for t in tok[:6])
     vals = np.array(tok[6:], dtype=float)
     n = nx * ny
@@ -68,6 +96,7 @@ def dbat_field_data(sigma_px: float = 0.1) -> FieldData:
     Object units are the sheet's (a unit square between the control points), used as
     metres; the target sigmas are PhotoModeler's estimates converted to mm of those units.
     """
+    require("dbat-camcal")
     names = {}
     for line in (DBAT / "images.txt").read_text().splitlines():
         if line.strip() and not line.startswith("#"):

@@ -1,4 +1,4 @@
-"""The field method (Wang et al. 2018, ``../shared/METHODS.md`` A).
+"""The field method (Wang et al. 2018, Optics and Precision Engineering 26(2)).
 
 Initial values (:mod:`.dlt`, :mod:`.resection`, :mod:`.distortion_init`), the bundle
 model (:mod:`.bundle`), identification of measured targets (:mod:`.identify`,

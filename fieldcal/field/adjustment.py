@@ -246,7 +246,7 @@ class FieldResult:
         return Camera(self.data.sensor, self.params)
 
     def stats(self) -> dict:
-        """The document's ``stats`` (CONTRACT section 4) plus a few extras."""
+        """The document's ``stats`` (docs/conventions.md section 4) plus a few extras."""
         used = self.obs_used
         du = self.residual_px[used]
         norm = np.hypot(du[:, 0], du[:, 1])
@@ -275,7 +275,7 @@ class FieldResult:
         }
 
     def images_section(self) -> list[dict]:
-        """The document's ``images`` list (CONTRACT section 4)."""
+        """The document's ``images`` list (docs/conventions.md section 4)."""
         out = []
         used = self.obs_used
         for i, im in enumerate(self.data.images):

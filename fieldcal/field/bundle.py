@@ -15,7 +15,7 @@ last so that the least-squares engine can eliminate them (3x3 blocks, Schur comp
 
 Residuals (weighted, dimensionless):
 
-- image point k of image i and target t, in **image space** (CONTRACT section 4):
+- image point k of image i and target t, in **image space** (docs/conventions.md section 4):
   ``r_k = (uv_measured - uv(x)) / sigma_px`` where ``uv(x)`` is the pixel at which the
   adjusted target lands through the adjusted camera: ``Xc = R_i (X_t - C_i)``,
   ``q = -f (Xc, Yc)/Zc``, ``x' = distort(q)``, ``uv = pixel(x')``. The printed objective of

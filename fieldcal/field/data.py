@@ -1,7 +1,7 @@
 """The field method's data: surveyed targets, images and identified image observations.
 
 Plain containers over numpy arrays, shared by the session loader, the synthetic
-generator, identification and the adjustment. Pixel coordinates follow CONTRACT
+generator, identification and the adjustment. Pixel coordinates follow docs/conventions.md
 section 1; world coordinates are metres; target sigmas millimetres.
 """
 
@@ -126,7 +126,7 @@ class FieldData:
         return replace(self, obs=obs)
 
     def observation_table(self) -> pa.Table:
-        """The observations as a table of schema ``observations`` (CONTRACT observations.csv)."""
+        """The observations as a table of schema ``observations`` (docs/conventions.md section 3, observations.csv)."""
         return pa.table({
             "image": pa.array([self.images[i].file for i in self.obs.image], pa.string()),
             "target_id": pa.array(self.targets.ids[self.obs.target], pa.string()),

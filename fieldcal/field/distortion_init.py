@@ -3,7 +3,7 @@
 Method
 ------
 For a measured image point ``(x', y')`` [mm] and a principal point ``(xp, yp)`` the
-contract's correction (CONTRACT section 2) is
+contract's correction (docs/conventions.md section 2) is
 
     q = (xb + dx, yb + dy),     xb = x' - xp,  yb = y' - yp,
 
@@ -59,7 +59,7 @@ class DistortionFit(NamedTuple):
     Attributes
     ----------
     coefficients : dict
-        ``{name: value}`` in the order asked for (units of CONTRACT section 2).
+        ``{name: value}`` in the order asked for (units of docs/conventions.md section 2).
     rms_mm : float
         ``sqrt(mean(rx^2 + ry^2))`` of the fit residuals over the points [mm].
     residuals_mm : (n, 2) ndarray
@@ -77,7 +77,7 @@ class DistortionFit(NamedTuple):
 def ideal_points_mm(X_world_m, R_world_to_camera, center_m, f_mm):
     """Collinearity projection ``q = -f (Xc, Yc) / Zc`` [mm] of world points (..., 3) [m].
 
-    ``Xc = R_world_to_camera (X - C)`` (CONTRACT section 2). These are the ideal points,
+    ``Xc = R_world_to_camera (X - C)`` (docs/conventions.md section 2). These are the ideal points,
     relative to the principal point, that :func:`distortion_lsq` fits the correction to.
     Points behind the camera (``Zc >= 0``) give NaN.
     """
@@ -102,7 +102,7 @@ def distortion_lsq(
     Parameters
     ----------
     xy_measured_mm : (n, 2) array_like
-        Measured image points [mm] in the image-plane frame (CONTRACT section 1; from pixels
+        Measured image points [mm] in the image-plane frame (docs/conventions.md section 1; from pixels
         with :meth:`fieldcal.model.camera.Sensor.pixel_to_mm`). Points of several images may be
         stacked: the model does not depend on the pose.
     q_ideal_mm : (n, 2) array_like

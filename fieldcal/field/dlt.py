@@ -6,7 +6,7 @@ The direct linear transformation models an image as a projective camera
 
     lambda [u, v, 1]^T = P [X, Y, Z, 1]^T,        P = K [R_cv | -R_cv C]        (eq. 1)
 
-with pixel coordinates ``(u, v)`` (CONTRACT section 1), world points ``X`` [m] and the
+with pixel coordinates ``(u, v)`` (docs/conventions.md section 1), world points ``X`` [m] and the
 3x4 matrix ``P`` [px] known up to scale (11 parameters). Each point gives two linear
 equations in the 12 entries ``m`` of ``P`` (eq. 2):
 
@@ -24,7 +24,7 @@ Decomposition. ``P`` is scaled so that ``det P[:, :3] > 0`` and ``|P[2, :3]| = 1
 third homogeneous coordinate. The RQ decomposition ``P[:, :3] = K R_cv`` with the
 diagonal of ``K`` made positive gives a proper rotation ``R_cv``. The camera centre is
 the null vector of ``P``. ``K`` and ``R_cv`` are in OpenCV's camera frame (x right,
-y down, z forward); fieldcal's frame (x right, y up, z backwards, CONTRACT section 1) is
+y down, z forward); fieldcal's frame (x right, y up, z backwards, docs/conventions.md section 1) is
 
     R_world_to_camera = diag(1, -1, -1) R_cv,    f = (alpha + beta)/2 d,
     xp = (cx - (W-1)/2) d,    yp = -(cy - (H-1)/2) d
@@ -83,7 +83,7 @@ class DltResult:
     Attributes
     ----------
     f_mm, xp_mm, yp_mm : float
-        Principal distance ``(alpha + beta)/2 d`` and principal point [mm] (CONTRACT section 1).
+        Principal distance ``(alpha + beta)/2 d`` and principal point [mm] (docs/conventions.md section 1).
     aspect : float
         ``beta / alpha`` (1 for square pixels and no affine distortion).
     skew : float
@@ -93,7 +93,7 @@ class DltResult:
     center_m : (3,) ndarray
         Camera centre [m], the null vector of ``P``.
     P : (3, 4) ndarray
-        The projection matrix [px], pixel convention of CONTRACT section 1, scaled so that
+        The projection matrix [px], pixel convention of docs/conventions.md section 1, scaled so that
         ``det P[:, :3] > 0`` and ``|P[2, :3]| = 1``.
     K_px : (3, 3) ndarray
         OpenCV-style intrinsic matrix [px] (x right, y down, z forward frame).
@@ -255,7 +255,7 @@ def dlt(
     X_world_m : (n, 3) array_like
         Control points [m], n >= 6, not coplanar.
     uv_px : (n, 2) array_like
-        Their measured image points [px] (CONTRACT section 1).
+        Their measured image points [px] (docs/conventions.md section 1).
     sensor : Sensor
         Pixel grid (pitch and size), for the conversion to mm.
     where : str

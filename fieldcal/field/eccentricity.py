@@ -11,7 +11,7 @@ so that the image of the centre is ``uv_measured - e`` (:func:`remove_eccentrici
 
 Derivation
 ----------
-In the camera frame (CONTRACT section 1: x right, y up, looking along -z) let the disc
+In the camera frame (docs/conventions.md section 1: x right, y up, looking along -z) let the disc
 have centre ``P = R (X0 - C)``, unit normal ``n = R n_world`` and in-plane orthonormal
 axes ``e1, e2``. A point ``a e1 + b e2`` of the plane maps to the ideal image point
 (``q = -f (X, Y) / Z``, relative to the principal point, [mm]) with the homography
@@ -126,7 +126,7 @@ def correction_px(camera: Camera, R_world_to_camera, center_m, centers_m, normal
         The camera (``f_mm`` and the distortion map ideal points to pixels).
     R_world_to_camera : (3, 3) array
     center_m : (3,) array
-        The image's exterior orientation (CONTRACT section 1) [m].
+        The image's exterior orientation (docs/conventions.md section 1) [m].
     centers_m : (n, 3) array
         Centres of the discs, world [m].
     normals : (n, 3) or (3,) array

@@ -8,7 +8,7 @@ calibration (:func:`calibrate_from_measurements`):
    (:func:`fieldcal.field.identify.identify_image`) with the camera the session describes: the
    nominal focal length (``lens.nominal_focal_mm``), principal point at the sensor centre, no
    distortion. It starts from the coded targets (ArUco markers named in targets.csv) or, in
-   fields without coded targets, from the hand marks of marks.csv (CONTRACT section 3).
+   fields without coded targets, from the hand marks of marks.csv (docs/conventions.md section 3).
    Images whose measurement table is missing (the file could not be read or measured) or
    with too few identified targets are left out and reported.
 2. **First adjustment** (:func:`fieldcal.field.adjustment.adjust_field`) of the identified points,
@@ -59,7 +59,7 @@ from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
 from fieldcal.model.camera import INDEX, Camera
-from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv
+from fieldcal.session.loader import Session, read_marks_csv
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of"]
 
@@ -274,7 +274,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     say = progress or (lambda _line: None)
     options = options or AdjustmentOptions()
     nominal = nominal_camera(session)
-    targets = read_targets_csv(session.targets_path)
+    targets = session.targets()
     images = list(session.images)
     names = [im.file for im in images]
     marks = read_marks_csv(session.marks_path, targets, images) if session.marks_path is not None else {}

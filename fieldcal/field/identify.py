@@ -6,7 +6,7 @@ The measurements of an image (:func:`fieldcal.measure.targets.measure_image`: di
 markers) carry no identities except the markers' codes. A few *seeds* give the first
 correspondences: the coded targets (a marker's code names its target through
 ``targets.codes``; its measured centre is that target's observation) and, for fields
-without coded targets, the hand marks of ``marks.csv`` (CONTRACT section 3). Then:
+without coded targets, the hand marks of ``marks.csv`` (docs/conventions.md section 3). Then:
 
 1. **Pose from the seeds.** Candidate poses: the given approximate pose (``init_pose``,
    e.g. from an adjustment), OpenCV's SQPnP of all seeds, and their resection

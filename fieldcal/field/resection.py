@@ -19,7 +19,7 @@ On those, OpenCV solves the perspective-n-point problem in its own camera frame
 
 followed by Levenberg-Marquardt refinement (``cv2.solvePnPRefineLM``). The pose is
 converted back to fieldcal's frame (``R_world_to_camera = diag(1, -1, -1) R_cv``,
-``C = -R_cv^T t``; CONTRACT section 1). Residuals and their RMS are computed with
+``C = -R_cv^T t``; docs/conventions.md section 1). Residuals and their RMS are computed with
 fieldcal's own :func:`fieldcal.model.camera.project` (distortion included), and with
 ``ransac=True`` the inliers are re-selected from those residuals and the pose refitted
 until the set is stable, so a wrong point near the threshold in ideal pixels is judged
@@ -173,7 +173,7 @@ def resect(
     X_world_m : (n, 3) array_like
         Control points [m].
     uv_px : (n, 2) array_like
-        Their measured pixels [px] (CONTRACT section 1), distortion not removed.
+        Their measured pixels [px] (docs/conventions.md section 1), distortion not removed.
     camera : Camera
         The interior orientation, distortion included.
     ransac : bool

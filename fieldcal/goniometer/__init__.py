@@ -1,4 +1,4 @@
-"""The laboratory goniometer method (Yuan et al. 2016, ``../shared/METHODS.md`` B).
+"""The laboratory goniometer method (Yuan et al. 2016, Acta Geodaetica et Cartographica Sinica 45(5)).
 
 Modules, in the order the method runs: :mod:`~fieldcal.goniometer.frames` (frames.csv, the
 spot of each frame, the mean per angle), :mod:`~fieldcal.goniometer.minsum` (principal

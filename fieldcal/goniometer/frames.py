@@ -1,6 +1,6 @@
 """Goniometer frames: ``frames.csv``, the spot of each frame, and the mean per angle.
 
-A goniometer session lists its frames in ``frames.csv`` (CONTRACT section 3: ``file,
+A goniometer session lists its frames in ``frames.csv`` (docs/conventions.md section 3: ``file,
 axis, angle_deg``); several frames share an angle (the paper's multi-frame statistics,
 METHODS.md part B, section 1.2.1). :func:`read_frames_csv` reads and checks the file;
 :func:`measure_frame` measures the spot of one frame with
@@ -54,7 +54,7 @@ MEASUREMENT_SCHEMA = pa.schema([
 
 # --------------------------------------------------------------------------- frames.csv
 def read_frames_csv(path, *, strict: bool = True) -> pa.Table:
-    """Read and check ``frames.csv`` (CONTRACT section 3).
+    """Read and check ``frames.csv`` (docs/conventions.md section 3).
 
     Parameters
     ----------

@@ -2,7 +2,7 @@ r"""The laboratory goniometer method (METHODS.md part B; Yuan et al. 2016, eq. 1
 
 A collimated point target on a turning arm is photographed at known arm angles ``W_i``
 while its image sweeps the sensor's centre row (``x`` sweep) and, with the camera turned,
-its centre column (``y`` sweep); several frames per angle (CONTRACT section 3, frames.csv).
+its centre column (``y`` sweep); several frames per angle (docs/conventions.md section 3, frames.csv).
 :func:`calibrate` runs the method's steps in order, each in its module:
 
 1. :mod:`fieldcal.goniometer.frames`: ``frames.csv``, the spot of each frame (fan-out
@@ -13,7 +13,7 @@ its centre column (``y`` sweep); several frames per angle (CONTRACT section 3, f
    minimum sum of squared distortion (eq. 1-7; linearised, or the rigorous eq. 2').
    The final ``f`` is that of the sweep spanning the wider angle; the other sweep's
    distortions use it too, so its scale difference is carried by ``k0`` (and ``b1``), as
-   CONTRACT section 4 says.
+   docs/conventions.md section 4 says.
 3. :mod:`fieldcal.goniometer.chain`: the distortion values and the distortion fit with the
    sweeps' pointing (eq. 8-10), solved twice (the second time with the slopes of the
    fitted correction, which keep the principal point free of the set-up's alignment),

@@ -1,6 +1,6 @@
 """A goniometer calibration: the result of :func:`fieldcal.goniometer.method.calibrate`.
 
-:class:`GoniometerResult` holds the camera (CONTRACT sections 2 and 4), its covariance,
+:class:`GoniometerResult` holds the camera (docs/conventions.md sections 2 and 4), its covariance,
 the statistics and the per-angle residuals, and gives the parts the lake stores: the
 document's method fields, the named arrays (Zarr) and the residual rows
 (``schemas/residuals.arrow.json``), and a human summary.
@@ -33,7 +33,7 @@ RESIDUAL_SCHEMA = pa.schema([
 
 @dataclass
 class GoniometerResult:
-    """A goniometer calibration (CONTRACT sections 2 and 4).
+    """A goniometer calibration (docs/conventions.md sections 2 and 4).
 
     Attributes
     ----------
@@ -69,7 +69,7 @@ class GoniometerResult:
         return cam.Camera(self.sensor, self.parameters)
 
     def document_fields(self) -> dict:
-        """The method's part of the calibration document (CONTRACT section 4): ``method,
+        """The method's part of the calibration document (docs/conventions.md section 4): ``method,
         sensor, model, parameters, sigma, stats, images``; the caller adds ``schema,
         camera_id, session_id, version, created, inputs``."""
         return {"method": self.method, "sensor": self.sensor.to_dict(), "model": cam.MODEL,

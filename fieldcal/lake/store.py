@@ -6,7 +6,7 @@ person can browse it and DuckDB / pyarrow / zarr can read it without fieldcal::
     LAKE/observations/camera_id=C/session_id=S/<image-key>-<sha256>.parquet   one per image
     LAKE/residuals/camera_id=C/session_id=S/version=V/residuals.parquet       one per version
     LAKE/calibrations/C/S/V.zarr          Zarr v3 group: the arrays, the document in attrs
-    LAKE/calibrations/C/S/V.json          the calibration document (CONTRACT section 4)
+    LAKE/calibrations/C/S/V.json          the calibration document (docs/conventions.md section 4)
     LAKE/catalog/V.parquet                one row per version (schemas/catalog.arrow.json)
     LAKE/_claims/...                      commit claims (internal; see "Concurrency")
 
@@ -118,7 +118,7 @@ KNOWN_ARRAYS = {
                                          "field document when not given.",
     "exterior/sigma_center_m": "(n_images, 3) [m] sigmas of the centres, NaN where null. "
                                "Derived from a field document when not given.",
-    "correction_field": "(ny, nx, 2) [px] the model's correction (dx, dy) of CONTRACT section 2 "
+    "correction_field": "(ny, nx, 2) [px] the model's correction (dx, dy) of docs/conventions.md section 2 "
                         "at grid pixels, in pixels along u and v: (dx / d, -dy / d). Derived "
                         "from the parameters on a 41 x 31 grid when not given.",
     "grid_u_px": "(nx,) [px] column coordinates of the correction_field grid.",
@@ -474,7 +474,7 @@ class Lake:
         Parameters
         ----------
         document : mapping
-            The calibration document (CONTRACT section 4). ``version`` may be absent, null
+            The calibration document (docs/conventions.md section 4). ``version`` may be absent, null
             or empty (a new id is made) or a version id to write (refused if committed);
             ``created`` defaults to now; ``code_version`` is added; ``acquired`` (the
             session's acquisition date or time, an extra key) feeds the catalog. Validated

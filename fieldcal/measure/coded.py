@@ -1,6 +1,6 @@
 """Coded targets: ArUco markers found with OpenCV's ``aruco`` module.
 
-A coded target (CONTRACT section 3, ``field.coded``) is an ArUco marker of the session's
+A coded target (docs/conventions.md section 3, ``field.coded``) is an ArUco marker of the session's
 dictionary lying in the field's surface; its target point is the marker's centre, the
 crossing of the diagonals of its black outer square. Under a central projection lines
 stay lines, so the crossing of the imaged diagonals is the image of the centre exactly
@@ -23,8 +23,8 @@ Procedure
    ~0.2 px inside it, the edges' lines do not (0.005 px on the tests' markers).
 4. The centre is the crossing of the diagonals of the refined corners.
 
-Pixel convention: OpenCV places pixel centres at integer coordinates like CONTRACT section
-1; a pixel centre ``x_s`` of an image reduced ``f`` times is at ``f x_s + (f - 1) / 2``
+Pixel convention: OpenCV places pixel centres at integer coordinates like fieldcal
+(docs/conventions.md section 1); a pixel centre ``x_s`` of an image reduced ``f`` times is at ``f x_s + (f - 1) / 2``
 in the full image.
 """
 
@@ -234,7 +234,7 @@ def detect_aruco(image, dictionary: str = DEFAULT_DICTIONARY, *, downscale: int 
     image : (H, W) uint8 or uint16 ndarray
         The pixels [DN].
     dictionary : str
-        OpenCV's name of the dictionary (CONTRACT: the session's ``field.coded.dictionary``).
+        OpenCV's name of the dictionary (docs/conventions.md: the session's ``field.coded.dictionary``).
     downscale : int, optional
         Detect on an image reduced this many times, then refine the corners at full
         resolution; default: the smallest factor that brings the longer side to at most

@@ -10,8 +10,8 @@ same procedure compiled per window, tested against this one
 (``tests/measure/test_disc_engines.py``).
 
 Windows are given by their top-left pixel ``(x0, y0)`` and size ``S``; the pixel at row
-``i``, column ``j`` of a window has its centre at ``(u, v) = (x0 + j, y0 + i)`` (CONTRACT
-section 1, docs/conventions.md).
+``i``, column ``j`` of a window has its centre at ``(u, v) = (x0 + j, y0 + i)`` (docs/conventions.md
+section 1).
 """
 
 from __future__ import annotations

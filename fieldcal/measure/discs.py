@@ -68,7 +68,7 @@ full-image labelling is made (figures for a 8208 x 6280 frame: bench/README_extr
 The default method is the one that measured more accurately on rendered images (see
 ``bench/README_extract.md``): :data:`DEFAULT_METHOD`.
 
-Pixel convention: CONTRACT section 1 (docs/conventions.md), the centre of the top-left pixel
+Pixel convention: docs/conventions.md section 1, the centre of the top-left pixel
 is ``(0, 0)``; the pixel at row ``i``, column ``j`` of a window whose top-left pixel is ``(x0, y0)`` has its
 centre at ``(u, v) = (x0 + j, y0 + i)``.
 """
@@ -451,7 +451,7 @@ def detect_targets(image, *, polarity: str = "dark", min_diameter_px: float = 8.
     -------
     pyarrow.Table
         Schema ``measurements`` (``schemas/measurements.arrow.json``), one row per target,
-        ``kind = "disc"``; positions in the pixel convention of CONTRACT section 1.
+        ``kind = "disc"``; positions in the pixel convention of docs/conventions.md section 1.
     """
     img = _check_arguments(image, polarity, method, min_diameter_px, max_diameter_px, min_snr,
                            upsample, engine)

@@ -1,4 +1,4 @@
-"""Reading session images (CONTRACT section 3, "Images") with tifffile, in one pass.
+"""Reading session images (docs/conventions.md section 3, "Images") with tifffile, in one pass.
 
 Single-channel TIFF or BigTIFF, 8- or 16-bit unsigned, striped or tiled, any codec that
 tifffile decodes. Multi-channel images are converted to luminance (ITU-R BT.601 weights

@@ -2,7 +2,7 @@
 
 Schema ``measurements`` (``schemas/measurements.arrow.json``): the image, the kind of
 target (``disc``, ``aruco``), its code, the position ``u_px, v_px`` in the pixel convention
-of CONTRACT section 1 (docs/conventions.md) with its a-priori one-sigma ``sigma_px``, and
+of docs/conventions.md section 1 with its a-priori one-sigma ``sigma_px``, and
 the quality figures the filters and the report use. The disc detector
 (:mod:`fieldcal.measure.discs`), the ArUco detector (:mod:`fieldcal.measure.coded`) and
 the per-image composition (:mod:`fieldcal.measure.targets`) build their tables here, and

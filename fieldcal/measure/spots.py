@@ -18,7 +18,7 @@ the mean of the repeated frames at an angle, is in :mod:`fieldcal.goniometer.met
 
 Only a window around the brightest spot is processed, so a 40-megapixel frame costs a
 block-average (to find the spot, robust to single hot pixels) plus work on a few hundred
-pixels. Coordinates follow CONTRACT section 1: ``u`` column, ``v`` row, centre of the
+pixels. Coordinates follow docs/conventions.md section 1: ``u`` column, ``v`` row, centre of the
 top-left pixel at ``(0, 0)``.
 
 A frame that cannot give a trustworthy position is not an error: :func:`measure_spot`
@@ -54,7 +54,7 @@ class Spot:
     Attributes
     ----------
     u_px, v_px : float
-        Centroid [px] (column, row; CONTRACT section 1). Also given for ``saturated``,
+        Centroid [px] (column, row; docs/conventions.md section 1). Also given for ``saturated``,
         ``truncated`` and ``double`` spots, for the record; do not use them.
     peak_dn : float
         Brightest pixel of the region [DN].

@@ -1,4 +1,4 @@
-"""The camera model ``fieldcal-brown/1`` (CONTRACT sections 1-2).
+"""The camera model ``fieldcal-brown/1`` (docs/conventions.md sections 1-2).
 
 Frames
 ------
@@ -149,7 +149,7 @@ class Camera:
 
 
 def correction_terms(xb, yb, p):
-    """The correction polynomial (CONTRACT section 2), written once for the whole package.
+    """The correction polynomial (docs/conventions.md section 2), written once for the whole package.
 
     Parameters
     ----------
@@ -182,7 +182,7 @@ def correction_terms(xb, yb, p):
 
 
 def correction(xy_mm, params):
-    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (CONTRACT section 2)."""
+    """The correction ``(dx, dy)`` (..., 2) [mm] of measured points ``xy_mm`` (docs/conventions.md section 2)."""
     p = np.asarray(params, dtype=float)
     xy = np.asarray(xy_mm, dtype=float)
     dx, dy = correction_terms(xy[..., 0] - p[XP], xy[..., 1] - p[YP], p)[:2]

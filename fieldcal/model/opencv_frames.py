@@ -21,7 +21,7 @@ FLIP_YZ = np.diag([1.0, -1.0, -1.0])
 def opencv_camera_matrix(camera: Camera) -> np.ndarray:
     """OpenCV's 3x3 intrinsic matrix [px] of the *ideal* (distortion-free) image of ``camera``.
 
-    ``fx = fy = f/d``, ``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (CONTRACT section 1).
+    ``fx = fy = f/d``, ``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (docs/conventions.md section 1).
     Use it with :func:`ideal_pixels` and no distortion coefficients.
     """
     s = camera.sensor

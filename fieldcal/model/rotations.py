@@ -1,6 +1,6 @@
 """Rotations: omega-phi-kappa angles, rotation vectors, and the SO(3) Jacobian.
 
-Conventions (CONTRACT section 1): the exterior orientation of an image is the camera
+Conventions (docs/conventions.md section 1): the exterior orientation of an image is the camera
 centre ``C`` and the matrix ``R_world_to_camera`` that maps world vectors into the camera
 frame (x right, y up, z backwards; the camera looks along -z). Angles are
 ``(omega, phi, kappa)`` with ``R_camera_to_world = Rz(kappa) @ Ry(phi) @ Rx(omega)``, so

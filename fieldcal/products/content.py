@@ -12,7 +12,7 @@ and :mod:`fieldcal.products.certificate` only lay them out.
   (:func:`fieldcal.products.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
   *distortion*, ``Delta r = -dr`` (measured minus ideal radius, positive away from the
   principal point), the sign of USGS calibration reports; the model's correction ``dr`` is
-  its negative (CONTRACT section 2).
+  its negative (docs/conventions.md section 2).
 - :func:`adjustment_figures`: sigma0, redundancy (equations minus unknowns) and residuals.
 - :func:`coverage`: which cells of the sensor hold observations.
 - :func:`data_radius_mm`: how far from the principal point the data reach (beyond, the
@@ -43,7 +43,7 @@ dx = xb radial + p1 (r^2 + 2 xb^2) + 2 p2 xb yb + b1 xb + b2 yb
 dy = yb radial + p2 (r^2 + 2 yb^2) + 2 p1 xb yb + a1 xb + a2 yb
 xb + dx = -f R1 (X - C) / R3 (X - C)
 yb + dy = -f R2 (X - C) / R3 (X - C)"""
-"""The model fieldcal-brown/1 (CONTRACT section 2): ``(x', y')`` a measured image point [mm]
+"""The model fieldcal-brown/1 (docs/conventions.md section 2): ``(x', y')`` a measured image point [mm]
 (x right, y up, origin at the sensor centre), ``R1..R3`` the rows of the world-to-camera
 rotation, ``C`` the camera centre, ``X`` a world point [m]."""
 

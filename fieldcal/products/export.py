@@ -1,13 +1,13 @@
 r"""Exports of a calibration to the tools photogrammetrists use: OpenCV, COLMAP, Metashape, JSON.
 
-fieldcal's model (CONTRACT section 2) corrects a *measured* point to the *ideal* one; OpenCV,
+fieldcal's model (docs/conventions.md section 2) corrects a *measured* point to the *ideal* one; OpenCV,
 COLMAP and Metashape distort an *ideal* normalised point into a pixel, with other
 polynomials. No exact conversion exists, so each export is a least-squares fit, and every
 export says how good it is.
 
 Frames
 ------
-A pixel ``uv`` (CONTRACT section 1: centre of the top-left pixel at (0, 0), v down) has the
+A pixel ``uv`` (docs/conventions.md section 1: centre of the top-left pixel at (0, 0), v down) has the
 ideal point ``q = correct(x'(uv))`` [mm] relative to the principal point (y up) and the
 camera-frame ray ``(qx, qy, -f)`` (the camera looks along -z). OpenCV, COLMAP and Metashape
 use a camera frame with y down and z forward, so the ray's *normalised* coordinates are

@@ -2,7 +2,7 @@
 
 Every function returns a :class:`matplotlib.figure.Figure` made without pyplot (no global
 state, safe in threads and servers); :func:`to_png` renders one to PNG bytes. Pixel
-coordinates follow CONTRACT section 1 (u right, v down: sensor plots have v increasing
+coordinates follow docs/conventions.md section 1 (u right, v down: sensor plots have v increasing
 downwards); image-plane quantities are in mm or um as their labels say.
 
 The numbers drawn come from :mod:`fieldcal.products.uncertainty` (propagated uncertainty and
@@ -30,7 +30,7 @@ __all__ = ["to_png", "residual_vectors", "residuals_per_image", "stations_3d",
 PARAM_UNITS = {"f_mm": "mm", "xp_mm": "mm", "yp_mm": "mm", "k0": "1", "k1": "mm^-2",
                "k2": "mm^-4", "k3": "mm^-6", "p1": "mm^-1", "p2": "mm^-1", "a1": "1", "a2": "1",
                "b1": "1", "b2": "1"}
-"""The unit of each camera parameter (CONTRACT section 2)."""
+"""The unit of each camera parameter (docs/conventions.md section 2)."""
 
 DPI = 110
 _AXIS_COLORS = {"x": "tab:blue", "y": "tab:orange"}

@@ -51,7 +51,7 @@ def interior_px(cal: Calibration) -> str:
 
 
 def model_equations() -> str:
-    """The camera model's equations (CONTRACT section 2)."""
+    """The camera model's equations (docs/conventions.md section 2)."""
     return ('<h2 id="model">The model</h2><p>fieldcal-brown/1: a measured image point (x\', y\') '
             "[mm] (origin at the sensor centre, x right, y up) is corrected to the ideal point, "
             "which obeys the collinearity equations (R1..R3 the rows of the world-to-camera "

@@ -1,6 +1,6 @@
 r"""How precisely a calibration places a ray on the sensor: covariance propagation.
 
-A calibration (CONTRACT section 4) maps a ray, fixed in the camera frame, to the pixel
+A calibration (docs/conventions.md section 4) maps a ray, fixed in the camera frame, to the pixel
 where the camera sees it. Its interior parameters ``theta`` (the estimated subset of
 :data:`fieldcal.model.camera.PARAM_NAMES`) carry an a-posteriori covariance ``Sigma``; this
 module propagates it to that pixel.
@@ -16,7 +16,7 @@ Differentiating both sides,
 
 with ``G = dq/dx'`` and ``Q = dq/dtheta`` at fixed ``x'`` (both from
 :func:`fieldcal.model.camera.correct_jacobian`) and ``e_f`` selecting the ``f`` column. In
-pixels ``du = dx / d``, ``dv = -dy / d`` (CONTRACT section 1). :func:`landing_jacobian`
+pixels ``du = dx / d``, ``dv = -dy / d`` (docs/conventions.md section 1). :func:`landing_jacobian`
 returns this ``J`` (n, 2, p) [px per parameter unit]; it is checked against central
 differences of :func:`fieldcal.model.camera.project` in the tests.
 
@@ -109,7 +109,7 @@ class Calibration:
     Attributes
     ----------
     document : dict
-        The calibration document (CONTRACT section 4).
+        The calibration document (docs/conventions.md section 4).
     camera : Camera
     names : tuple of str
         The estimated parameters (rows of ``covariance``), in :data:`PARAM_NAMES` order.

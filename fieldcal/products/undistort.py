@@ -8,7 +8,7 @@ the top-left pixel at (0, 0), y down, z forward) its camera matrix is
     K_out = [[f_px, 0, (W - 1)/2], [0, f_px, (H - 1)/2], [0, 0, 1]]
 
 and it has no distortion. For each output pixel ``(uo, vo)`` the maps hold the input pixel
-that sees the same ray (CONTRACT sections 1-2):
+that sees the same ray (docs/conventions.md sections 1-2):
 
     q = ((uo - cx) d', -(vo - cy) d') * f / f_px'       ideal point [mm], d' = f / f_px
     x' = distort(q)                                     measured point [mm] (Newton)

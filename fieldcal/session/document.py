@@ -1,4 +1,4 @@
-"""The calibration document ``fieldcal.calibration/1`` (CONTRACT section 4).
+"""The calibration document ``fieldcal.calibration/1`` (docs/conventions.md section 4).
 
 One function assembles it from the method's result and the session, so both methods
 produce the same frame (schema, ids, version, sensor, model, all 13 parameters with a
@@ -53,7 +53,7 @@ def calibration_document(*, camera_id: str, session_id: str, version: str, metho
                          sensor: Sensor, parameters, sigma: dict, stats: dict, images: list,
                          fingerprint: str, created: str | None = None, extra: dict | None = None
                          ) -> dict:
-    """The calibration document of CONTRACT section 4.
+    """The calibration document of docs/conventions.md section 4.
 
     Parameters
     ----------

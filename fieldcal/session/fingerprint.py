@@ -1,9 +1,13 @@
 """Fingerprints of a calibration's inputs, and the version of the code that made it.
 
 A version in the lake records the fingerprint of everything that determined its result
-(image content hashes, the control-point / frames / observations tables, the session
-manifest and the solver settings) so that the same inputs are recognised and not solved
-twice, and the code version so that any number can be traced back.
+(the session's identity ``camera_id`` / ``session_id``, image content hashes, the
+control-point / frames / observations tables, the session manifest and the solver
+settings; :func:`fieldcal.pipeline.input_fingerprint`) so that the same inputs of the same
+session are recognised and not solved twice, and the code version so that any number can be
+traced back. The identity is part of it because two folders may hold the same files (two
+copies without a ``session_id`` are two sessions, named after their folders); the path of a
+folder is not, so a session moved elsewhere is still the same session.
 
 The fingerprint is ``"sha256:" + hex`` of the *canonical JSON* of a dict of parts:
 keys sorted, no insignificant whitespace, UTF-8, floats in Python's shortest round-trip

@@ -1,39 +1,55 @@
-"""Loading and validating a calibration session folder (CONTRACT section 3).
+"""Loading and validating a calibration session folder (docs/conventions.md section 3).
 
 Everything is checked before anything is computed or written: the manifest against
 ``schemas/session.schema.json`` (errors name the JSON pointer of the bad field), every
-path stays inside the session folder (no ``..``, no absolute paths, no links out), and the
-CSV tables have their columns, unique ids and finite numbers (errors name file and row).
+path stays inside the session folder (no ``..``, no absolute paths, no links out), every
+photograph is listed once, and the CSV tables (:mod:`fieldcal.session.tables`) have their
+columns, unique ids and finite numbers (errors name file and row).
+
+- ``session_id`` defaults to the name of the session folder as given (not following a
+  link): :func:`default_session_id`, the one place that says so.
+- An image is named by its path relative to the session folder in one spelling
+  (:func:`fieldcal.session.names.normal_file_name`). Two entries that are one photograph
+  are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
+  file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
+  Copies are found by size, then a 64 KiB sample from the middle of the file, then the
+  SHA-256 of the whole file; only files that agree on the first two are read whole.
+- The ``images`` glob is matched inside the session folder (the folder's own name is
+  never a pattern: ``runs/g[1]`` is a folder, not a choice of ``g1``).
 """
 
 from __future__ import annotations
 
-import csv
+import copy
 import glob
+import hashlib
+import itertools
 import json
-import math
 import os
+import stat
+from collections import defaultdict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-import numpy as np
-
 from fieldcal.errors import InputError
-from fieldcal.field.data import (
-    DEFAULT_SIGMA_PX,
-    DEFAULT_TARGET_SIGMA_MM,
-    FieldData,
-    FieldImage,
-    FieldObservations,
-    TargetField,
-)
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
-from fieldcal.session.schemas import validate_json
+from fieldcal.session.fingerprint import sha256_file
+from fieldcal.session.names import normal_file_name
+from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.tables import (
+    MAX_IMAGES,
+    check_size,
+    read_marks_csv,
+    read_observations_csv,
+    read_targets_csv,
+)
 
 __all__ = [
-    "Session", "load_session", "safe_path", "read_csv_rows", "read_targets_csv",
-    "read_observations_csv", "read_marks_csv", "field_data_from_observations", "parse_acquired",
+    "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
+    "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
+    "parse_acquired",
 ]
 
 MANIFEST = "session.json"
@@ -75,6 +91,15 @@ class Session:
     target_polarity: str = "dark"
     coded: dict | None = None
     extras: dict = field(default_factory=dict)
+    _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
+
+    def targets(self) -> TargetField:
+        """targets.csv of a field session, read once (every call returns a fresh copy)."""
+        if self.targets_path is None:
+            raise InputError("not a field-method session (no targets.csv)", str(self.folder / MANIFEST))
+        if "targets" not in self._read:
+            self._read["targets"] = read_targets_csv(self.targets_path)
+        return copy.deepcopy(self._read["targets"])
 
     def image_path(self, name: str) -> Path:
         """The file of an image named as in the session (checked to stay inside the folder)."""
@@ -82,7 +107,7 @@ class Session:
 
     @property
     def parameter_set(self) -> tuple[str, ...]:
-        """The method's set of estimable parameters (CONTRACT section 2)."""
+        """The method's set of estimable parameters (docs/conventions.md section 2)."""
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
 
 
@@ -128,25 +153,105 @@ def safe_path(folder: Path, relative: str, what: str) -> Path:
 
 
 def _resolve_images(folder: Path, spec, where: str) -> list[FieldImage]:
+    """The session's images, named in their one spelling (module docstring); none listed twice."""
     if isinstance(spec, str):
         safe_path(folder, spec, "images")  # the pattern itself must stay inside
-        matches = sorted(glob.glob(str(Path(folder) / spec), recursive=False))
+        pattern = spec.replace("\\", "/")
+        matches = sorted(itertools.islice(glob.iglob(pattern, root_dir=folder), MAX_IMAGES + 1))
+        if len(matches) > MAX_IMAGES:
+            raise InputError(f"images {shown(spec)} matches more than {MAX_IMAGES} files (fieldcal's "
+                             "limit for one session) (at /images)", where)
         out = []
-        for m in matches:
-            rel = Path(m).relative_to(folder).as_posix()
+        for rel in matches:
             safe_path(folder, rel, "image")
-            if Path(m).is_file():
-                out.append(FieldImage(rel, None))
+            if (folder / rel).is_file():
+                out.append(FieldImage(normal_file_name(rel, "image", where), None))
         return out
-    seen, out = set(), []
+    first: dict[str, int] = {}
+    out = []
     for k, item in enumerate(spec):
-        name = str(item["file"]).replace("\\", "/")
-        safe_path(folder, name, f"images[{k}]")
-        if name in seen:
-            raise InputError(f"image {name!r} is listed twice (at /images/{k})", where)
-        seen.add(name)
+        safe_path(folder, item["file"].replace("\\", "/"), f"images[{k}]")
+        name = normal_file_name(item["file"], f"images[{k}]", where)
+        if name in first:
+            spelled = "" if item["file"] == name else f" (as {shown(item['file'])})"
+            raise InputError(f"image {shown(name)} is listed twice{spelled}: at /images/{first[name]} "
+                             f"and /images/{k}", where)
+        first[name] = k
         out.append(FieldImage(name, item.get("station")))
     return out
+
+
+def _sample_digest(path: Path, size: int) -> str:
+    """SHA-256 of at most 64 KiB from the middle of a file (where photographs differ)."""
+    n = min(size, 1 << 16)
+    with open(path, "rb") as fh:
+        fh.seek((size - n) // 2)
+        return hashlib.sha256(fh.read(n)).hexdigest()
+
+
+def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image") -> None:
+    """Refuse two names of one photograph: one file reached twice (a link) or the same bytes.
+
+    Parameters
+    ----------
+    folder : Path
+        The session folder.
+    names : list of str
+        Session-relative names in their normal spelling, each once.
+    where : str
+        The file that lists them, for the message.
+
+    Files that are missing, empty or not regular are skipped here: measuring reports them.
+    Only files of equal size whose middle 64 KiB agree are read whole (module docstring).
+    """
+    by_file: dict[tuple[int, int], str] = {}
+    by_size: dict[int, list[str]] = defaultdict(list)
+    for name in names:
+        try:
+            st = os.stat(folder / name)
+        except (OSError, ValueError):
+            continue
+        if not stat.S_ISREG(st.st_mode) or st.st_size == 0:
+            continue
+        key = (st.st_dev, st.st_ino)
+        if key in by_file:
+            raise InputError(f"{what} {shown(name)} is the file {shown(by_file[key])} again (a link): "
+                             "a photograph counts once", where)
+        by_file[key] = name
+        by_size[st.st_size].append(name)
+    for size, group in by_size.items():
+        if len(group) < 2:
+            continue
+        by_sample: dict[str, list[str]] = defaultdict(list)
+        for name in group:
+            try:
+                by_sample[_sample_digest(folder / name, size)].append(name)
+            except OSError:                  # unreadable: measuring reports it
+                continue
+        for same in (g for g in by_sample.values() if len(g) > 1):
+            by_hash: dict[str, str] = {}
+            for name in same:
+                try:
+                    h = sha256_file(folder / name)
+                except (OSError, InputError):
+                    continue
+                if h in by_hash:
+                    raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
+                                     f"(SHA-256 {h[:12]}...): a photograph counts once", where)
+                by_hash[h] = name
+
+
+def default_session_id(manifest: dict, folder) -> str:
+    """The session's id: the manifest's ``session_id``, else the name of the session folder.
+
+    The folder's name is taken as given (``os.path.abspath``, not following links), so a
+    folder and the fleet's scan of it (:mod:`flows.fleet`) agree. This is the one place that
+    defines the default (docs/conventions.md section 3).
+    """
+    sid = manifest.get("session_id")
+    if sid is not None:
+        return sid
+    return os.path.basename(os.path.abspath(os.fspath(folder)).rstrip("/"))
 
 
 def _no_constant(name: str):
@@ -165,13 +270,23 @@ def _check_frame_paths(folder: Path, frames_path: Path) -> None:
     """Every frame that frames.csv names stays inside the session folder (path checks only)."""
     from fieldcal.goniometer.method import read_frames_csv
 
+    check_size(frames_path, "frames.csv")
     frames = read_frames_csv(frames_path, strict=False)
+    if frames.num_rows > MAX_IMAGES:
+        raise InputError(f"more than {MAX_IMAGES} frames (fieldcal's limit for one session)", str(frames_path))
+    first: dict[str, int] = {}
     for name, line in zip(frames.column("file").to_pylist(), frames.column("line").to_pylist(), strict=True):
         if name:
             try:
                 safe_path(folder, name, "frame")
+                normal = normal_file_name(name, "frame")
             except InputError as err:
                 raise InputError(err.reason, f"{frames_path}:{line}") from None
+            if normal in first:
+                raise InputError(f"frame {shown(normal)} is listed twice (as {shown(name)}; first on line "
+                                 f"{first[normal]})", f"{frames_path}:{line}")
+            first[normal] = line
+    check_distinct_files(folder, list(first), str(frames_path), "frame")
 
 
 def load_session(folder) -> Session:
@@ -189,6 +304,7 @@ def load_session(folder) -> Session:
     path = folder / MANIFEST
     if not path.is_file():
         raise InputError("missing (a session folder needs its session.json)", where)
+    check_size(path, MANIFEST, where)
     try:
         manifest = json.loads(path.read_text(encoding="utf-8-sig"), parse_constant=_no_constant,
                               object_pairs_hook=_unique_keys)
@@ -205,7 +321,7 @@ def load_session(folder) -> Session:
 
     s = manifest["sensor"]
     sensor = Sensor(int(s["width_px"]), int(s["height_px"]), float(s["pixel_size_um"]))
-    session_id = manifest.get("session_id") or folder.resolve().name
+    session_id = default_session_id(manifest, folder)
     if manifest.get("session_id") is None:
         validate_json({**manifest, "session_id": session_id}, "session",
                       where + f" (session_id defaults to the folder name {session_id!r})")
@@ -240,6 +356,7 @@ def load_session(folder) -> Session:
                 aruco_dictionary(sess.coded["dictionary"])
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
+        check_distinct_files(folder, [im.file for im in sess.images], where)
         for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
@@ -252,189 +369,21 @@ def load_session(folder) -> Session:
     return sess
 
 
-# ---------------------------------------------------------------------------- CSV tables
-def read_csv_rows(path, required: tuple[str, ...], optional: tuple[str, ...] = ()):
-    """Rows of a CSV file as dicts of stripped strings, with ``(line_number, row)`` pairs.
-
-    Checks the header has every required column (extra columns are ignored) and that the
-    file has at least one data row. Raises :class:`InputError` naming the file.
-    """
-    where = str(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if header is None:
-                raise InputError("empty file (expected a header line "
-                                 f"{','.join(required + optional)})", where)
-            header = [h.strip() for h in header]
-            missing = [c for c in required if c not in header]
-            if missing:
-                raise InputError(f"missing column(s) {missing}; header is {header}", where)
-            dup = sorted({h for h in header if header.count(h) > 1})
-            if dup:
-                raise InputError(f"duplicate column(s) {dup} in the header", where)
-            idx = {c: header.index(c) for c in required + optional if c in header}
-            rows = []
-            for line_no, rec in enumerate(reader, start=2):
-                if not rec or all(not x.strip() for x in rec):
-                    continue
-                if len(rec) < len(header):
-                    rec = rec + [""] * (len(header) - len(rec))
-                elif len(rec) > len(header):
-                    raise InputError(f"row has {len(rec)} fields, the header has {len(header)}",
-                                     f"{where}:{line_no}")
-                rows.append((line_no, {c: rec[i].strip() for c, i in idx.items()}))
-    except UnicodeDecodeError:
-        raise InputError("not UTF-8 text", where) from None
-    except csv.Error as err:
-        raise InputError(f"not a valid CSV file ({err})", where) from None
-    if not rows:
-        raise InputError("no data rows", where)
-    return rows
-
-
-def _number(text: str, column: str, where: str, *, default=None) -> float:
-    if text == "":
-        if default is None:
-            raise InputError(f"empty value in column {column!r}", where)
-        return default
-    try:
-        value = float(text)
-    except ValueError:
-        raise InputError(f"{column!r} is not a number: {text!r}", where) from None
-    if not math.isfinite(value):
-        raise InputError(f"{column!r} is not finite: {text!r}", where)
-    return value
-
-
-def read_targets_csv(path) -> TargetField:
-    """``targets.csv``: ``id,X,Y,Z,sigma_mm,code`` (X, Y, Z [m]; empty sigma_mm: 5 mm; empty code: plain)."""
-    rows = read_csv_rows(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code"))
-    ids, xyz, sig, codes = [], [], [], []
-    first_row: dict[str, int] = {}
-    code_row: dict[int, int] = {}
-    for line, r in rows:
-        where = f"{path}:{line}"
-        tid = r["id"]
-        if not tid:
-            raise InputError("empty target id", where)
-        if tid in first_row:
-            raise InputError(f"duplicate target id {tid!r} (first on line {first_row[tid]})", where)
-        first_row[tid] = line
-        xyz.append([_number(r[c], c, where) for c in ("X", "Y", "Z")])
-        s = _number(r.get("sigma_mm", ""), "sigma_mm", where, default=DEFAULT_TARGET_SIGMA_MM)
-        if s <= 0:
-            raise InputError(f"sigma_mm must be positive, got {s}", where)
-        sig.append(s)
-        c = r.get("code", "")
-        if c == "":
-            codes.append(-1)
-        else:
-            try:
-                code = int(c)
-            except ValueError:
-                raise InputError(f"'code' must be an ArUco id (a whole number), got {c!r}", where) from None
-            if code < 0:
-                raise InputError(f"'code' must be >= 0, got {code}", where)
-            if code in code_row:
-                raise InputError(f"code {code} already used on line {code_row[code]}", where)
-            code_row[code] = line
-            codes.append(code)
-        ids.append(tid)
-    return TargetField(np.array(ids), np.array(xyz), np.array(sig), np.array(codes))
-
-
-def _image_index(images: list[FieldImage], allow_new: bool):
-    index = {im.file: i for i, im in enumerate(images)}
-
-    def lookup(name: str, where: str) -> int:
-        name = name.replace("\\", "/")
-        if name in index:
-            return index[name]
-        if not allow_new:
-            raise InputError(f"image {name!r} is not one of the session's images", where)
-        index[name] = len(images)
-        images.append(FieldImage(name, None))
-        return index[name]
-
-    return lookup
-
-
-def _image_target_rows(path, rows, targets: TargetField, images: list[FieldImage], allow_new: bool,
-                       verb: str):
-    """Yield ``(where, row, image index, target index)`` of ``image,target_id,...`` rows.
-
-    Refuses an unknown image or target and a (image, target) pair given twice
-    ("target 'T7' observed twice in 'images/a.tif'"); ``where`` is ``path:line``.
-    """
-    tindex = targets.index()
-    lookup = _image_index(images, allow_new)
-    seen: dict[tuple[int, int], int] = {}
-    for line, r in rows:
-        where = f"{path}:{line}"
-        i = lookup(r["image"], where)
-        if r["target_id"] not in tindex:
-            raise InputError(f"target_id {r['target_id']!r} is not in targets.csv", where)
-        t = tindex[r["target_id"]]
-        if (i, t) in seen:
-            raise InputError(f"target {r['target_id']!r} {verb} twice in {images[i].file!r} "
-                             f"(first on line {seen[(i, t)]})", where)
-        seen[(i, t)] = line
-        yield where, r, i, t
-
-
-def read_observations_csv(path, targets: TargetField, images: list[FieldImage], *,
-                          default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None):
-    """``observations.csv``: ``image,target_id,u,v,sigma_px`` -> :class:`FieldObservations`.
-
-    ``images`` is extended in place with images the file names (when ``allow_new_images``,
-    i.e. the manifest's glob matched no file). A (image, target) pair may appear once.
-    With ``sensor``, a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px,
-    CONTRACT section 1).
-    """
-    rows = read_csv_rows(path, ("image", "target_id", "u", "v"), ("sigma_px",))
-    img, tgt, uv, sig = [], [], [], []
-    for where, r, i, t in _image_target_rows(path, rows, targets, images, allow_new_images, "observed"):
-        s = _number(r.get("sigma_px", ""), "sigma_px", where, default=default_sigma_px)
-        if s <= 0:
-            raise InputError(f"sigma_px must be positive, got {s}", where)
-        u, v = _number(r["u"], "u", where), _number(r["v"], "v", where)
-        if sensor is not None and not (-0.5 <= u <= sensor.width_px - 0.5 and -0.5 <= v <= sensor.height_px - 0.5):
-            raise InputError(f"point ({u:g}, {v:g}) px is outside the {sensor.width_px} x "
-                             f"{sensor.height_px} px image", where)
-        img.append(i)
-        tgt.append(t)
-        uv.append((u, v))
-        sig.append(s)
-    return FieldObservations(np.array(img), np.array(tgt), np.array(uv), np.array(sig))
-
-
-def read_marks_csv(path, targets: TargetField, images: list[FieldImage]) -> dict[int, tuple]:
-    """``marks.csv``: ``image,target_id,u,v`` -> ``{image index: (target indices, uv (n,2))}``."""
-    rows = read_csv_rows(path, ("image", "target_id", "u", "v"))
-    out: dict[int, list] = {}
-    for where, r, i, t in _image_target_rows(path, rows, targets, images, False, "marked"):
-        out.setdefault(i, []).append((t, _number(r["u"], "u", where), _number(r["v"], "v", where)))
-    result = {}
-    for i, items in out.items():
-        t = np.array([x[0] for x in items])
-        result[i] = (t, np.array([(x[1], x[2]) for x in items]))
-    return result
-
-
 def field_data_from_observations(sess: Session) -> FieldData:
     """The :class:`FieldData` of a field session that carries ``observations.csv``."""
     if sess.method != "field":
         raise InputError("not a field-method session", str(sess.folder / MANIFEST))
     if sess.observations_path is None:
         raise InputError("no observations.csv in the session", str(sess.folder))
-    targets = read_targets_csv(sess.targets_path)
-    images = list(sess.images)
-    allow_new = isinstance(sess.manifest["images"], str) and not images
-    obs = read_observations_csv(sess.observations_path, targets, images,
-                                default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
-                                sensor=sess.sensor)
+    targets = sess.targets()
+    if "observations" not in sess._read:
+        images = list(sess.images)
+        allow_new = isinstance(sess.manifest["images"], str) and not images
+        obs = read_observations_csv(sess.observations_path, targets, images,
+                                    default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
+                                    sensor=sess.sensor)
+        sess._read["observations"] = (images, obs)
+    images, obs = copy.deepcopy(sess._read["observations"])
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
                      meta={"camera_id": sess.camera_id, "session_id": sess.session_id})

@@ -16,7 +16,7 @@ import pyarrow as pa
 
 from fieldcal.errors import InputError
 
-__all__ = ["schema_dir", "json_schema", "validate_json", "arrow_schema"]
+__all__ = ["schema_dir", "json_schema", "validate_json", "arrow_schema", "shown"]
 
 
 def schema_dir() -> Path:
@@ -45,8 +45,44 @@ def validate_json(document, name: str, where: str) -> None:
     errors = sorted(validator.iter_errors(document), key=lambda e: list(e.absolute_path))
     if errors:
         err = errors[0]
+        if err.validator == "oneOf" and err.context:   # the alternative of the value's type
+            err = _closest(err.context)
         pointer = "/" + "/".join(str(p) for p in err.absolute_path)
-        raise InputError(f"{err.message} (at {pointer})", where)
+        raise InputError(f"{_message(err)} (at {pointer})", where)
+
+
+def _closest(errors):
+    """Among a ``oneOf``'s errors, the deepest of an alternative whose type the value has."""
+    branches: dict = {}
+    for e in errors:
+        branches.setdefault(e.relative_schema_path[0], []).append(e)
+    fitting = [b for b in branches.values()
+               if not any(e.validator == "type" and not e.relative_path for e in b)]
+    pool = min(fitting, key=len) if fitting else list(errors)
+    return max(pool, key=lambda e: len(e.absolute_path))
+
+
+def shown(value, limit: int = 60) -> str:
+    """``repr(value)`` for a message: at most ``limit`` characters of a long text (then its
+    length), or of a long list or object (then its number of items)."""
+    if isinstance(value, str) and len(value) > limit:
+        return f"{value[:limit]!r}... ({len(value)} characters)"
+    text = repr(value)
+    if len(text) > 2 * limit and isinstance(value, (list, dict)):
+        return f"{text[:limit]}... ({type(value).__name__} of {len(value)} items)"
+    return text
+
+
+def _message(err) -> str:
+    """jsonschema's message; for a definition with a ``description`` that the value breaks
+    (pattern, forbidden characters, length), "<value> is not <description>". Long values are
+    cut to their first 60 characters, so the message stays one readable line."""
+    value = err.instance
+    text = shown(value)
+    desc = err.schema.get("description") if isinstance(err.schema, dict) else None
+    if desc and err.validator in ("pattern", "not", "minLength", "maxLength"):
+        return f"{text} is not {desc}"
+    return err.message.replace(repr(value), text)
 
 
 def _arrow_type(name: str) -> pa.DataType:

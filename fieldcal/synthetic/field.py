@@ -86,7 +86,7 @@ class SyntheticField:
 def look_at(center_m, aim_m, roll_rad=0.0, up=(0.0, 0.0, 1.0)):
     """``R_world_to_camera`` of a camera at ``center_m`` looking at ``aim_m``, rolled about its axis.
 
-    The camera frame is x right, y up, z backwards (CONTRACT section 1); with
+    The camera frame is x right, y up, z backwards (docs/conventions.md section 1); with
     ``roll_rad = 0`` the image's y axis is as close to the world ``up`` as possible.
     """
     forward = np.asarray(aim_m, float) - np.asarray(center_m, float)

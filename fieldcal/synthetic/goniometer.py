@@ -1,11 +1,11 @@
-"""Synthetic goniometer sessions with exact truth (METHODS.md part B, CONTRACT section 3).
+"""Synthetic goniometer sessions with exact truth (METHODS.md part B, docs/conventions.md section 3).
 
 A session is rendered the way the laboratory takes it: a collimated point target on an arm
 that turns about an axis through the camera's entrance pupil, first sweeping the image of
 the point along the sensor's centre row (``x`` sweep), then, with the camera turned 90 deg,
 along the centre column (``y`` sweep); several frames at every encoder angle.
 
-Geometry (CONTRACT sections 1-2)
+Geometry (docs/conventions.md sections 1-2)
 --------------------------------
 Everything is in the camera frame (x right, y up, looking along -z). For a sweep:
 
@@ -340,7 +340,7 @@ def write_session(folder, scenario: str = "canon5d2", *, seed: int = 0,
                   noise: bool = True, window_px: int = 20, full_frame_noise: bool = False,
                   misalignment: dict | None = None, camera_id: str | None = None,
                   session_id: str | None = None, **overrides) -> GonioTruth:
-    """Render a complete goniometer session (CONTRACT section 3) into ``folder``.
+    """Render a complete goniometer session (docs/conventions.md section 3) into ``folder``.
 
     Writes ``session.json`` (schema fieldcal.session/1, method goniometer), ``frames.csv``
     and ``images/<axis>_<angle>_<k>.tif`` (16-bit, tiled, zstd).

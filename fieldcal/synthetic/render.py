@@ -7,7 +7,7 @@ plane (point = the true centre, normal = ``targets_true.normals``): a disc of
 ``target_diameter_mm`` for a plain target, an ArUco marker of ``marker_size_mm`` (the black
 outer square) with a white quiet zone for a coded one. A pixel's value is the mean albedo
 over ``supersample x supersample`` regular sub-pixel samples. Pixel ``(u, v)`` covers
-``[u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]`` (CONTRACT section 1), so its samples sit at
+``[u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]`` (docs/conventions.md section 1), so its samples sit at
 ``u - 0.5 + (i + 0.5) / S``, ``i = 0 .. S-1`` (and the same in ``v``).
 
 Each sample is a *measured* image point. It goes the way the contract's model defines:
@@ -67,7 +67,7 @@ scale 0.1-0.25; benchmarks render the full-size problems directly.
 
 Files
 -----
-:func:`write_field_session` writes a complete session of CONTRACT section 3 (session.json,
+:func:`write_field_session` writes a complete session of docs/conventions.md section 3 (session.json,
 targets.csv with the *surveyed* coordinates, images/*.tif in a mix of TIFF layouts, and
 optionally observations.csv and marks.csv) and returns the truth of every image.
 """
@@ -908,7 +908,7 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
                         session_id: str | None = None, acquired: str = "2026-11-20T09:30:00Z",
                         nominal_focal_mm: float | None = None, marks_error_px: float = 0.5,
                         marks_per_image: tuple[int, int] = (4, 6), **render_kw) -> dict:
-    """Write a complete field session (CONTRACT section 3) of a synthetic problem.
+    """Write a complete field session (docs/conventions.md section 3) of a synthetic problem.
 
     Parameters
     ----------

@@ -19,7 +19,7 @@ import tifffile
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.pipeline import measure, prepare
-from tests.realdata import DBAT, dbat_field_data
+from tests.realdata import DBAT, dbat_field_data, require
 
 MARKS_PER_IMAGE = 5
 
@@ -40,6 +40,7 @@ def _rows(path):
 
 @pytest.fixture(scope="module")
 def dbat(tmp_path_factory):
+    require("dbat-camcal")                          # skips every test of the module without the data
     folder = tmp_path_factory.mktemp("dbat")
     (folder / "images").mkdir()
     names = {}

@@ -9,15 +9,25 @@ retyping fields (any JSON value, including NaN and deep nesting) and by corrupti
 the tables from valid headers and rows mixed with hostile cells (NaN, inf, 1e999, text,
 quotes, embedded newlines, NUL, very long fields, BOMs, raw bytes).
 
-``derandomize=True`` makes every run draw the same examples (the project's tests are
-seeded); ``database=None`` keeps hypothesis from writing into the source tree.
+Hypothesis runs derandomised (the ``ci`` profile of ``tests/conftest.py``: every run draws
+the same examples, and writes no database into the source tree); ``HYPOTHESIS_PROFILE=explore``
+draws new examples, 5000 per test. Every strategy draws from Hypothesis only (no ``random``);
+``test_the_strategies_never_use_the_random_module`` checks that in a fresh interpreter,
+because in the test session itself Hypothesis cannot tell our draws from another thread's
+use of the global ``random`` state (a Dask scheduler or a Prefect client of an earlier test
+still running): its "Do not use the `random` module inside strategies" warning then fires
+by chance, as an error, and fails a test as ``FlakyFailure`` or ``FlakyStrategyDefinition``
+(issue 12). That warning is therefore ignored here and checked there.
 """
 
 import csv
 import io
 import json
 import math
+import subprocess
+import sys
 import tempfile
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +41,14 @@ from fieldcal.field.data import FieldImage, TargetField
 from fieldcal.goniometer.method import read_frames_csv
 from fieldcal.model.camera import Sensor
 from fieldcal.session.loader import read_marks_csv, read_observations_csv, read_targets_csv
+from fieldcal.session.names import is_valid, normal_file_name
+from fieldcal.session.tables import read_csv_table
 
-FUZZ = settings(deadline=None, derandomize=True, database=None, max_examples=200,
+ROOT = Path(__file__).resolve().parents[2]
+FUZZ = settings(max_examples=max(200, settings.default.max_examples),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+pytestmark = pytest.mark.filterwarnings(
+    "ignore:Do not use the `random` module inside strategies:hypothesis.errors.HypothesisDeprecationWarning")
 
 # --------------------------------------------------------------------------------------
 # strategies
@@ -44,7 +59,9 @@ HOSTILE_TEXT = ["", " ", "..", "../x", "../../etc/passwd", "/etc/passwd", "C:/x.
                 "targets.csv", "observations.csv", "frames.csv", "marks.csv", "images", ".",
                 "field", "goniometer", "DICT_4X4_1000", "DICT_NOPE", "aruco", "dark", "bright",
                 "2026-11-20", "2026-11-20T09:30:00Z", "9999-12-31T23:59:59-23:59", "0001-01-01T00:00+23:59",
-                "f_mm", "k1", "b1", "fieldcal.session/1", "cam-1", "\n", "é", "\ufeff"]
+                "f_mm", "k1", "b1", "fieldcal.session/1", "cam-1", "\n", "é", "\ufeff", "cam-1\n", "cam\u202e1",
+                "g[1]", "images/[ab].tif", "images/./i0.tif", "./images/i0.tif", "images//i1.tif", "S\u2028",
+                "c" * 129]
 TEXT = st.one_of(st.text(CHARS, max_size=12), st.sampled_from(HOSTILE_TEXT))
 LEAF = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70),
                  st.floats(allow_nan=True, allow_infinity=True), TEXT)
@@ -68,7 +85,8 @@ CELLS = ["", " ", "0", "-0", "1", "2.5", " 3 ", "1e3", "-7", "1e999", "-1e999", 
          "inf", "-Infinity", "0x10", "1_000", "1,5", "abc", "A", "B", "C", "x", "y", "z",
          "images/a.tif", "images/b.tif", "images/c.tif", "../a.tif", '"', '""', "a\nb", "\r", "\x00",
          "images/a\nb.tif", "x\r\ny", "\t", "\x1b[31m",
-         "é", "\ufeff", "x" * 200]
+         "é", "\ufeff", "x" * 200, "A\x00", "\x00", "A\u202e", "a*b", "a/b", "a\\b", "[A]", "\x85", "\u2028",
+         "T" * 129, "images/./a.tif", "./images/b.tif", "images//c.tif", "images/*.tif"]
 CELL = st.one_of(st.sampled_from(CELLS), st.floats(allow_nan=True, allow_infinity=True).map(repr),
                  st.integers(-10, 10**6).map(str), st.text(CHARS, max_size=6))
 HOSTILE = st.one_of(st.sampled_from(CELLS), st.sampled_from(CELLS), CELL)
@@ -232,13 +250,16 @@ def check_prepared(prepared, folder: Path) -> None:
     assert s.nominal_focal_mm is None or (math.isfinite(s.nominal_focal_mm) and s.nominal_focal_mm > 0)
     assert math.isfinite(s.default_sigma_px) and s.default_sigma_px > 0
     assert s.acquired.tzinfo is not None
-    assert isinstance(s.camera_id, str) and isinstance(s.session_id, str)
+    assert is_valid(s.camera_id, "id") and is_valid(s.session_id, "id")
     for name in prepared.to_measure:
         assert inside(s.image_path(name), folder)
+        assert normal_file_name(name) == name
     for p in (s.targets_path, s.observations_path, s.marks_path, s.frames_path):
         assert p is None or (inside(p, folder) and p.is_file())
     for im in s.images:
         assert inside(folder / im.file, folder)
+        assert normal_file_name(im.file) == im.file and (im.station is None or is_valid(im.station, "label"))
+    assert len({im.file for im in s.images}) == len(s.images)
 
 
 def check_refusal(err: InputError, where: str) -> None:
@@ -320,7 +341,7 @@ def test_targets_csv_reads_validly_or_names_the_file(root, data):
         return
     note("read")
     n = len(t)
-    assert n >= 1 and len(set(t.ids.tolist())) == n and all(t.ids)
+    assert n >= 1 and len(set(t.ids.tolist())) == n and all(is_valid(i, "label") for i in t.ids.tolist())
     assert t.xyz_m.shape == (n, 3) and np.isfinite(t.xyz_m).all()
     assert np.isfinite(t.sigma_mm).all() and (t.sigma_mm > 0).all()
     codes = t.codes[t.codes >= 0]
@@ -345,6 +366,7 @@ def test_observations_csv_reads_validly_or_names_the_file(root, data, allow_new,
     assert np.isfinite(obs.sigma_px).all() and (obs.sigma_px > 0).all()
     assert ((0 <= obs.target) & (obs.target < 6)).all() and ((0 <= obs.image) & (obs.image < len(images))).all()
     assert len(images) == 2 or allow_new
+    assert all(normal_file_name(im.file) == im.file for im in images) and len({im.file for im in images}) == len(images)
     assert len({(i, t) for i, t in zip(obs.image.tolist(), obs.target.tolist(), strict=True)}) == m
     if with_sensor:
         assert (obs.uv_px >= -0.5).all() and (obs.uv_px[:, 0] <= 99.5).all() and (obs.uv_px[:, 1] <= 79.5).all()
@@ -386,3 +408,60 @@ def test_frames_csv_reads_validly_or_names_the_file(root, data, strict):
             assert f and a in ("x", "y") and math.isfinite(w) and abs(w) < 90.0
         else:
             assert not strict and problem.startswith(f"frames.csv line {line}: ") and "\n" not in problem
+
+
+# --------------------------------------------------------------------------------------
+# the two tokenisers, and the strategies themselves
+# --------------------------------------------------------------------------------------
+TABLES = {"targets.csv": (("id", "X", "Y", "Z"), ("sigma_mm", "code")),
+          "observations.csv": (("image", "target_id", "u", "v"), ("sigma_px",))}
+
+
+def _tokenised(p: Path, kind: str, tokeniser: str):
+    required, optional = TABLES[kind]
+    try:
+        t = read_csv_table(p, required, optional, kind=kind, tokeniser=tokeniser)
+    except InputError as err:
+        return "refused", err.reason
+    return "read", t.header, {k: v.to_pylist() for k, v in t.columns.items()}, t.lines.tolist()
+
+
+@FUZZ
+@given(kind=st.sampled_from(sorted(TABLES)), data=st.one_of(
+    table_text(["id", "X", "Y", "Z", "sigma_mm", "code"]), table_text(["image", "target_id", "u", "v", "sigma_px"])))
+def test_pyarrow_and_python_split_a_file_without_quotes_alike(root, kind, data):
+    """The fast tokeniser (pyarrow, quote-free files) gives the same header, cells, line numbers
+    and refusals as Python's csv module, or declines the file (then Python reads it)."""
+    p = _write(root, kind, data.replace(b'"', b""))
+    arrow = _tokenised(p, kind, "arrow")
+    if arrow[0] == "refused" and arrow[1].startswith("pyarrow cannot split"):
+        note("pyarrow declined")
+        return
+    note(f"pyarrow {arrow[0]}")
+    assert arrow == _tokenised(p, kind, "python")
+
+
+def test_the_strategies_never_use_the_random_module():
+    """Draw from every strategy of this module in a fresh interpreter (no other thread touches
+    ``random`` there) with Hypothesis's warning as an error (see the module docstring)."""
+    code = textwrap.dedent("""
+        import warnings
+        warnings.simplefilter("error")
+        from hypothesis import HealthCheck, given, settings, strategies as st
+        import tests.session.test_fuzz as f
+        columns = [["id", "X", "Y", "Z", "sigma_mm", "code"], ["image", "target_id", "u", "v", "sigma_px"],
+                   ["image", "target_id", "u", "v"], ["file", "axis", "angle_deg"]]
+        strategies = [st.lists(f.MUTATION, max_size=4), f.TEXT_DAMAGE, f.JSON_VALUE, f.HOSTILE,
+                      *(f.table_text(c) for c in columns)]
+        for s in strategies:
+            @settings(derandomize=True, database=None, max_examples=20, deadline=None,
+                      suppress_health_check=list(HealthCheck))
+            @given(s)
+            def draw(x):
+                pass
+            draw()
+        print("ok", len(strategies))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["ok", "8"]

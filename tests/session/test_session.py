@@ -86,6 +86,12 @@ def test_link_out_of_the_folder_is_refused(tmp_path):
     ("id,X,Y,Z\nA,0,inf,0\n", r":2: 'Y' is not finite"),
     ("id,X,Y,Z\nA,0,abc,0\n", r":2: 'Y' is not a number: 'abc'"),
     ("id,X,Y,Z,sigma_mm,code\nA,0,0,0,,x\n", r"'code' must be an ArUco id"),
+    ("id,X,Y,Z,sigma_mm,code\nA,0,0,0,,99999999999999999999\n",      # was an OverflowError in numpy
+     r":2: 'code' must be an ArUco id \(a whole number from 0 to 2147483647\), got '9+'"),
+    ("id,X,Y,Z\nA,1_000,0,0\n", r":2: 'X' is not a number: '1_000'"),
+    ("id,X,Y,Z\nA,0x10,0,0\n", r":2: 'X' is not a number: '0x10'"),
+    ('id,X,Y,Z\nA,0,0,0\n"B\n",0,0,0\n\nC,0,0,0\n"B",1,1,1\n',           # a row is named by its first line
+     r":7: duplicate target id 'B' \(first on line 3\)"),
     ("id,X,Y,Z\n", "no data rows"),
 ])
 def test_targets_csv_errors_name_file_and_row(tmp_path, text, match):
