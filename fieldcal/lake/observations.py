@@ -28,13 +28,17 @@ KINDS = ("observations_field", "observations_goniometer")
 _EXTRA = ("camera_id", "session_id", "image", "key", "image_sha256", "row")
 
 
-def _own_columns(kind: str) -> list[pa.Field]:
-    """The measurement's own columns of a kind, with their nullability in the kind's schema."""
+def _own_schema(kind: str) -> pa.Schema:
+    """The measuring step's schema of a kind (with its documentation)."""
     from fieldcal.lake.tables import goniometer_spot_schema
     from fieldcal.session.schemas import arrow_schema
 
-    schema = arrow_schema("measurements") if kind == "observations_field" else goniometer_spot_schema()
-    return [pa.field(f.name, f.type, nullable=f.nullable) for f in schema]
+    return arrow_schema("measurements") if kind == "observations_field" else goniometer_spot_schema()
+
+
+def _own_columns(kind: str) -> list[pa.Field]:
+    """The measurement's own columns of a kind, with their nullability in the kind's schema."""
+    return list(_own_schema(kind))
 
 
 def kind_of(table: pa.Table, where: str) -> str:
@@ -93,8 +97,8 @@ def rows_for(camera_id: str, session_id: str, image_name: str, key: str,
 def strip(kind: str, rows: pa.Table) -> pa.Table:
     """One image's rows back as the measuring step's table (in row order)."""
     rows = rows.filter(pa.compute.greater_equal(rows["row"], 0)).sort_by("row")
-    own = _own_columns(kind)
-    return pa.Table.from_arrays([rows[f.name].cast(f.type) for f in own], schema=pa.schema(own))
+    schema = _own_schema(kind)
+    return pa.Table.from_arrays([rows[f.name].cast(f.type) for f in schema], schema=schema)
 
 
 def load_session(tables, camera_id: str, session_id: str) -> dict:

@@ -181,7 +181,7 @@ class Lake:
     def commit(self, document: Mapping, arrays: Mapping | None = None, residuals=None, *,
                force: bool = False, acquired=None,
                array_attrs: Mapping[str, Mapping] | None = None,
-               info: Mapping | None = None) -> Committed:
+               info: Mapping | None = None, original: Mapping | None = None) -> Committed:
         """Store one immutable version: document, Zarr arrays, residuals, then the catalog row.
 
         Parameters
@@ -204,6 +204,11 @@ class Lake:
             Zarr attributes per array name (e.g. ``{"covariance": {"names": [...]}}``).
         info : mapping, optional
             Extra commit metadata for the tables' history (e.g. ``{"flow_run_id": ...}``).
+        original : mapping, optional
+            Migration only (:mod:`fieldcal.lake.migrate`): ``{"committed": datetime,
+            "forced": bool}`` of a version brought over from another lake. The document
+            must name its version; the row keeps these values and is inserted unless that
+            version exists (fingerprints are not compared).
 
         Returns
         -------
@@ -227,7 +232,16 @@ class Lake:
         catalog_row(doc, now, force, self.paths(doc["camera_id"], doc["session_id"],
                                                 doc["version"]), where)
         meta = dict(_who(), **plain_json(dict(info or {}), "commit info"))
+        if original is not None:
+            if not explicit:
+                raise InputError("a migrated version needs its version id", where)
+            force = bool(original.get("forced", False))
         try:
+            if original is not None:
+                if self._is_committed(doc["version"]):
+                    return Committed(doc["version"], new=False)
+                return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
+                                           original)
             if not force:
                 existing = self.find_committed(fp)
                 if existing is not None:
@@ -236,7 +250,8 @@ class Lake:
         except OSError as e:
             raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
 
-    def _write_version(self, doc, explicit, res, zarr_arrays, force, meta, where) -> Committed:
+    def _write_version(self, doc, explicit, res, zarr_arrays, force, meta, where,
+                       original=None) -> Committed:
         written: list[str] = []
         residuals_of = None
         done = False
@@ -250,9 +265,12 @@ class Lake:
             if res.num_rows:
                 residuals_of = version
                 self.tables.append("residuals", _with_keys(res, doc), dict(meta, operation="residuals"))
-            row = catalog_row(doc, utcnow(), force, paths, where)
-            meta["operation"] = "commit"
-            if force:
+            row = catalog_row(doc, utcnow() if original is None else original["committed"], force,
+                              paths, where)
+            meta["operation"] = "commit" if original is None else "migrate"
+            if original is not None:
+                inserted = self.tables.insert_unless("catalog", row, "t.version = s.version", meta)
+            elif force:
                 self.tables.append("catalog", row, meta)
                 inserted = True
             else:
@@ -479,8 +497,11 @@ class Lake:
 
     def cached_observations(self, camera_id: str, session_id: str) -> set[str]:
         """:func:`observations_key` of every image of a session with cached observations."""
-        return {observations_key(i, k) for i, k in self._observations(camera_id, session_id,
-                                                                       refresh=True)}
+        return {observations_key(i, k) for i, k in self.cached_keys(camera_id, session_id)}
+
+    def cached_keys(self, camera_id: str, session_id: str) -> set[tuple[str, str]]:
+        """``(image, key)`` of every image of a session with cached observations (read now)."""
+        return set(self._observations(camera_id, session_id, refresh=True))
 
     def has_observations(self, camera_id: str, session_id: str, image_name: str,
                          content_sha256: str) -> bool:
