@@ -20,7 +20,23 @@ import posixpath
 import shutil
 import tempfile
 
-__all__ = ["Storage", "delta_options"]
+__all__ = ["Storage", "delta_options", "check_root", "UNSAFE_PATH_CHARACTERS"]
+
+UNSAFE_PATH_CHARACTERS = "[]^|#?%\\"
+"""Characters a lake's path may not contain: delta-rs 1.6 parses a local path as a URL, so
+``[``, ``]``, ``^``, ``|`` make it fail, ``#`` and ``?`` cut the path, and ``%41`` is
+decoded (a lake at ``x/lake%41`` would be written at ``x/lakeA``)."""
+
+
+def check_root(text: str) -> None:
+    """InputError (one line) for a lake path Delta Lake cannot use as it is."""
+    from fieldcal.errors import InputError
+
+    bad = sorted({c for c in text if c in UNSAFE_PATH_CHARACTERS or ord(c) < 32 or ord(c) == 127})
+    if bad:
+        raise InputError(f"the lake path {text!r} contains {', '.join(repr(c) for c in bad)}: "
+                         "Delta Lake cannot keep tables there; choose a path without "
+                         f"{' '.join(UNSAFE_PATH_CHARACTERS)} or control characters", "lake")
 
 
 def delta_options(storage_options: dict | None) -> dict[str, str]:
@@ -66,6 +82,7 @@ class Storage:
             self.fs = None
             self.root = os.path.abspath(text)
             self.local = True
+        check_root(self.root)
         self.delta_options = None if self.local else delta_options(self.storage_options)
 
     def path(self, rel: str) -> str:
@@ -76,6 +93,10 @@ class Storage:
     def uri(self, rel: str) -> str:
         """A name other libraries understand: a local path, or a URL with the protocol."""
         return self.path(rel) if self.local else self.fs.unstrip_protocol(self.path(rel))
+
+    def delta_uri(self, rel: str) -> str:
+        """The name of a Delta table for delta-rs."""
+        return self.uri(rel)
 
     def write(self, rel: str, data: bytes, *, exclusive: bool = False) -> None:
         """Write ``data`` atomically; with ``exclusive`` raise FileExistsError if ``rel`` exists."""

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import os
 import random
 import time
 
@@ -131,7 +132,8 @@ class Tables:
     def _load(self, name: str, version=None):
         from deltalake import DeltaTable
 
-        return DeltaTable(self.uri(name), version=version, storage_options=self.storage.delta_options)
+        return DeltaTable(self.storage.delta_uri(name), version=version,
+                          storage_options=self.storage.delta_options)
 
     def exists(self, name: str) -> bool:
         return bool(self.storage.listdir(f"{name}/_delta_log"))
@@ -182,11 +184,13 @@ class Tables:
         table = self.open(name)
         if table is not None:
             return table
+        if self.storage.local:
+            os.makedirs(self.storage.root, exist_ok=True)
         config = {"delta.checkpointInterval": str(self.maintain_every),
                   "delta.logRetentionDuration": "interval 3650 days",
                   "delta.deletedFileRetentionDuration": "interval 7 days"}
         try:
-            return DeltaTable.create(self.uri(name), table_schema(name), mode="ignore",
+            return DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
                                      partition_by=PARTITIONS[name] or None, configuration=config,
                                      storage_options=self.storage.delta_options)
         except Exception:  # noqa: BLE001 - another process created it first
