@@ -83,7 +83,7 @@ def _log(args) -> int:
     lake = _open(args)
     rows = [r for name in _tables(args) for r in lake.tables.log(name, args.limit)]
     rows.sort(key=lambda r: (r["time"] is None, r["time"]), reverse=True)
-    keys = ["time", "table", "commit", "operation", "version", "camera_id", "session_id",
+    keys = ["time", "table", "commit", "operation", "action", "version", "camera_id", "session_id",
             "code_version", "host", "pid", "user", "flow_run_id"]
     table = pa.Table.from_pylist([{k: (None if r.get(k) is None else r[k] if k == "time" else str(r[k]))
                                    for k in keys} for r in rows[:args.limit]])
@@ -97,7 +97,7 @@ def _log(args) -> int:
 def _optimize(args) -> int:
     lake = _open(args)
     for name in _tables(args):
-        m = lake.tables.optimize(name, {"operation": "optimize"})
+        m = lake.tables.optimize(name, {"action": "optimize"})
         print(f"{name}: {m['files_removed']} file(s) compacted into {m['files_added']}")
     return 0
 
@@ -110,7 +110,7 @@ def _vacuum(args) -> int:
     lake = _open(args)
     for name in _tables(args):
         files = lake.tables.vacuum(name, args.retention_hours, dry_run=not args.apply,
-                                   info={"operation": "vacuum"})
+                                   info={"action": "vacuum"})
         verb = "deleted" if args.apply else "would delete"
         print(f"{name}: {verb} {len(files)} file(s)")
         for f in files:

@@ -94,5 +94,5 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
             raise LakeError(f"cannot remove {lake.uri(rel)}: {reason(e)}") from None
     if stray:
         values = ", ".join("'" + v + "'" for v in stray)
-        lake.tables.delete("residuals", f"version IN ({values})", {"operation": "gc"})
+        lake.tables.delete("residuals", f"version IN ({values})", {"action": "gc"})
     return doomed + [f"residuals: version={v}" for v in stray]

@@ -132,7 +132,7 @@ def _migrate_observations(old: OldLake, lake, report: Report, batch: int = 500) 
     def flush(kind):
         if pending[kind]:
             lake.tables.append(kind, pa.concat_tables(pending[kind]),
-                               {"operation": "migrate", "migrated_from": old.url})
+                               {"action": "migrate", "migrated_from": old.url})
             pending[kind] = []
 
     for cam, ses, image, key, table in old.observations():
@@ -189,6 +189,18 @@ def _same(a, b) -> bool:
     return a == b
 
 
+def _same_rows(a: pa.Table, b: pa.Table) -> bool:
+    """The columns of ``b`` hold the same values in ``a`` and ``b`` (NaN equal to NaN)."""
+    cols = [c for c in b.column_names if c in a.column_names]
+    if a.num_rows != b.num_rows or len(cols) != len(b.column_names):
+        return False
+    for c in cols:
+        x, y = a[c].to_pylist(), b[c].to_pylist()
+        if not all(_same(u, v) for u, v in zip(x, y, strict=True)):
+            return False
+    return True
+
+
 def _verify_version(old: OldLake, lake, row: dict) -> None:
     v = row["version"]
     new = lake.row(v)
@@ -203,8 +215,7 @@ def _verify_version(old: OldLake, lake, row: dict) -> None:
         if not np.array_equal(np.asarray(group[name][...]), want, equal_nan=True):
             raise LakeError(f"migration check: version {v}: array {name} differs")
     a, b = old.residuals(row), lake.read_residuals(v)
-    cols = [c for c in b.column_names if c in a.column_names]
-    if a.num_rows != b.num_rows or not a.select(cols).cast(b.select(cols).schema).equals(b.select(cols)):
+    if not _same_rows(a, b.select([c for c in b.column_names if c in a.column_names])):
         raise LakeError(f"migration check: version {v}: residual rows differ")
 
 
@@ -219,6 +230,5 @@ def verify(old: OldLake, lake) -> None:
         _verify_version(old, lake, row)
     for cam, ses, image, key, table in old.observations():
         got = lake.read_observations(cam, ses, image, key)
-        cols = table.column_names
-        if got is None or not table.select(cols).cast(got.select(cols).schema).equals(got.select(cols)):
+        if got is None or not _same_rows(table, got):
             raise LakeError(f"migration check: observations of {cam}/{ses}/{image} differ")

@@ -264,10 +264,10 @@ class Lake:
             self._write_zarr(paths["zarr"], zarr_arrays, doc)
             if res.num_rows:
                 residuals_of = version
-                self.tables.append("residuals", _with_keys(res, doc), dict(meta, operation="residuals"))
+                self.tables.append("residuals", _with_keys(res, doc), dict(meta, action="residuals"))
             row = catalog_row(doc, utcnow() if original is None else original["committed"], force,
                               paths, where)
-            meta["operation"] = "commit" if original is None else "migrate"
+            meta["action"] = "commit" if original is None else "migrate"
             if original is not None:
                 inserted = self.tables.insert_unless("catalog", row, "t.version = s.version", meta)
             elif force:
@@ -321,7 +321,7 @@ class Lake:
         if residuals_of is not None:
             try:
                 self.tables.delete("residuals", f"version = {_sql_str(residuals_of)}",
-                                   {"operation": "discard", "version": residuals_of})
+                                   {"action": "discard", "version": residuals_of})
             except Exception:  # noqa: BLE001, S110 - invisible anyway; gc() removes them
                 pass
 
@@ -522,7 +522,7 @@ class Lake:
         observations_key(image_name, content_sha256)
         kind, rows = obs.rows_for(camera_id, session_id, image_name, content_sha256, table)
         try:
-            self.tables.append(kind, rows, {"operation": "observations", "camera_id": camera_id,
+            self.tables.append(kind, rows, {"action": "observations", "camera_id": camera_id,
                                             "session_id": session_id, "image": image_name,
                                             **_who()})
         except OSError as e:
@@ -571,7 +571,7 @@ class Lake:
                       "settings": [settings] * len(pairs), "computed": [utcnow()] * len(pairs),
                       "result": [json.dumps(results[p], default=_jsonable) for p in pairs]})
         try:
-            self.tables.append("comparisons", t, {"operation": "comparisons", **_who()})
+            self.tables.append("comparisons", t, {"action": "comparisons", **_who()})
         except Exception:  # noqa: BLE001, S110 - a cache: a read-only lake just computes again
             pass
 

@@ -258,7 +258,7 @@ class Tables:
             target.update_incremental()
             if target.version() % self.maintain_every == 0:
                 target.optimize.compact(commit_properties=self._commit_properties(
-                    {"operation": "automatic compaction"}))
+                    {"action": "automatic compaction"}))
         except Exception:  # noqa: BLE001, S110 - maintenance is best effort; `lake optimize` redoes it
             pass
 
@@ -314,6 +314,11 @@ class Tables:
         for add in self.files(name, as_of=as_of, partition=partition):
             try:
                 parts.append(self.read_file(name, add, fs, need))
+            except FileNotFoundError as e:
+                if as_of is not None:  # not damage: vacuum removed the files of that time
+                    raise LakeError(f"{name} as of {as_of} is no longer readable: its file "
+                                    f"{add['path']} was removed by vacuum") from None
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
             except (OSError, pa.ArrowException) as e:
                 self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
         out = pa.concat_tables(parts) if parts else (schema.empty_table().select(need) if need

@@ -1,4 +1,8 @@
-"""The versioned data lake: layout, immutable versions, the catalog, the observations cache.
+"""The lake of the first layout (fieldcal before the Delta lake), kept verbatim so that the
+migration test can make a lake with the old code path. Not used by fieldcal itself.
+
+Original docstring follows.
+
 
 One root, a local path or an fsspec URL (``s3://bucket/prefix``), laid out so that a
 person can browse it and DuckDB / pyarrow / zarr can read it without fieldcal::

@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -248,4 +247,4 @@ def test_gc_refuses_to_run_on_a_damaged_catalog(tmp_path):
     assert len(lake_files(tmp_path / "calibrations")) > 0
 
 
-_ = pa
+
