@@ -106,7 +106,8 @@ def load_session(tables, camera_id: str, session_id: str) -> dict:
     out = {}
     f = (ds.field("camera_id") == camera_id) & (ds.field("session_id") == session_id)
     for kind in KINDS:
-        rows = tables.scan(kind, filter=f)
+        rows = tables.scan(kind, filter=f, partition={"camera_id": camera_id},
+                           equal={"session_id": session_id})
         if not rows.num_rows:
             continue
         images = rows["image"].to_pylist()

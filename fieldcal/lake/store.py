@@ -396,7 +396,7 @@ class Lake:
             pass  # the version is committed; the dictionary is written by the next commit
 
     # -- reading --------------------------------------------------------------------------
-    def catalog(self, *, as_of=None, filter=None) -> pa.Table:
+    def catalog(self, *, as_of=None, filter=None, equal: Mapping | None = None) -> pa.Table:
         """Committed versions, one row each (``schemas/catalog.arrow.json``), oldest first.
 
         Parameters
@@ -404,20 +404,25 @@ class Lake:
         as_of : str or datetime, optional
             The catalog as it was at that time (Delta time travel).
         filter : pyarrow.compute.Expression, optional
-            Rows to keep (pushed down to the files' statistics).
+            Rows to keep.
+        equal : mapping, optional
+            ``{column: value}`` the rows kept must have: files whose statistics exclude it
+            are not read (give ``filter`` too).
         """
-        t = self.tables.scan("catalog", filter=filter, as_of=_as_of(as_of))
+        t = self.tables.scan("catalog", filter=filter, as_of=_as_of(as_of), equal=equal)
         return t.sort_by([("committed", "ascending"), ("version", "ascending")])
 
     def _is_committed(self, version: str) -> bool:
-        return self.catalog(filter=ds.field("version") == version).num_rows > 0
+        return self.catalog(filter=ds.field("version") == version,
+                            equal={"version": version}).num_rows > 0
 
     def find_committed(self, fingerprint: str) -> str | None:
         """The latest committed version made from these inputs and settings, or None."""
         if not is_fingerprint(fingerprint):
             raise InputError(f"fingerprint must be 'sha256:' and 64 hex digits, got "
                              f"{fingerprint!r}", "find_committed")
-        hits = self.catalog(filter=ds.field("fingerprint") == fingerprint)["version"].to_pylist()
+        hits = self.catalog(filter=ds.field("fingerprint") == fingerprint,
+                            equal={"fingerprint": fingerprint})["version"].to_pylist()
         return hits[-1] if hits else None
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
@@ -426,7 +431,7 @@ class Lake:
         f = ds.field("camera_id") == camera_id
         if session_id is not None:
             f = f & (ds.field("session_id") == check_id(session_id, "session_id"))
-        hits = self.catalog(filter=f)["version"].to_pylist()
+        hits = self.catalog(filter=f, equal={"camera_id": camera_id})["version"].to_pylist()
         return hits[-1] if hits else None
 
     def sessions_with_calibration(self) -> list[tuple[str, str]]:
@@ -437,7 +442,7 @@ class Lake:
     def row(self, version: str) -> dict:
         """The catalog row of a committed version as a dict."""
         check_version(version)
-        rows = self.catalog(filter=ds.field("version") == version).to_pylist()
+        rows = self.catalog(filter=ds.field("version") == version, equal={"version": version}).to_pylist()
         if not rows:
             raise LakeError(f"version {version} is not committed in {self.url}")
         return rows[-1]
@@ -480,7 +485,8 @@ class Lake:
         row = self.row(version)
         f = (ds.field("camera_id") == row["camera_id"]) & (ds.field("version") == version)
         n_before = len(self.problems)
-        t = self.tables.scan("residuals", filter=f)
+        t = self.tables.scan("residuals", filter=f, partition={"camera_id": row["camera_id"]},
+                             equal={"version": version})
         if len(self.problems) > n_before:
             raise LakeError(f"version {version}: residuals unreadable: {self.problems[-1]}")
         return t.drop_columns(["camera_id", "session_id", "version"])

@@ -123,6 +123,7 @@ class Tables:
         self.storage = storage
         self.maintain_every = int(maintain_every)
         self.problems: list[Problem] = []
+        self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
 
     # -- opening ------------------------------------------------------------------------
     def uri(self, name: str) -> str:
@@ -146,6 +147,13 @@ class Tables:
         """
         from deltalake.exceptions import TableNotFoundError
 
+        cached = self._current.get(name)
+        if cached is not None and as_of is None:
+            try:
+                cached.update_incremental()  # reads only the commits made since
+                return cached
+            except Exception:  # noqa: BLE001 - reload below (and report if the log is damaged)
+                self._current.pop(name, None)
         if not self.exists(name):
             return None
         try:
@@ -154,7 +162,9 @@ class Tables:
             return None
         except Exception as e:  # noqa: BLE001 - delta-rs raises several types for a bad log
             table = self._load_last_good(name, e)
-        if as_of is not None:
+        if as_of is None:
+            self._current[name] = table
+        else:
             try:
                 table.load_as_version(as_of)
             except Exception as e:  # noqa: BLE001 - before the table's first commit, or vacuumed
@@ -293,12 +303,14 @@ class Tables:
         return out.select(columns) if columns else out
 
     def scan(self, name: str, *, filter=None, columns=None, as_of=None,
-             partition: dict | None = None) -> pa.Table:
+             partition: dict | None = None, equal: dict | None = None) -> pa.Table:
         """The table's rows (those matching ``filter``, a pyarrow expression), bad files skipped.
 
         Each file is read with its own types (delta-rs's DataFusion writes strings as
         ``string_view``, which pyarrow cannot filter), cast to :func:`table_schema` and
-        filtered in memory; ``partition`` (``{"camera_id": c}``) selects files first.
+        filtered in memory; ``partition`` (``{"camera_id": c}``) selects files first, and
+        ``equal`` (``{"version": v}``) skips files whose min/max statistics exclude the
+        value (it does not filter rows: give ``filter`` too).
         An unreadable file is left out and reported in :attr:`problems`.
         """
         table = self.open(name, as_of=as_of)
@@ -312,6 +324,8 @@ class Tables:
             need = list(dict.fromkeys(list(columns) + _filter_columns(filter, schema)))
         parts = []
         for add in self.files(name, as_of=as_of, partition=partition):
+            if any(_outside(add, col, value) for col, value in (equal or {}).items()):
+                continue
             try:
                 parts.append(self.read_file(name, add, fs, need))
             except FileNotFoundError as e:
@@ -393,3 +407,14 @@ def _filter_columns(expr, schema: pa.Schema) -> list[str]:
         return []
     text = str(expr)
     return [n for n in schema.names if n in text]
+
+
+def _outside(add: dict, column: str, value) -> bool:
+    """True when a file's statistics show it holds no row with ``column == value``."""
+    lo, hi = add.get(f"min.{column}"), add.get(f"max.{column}")
+    if lo is None or hi is None:
+        return False
+    try:
+        return value < lo or value > hi
+    except TypeError:
+        return False
