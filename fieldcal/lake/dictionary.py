@@ -35,6 +35,8 @@ _KEY_DOCS = {
     "image": "image (field) or frame (goniometer) path relative to the session folder",
     "key": "cache key: SHA-256 (hex) of the image's content and the measuring settings",
     "image_sha256": "SHA-256 (hex) of the image file's bytes, when known",
+    "measure_settings": "the session's measuring settings (method, sensor, polarity, coded targets) "
+                        "as canonical JSON, when known",
     "row": "position of the row in the image's measurement table; -1: measured, nothing found",
     "version_a": "the earlier version compared",
     "version_b": "the later version compared",

@@ -6,7 +6,8 @@ Two Delta tables, one schema each (:func:`fieldcal.lake.tables.table_schema`):
 goniometer frame, :data:`fieldcal.goniometer.method.MEASUREMENT_SCHEMA`). Each row also
 holds ``camera_id``, ``session_id``, ``image`` (the session-relative name), ``key`` (the
 cache key: the image's content hash, or a hash of it and the measuring settings), the
-image's own ``image_sha256`` when known, and ``row`` (the row's position in the image's
+image's own ``image_sha256`` and the ``measure_settings`` (JSON) when known (the schema
+metadata ``fieldcal.image_sha256`` and ``fieldcal.measure`` of the table written), and ``row`` (the row's position in the image's
 table). An image's rows are written in one append, so they are all there or none. An
 image measured with no result (no target found) has one row with ``row = -1`` and the
 measurement columns null, so that it is not measured again either.
@@ -25,7 +26,7 @@ from fieldcal.lake.tables import table_schema
 __all__ = ["kind_of", "rows_for", "strip", "load_session", "KINDS"]
 
 KINDS = ("observations_field", "observations_goniometer")
-_EXTRA = ("camera_id", "session_id", "image", "key", "image_sha256", "row")
+_EXTRA = ("camera_id", "session_id", "image", "key", "image_sha256", "measure_settings", "row")
 
 
 def _own_schema(kind: str) -> pa.Schema:
@@ -73,11 +74,13 @@ def rows_for(camera_id: str, session_id: str, image_name: str, key: str,
     for f in _own_columns(kind):
         if not f.nullable and f.name in table.column_names and table[f.name].null_count:
             raise InputError(f"observation column {f.name!r} has null values", image_name)
-    sha = (table.schema.metadata or {}).get(b"fieldcal.image_sha256")
+    meta = table.schema.metadata or {}
+    sha, settings = meta.get(b"fieldcal.image_sha256"), meta.get(b"fieldcal.measure")
     m = max(n, 1)  # an empty result is one marker row (row = -1)
     fixed = {"camera_id": [camera_id] * m, "session_id": [session_id] * m,
              "image": [image_name] * m, "key": [key] * m,
              "image_sha256": [sha.decode() if sha else None] * m,
+             "measure_settings": [settings.decode() if settings else None] * m,
              "row": list(range(n)) if n else [-1]}
     cols = []
     for f in schema:

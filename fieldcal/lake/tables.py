@@ -56,6 +56,7 @@ _OBS_KEYS = _KEYS + [
     pa.field("image", pa.string(), nullable=False),
     pa.field("key", pa.string(), nullable=False),
     pa.field("image_sha256", pa.string()),
+    pa.field("measure_settings", pa.string()),
     pa.field("row", pa.int32(), nullable=False)]
 
 
@@ -217,11 +218,15 @@ class Tables:
         return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES)
 
     def append(self, name: str, table: pa.Table, info: dict | None = None) -> None:
-        """Append rows (a blind append: concurrent appends never conflict)."""
+        """Append rows (a blind append: concurrent appends never conflict).
+
+        A table made by an older fieldcal with fewer columns gains the new ones (Delta
+        schema evolution); its old rows read them as null.
+        """
         from deltalake import write_deltalake
 
         target = self.create(name)
-        write_deltalake(target, table.cast(table_schema(name)), mode="append",
+        write_deltalake(target, table.cast(table_schema(name)), mode="append", schema_mode="merge",
                         commit_properties=self._commit_properties(info))
         self._maintain(name, target)
 

@@ -91,3 +91,18 @@ def test_the_data_dictionary_is_written_at_the_first_commit_and_kept_current(tmp
     assert (tmp_path / "README.md").read_text() == data_dictionary()
     for column in history.sql(lake, "SELECT * FROM residuals").column_names:
         assert f"| `{column}` |" in data_dictionary()
+
+
+def test_a_table_made_by_an_older_fieldcal_gains_new_columns(tmp_path):
+    """Schema evolution: an observations table without ``measure_settings`` (an older lake)."""
+    from deltalake import DeltaTable
+
+    from fieldcal.lake.tables import table_schema
+
+    old = table_schema("observations_field")
+    old = old.remove(old.get_field_index("measure_settings"))
+    DeltaTable.create(str(tmp_path / "observations_field"), old)
+    lake = Lake(tmp_path)
+    lake.write_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64, field_measurements(n=2))
+    assert lake.read_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64).num_rows == 2
+    assert "measure_settings" in DeltaTable(str(tmp_path / "observations_field")).schema().to_arrow().names
