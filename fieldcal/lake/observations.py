@@ -7,10 +7,11 @@ goniometer frame, :data:`fieldcal.goniometer.method.MEASUREMENT_SCHEMA`). Each r
 holds ``camera_id``, ``session_id``, ``image`` (the session-relative name), ``key`` (the
 cache key: the image's content hash, or a hash of it and the measuring settings), the
 image's own ``image_sha256`` and the ``measure_settings`` (JSON) when known (the schema
-metadata ``fieldcal.image_sha256`` and ``fieldcal.measure`` of the table written), and ``row`` (the row's position in the image's
-table). An image's rows are written in one append, so they are all there or none. An
-image measured with no result (no target found) has one row with ``row = -1`` and the
-measurement columns null, so that it is not measured again either.
+metadata ``fieldcal.image_sha256`` and ``fieldcal.measure`` of the table written), and
+``row`` (the row's position in the image's table). An image's rows are written in one
+append, so they are all there or none. An image measured with no result (no target
+found) has one row with ``row = -1`` and the measurement columns null, so that it is not
+measured again either.
 """
 
 from __future__ import annotations

@@ -287,8 +287,10 @@ class Tables:
         if table is None:
             return []
         adds = pa.table(table.get_add_actions(flatten=True)).to_pylist()
+        parts = set(table.metadata().partition_columns)
         for col, value in (partition or {}).items():
-            adds = [a for a in adds if a.get(f"partition.{col}") == value]
+            if col in parts:
+                adds = [a for a in adds if a.get(f"partition.{col}") == value]
         return adds
 
     def read_file(self, name: str, add: dict, fs, columns=None) -> pa.Table:
@@ -298,7 +300,7 @@ class Tables:
         n = t.num_rows
         cols = []
         for f in schema:
-            if f.name in PARTITIONS[name]:
+            if f"partition.{f.name}" in add:
                 cols.append(pa.array([add[f"partition.{f.name}"]] * n, f.type))
             elif f.name in t.column_names:
                 cols.append(t[f.name].cast(f.type))

@@ -101,7 +101,7 @@ def test_a_table_made_by_an_older_fieldcal_gains_new_columns(tmp_path):
 
     old = table_schema("observations_field")
     old = old.remove(old.get_field_index("measure_settings"))
-    DeltaTable.create(str(tmp_path / "observations_field"), old)
+    DeltaTable.create(str(tmp_path / "observations_field"), old, partition_by=["camera_id"])
     lake = Lake(tmp_path)
     lake.write_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64, field_measurements(n=2))
     assert lake.read_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64).num_rows == 2
