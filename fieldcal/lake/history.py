@@ -37,6 +37,7 @@ import re
 
 import duckdb
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from fieldcal.errors import InputError, LakeError
 from fieldcal.session.schemas import arrow_schema
@@ -59,16 +60,27 @@ def _as_of(value):
     return parse_time(value, "--as-of")
 
 
-def _register(con, lake, name: str, as_of) -> None:
+def _register(con, lake, name: str, as_of, only: dict | None = None) -> None:
     if name == "catalog":
-        con.register("catalog", lake.catalog(as_of=as_of))
-        return
-    con.register(f"_{name}", lake.tables.scan(name, as_of=as_of))
+        f = None
+        for col, value in (only or {}).items():
+            e = pc.field(col) == value
+            f = e if f is None else f & e
+        if only:
+            con.register("catalog", lake.catalog(as_of=as_of, filter=f, equal=only, sort=False))
+            return
+    dataset, rest = lake.tables.lazy(name, as_of=as_of)
+    con.register(f"_{name}_recent", rest)
+    if dataset is not None:
+        con.register(f"_{name}_compacted", dataset)
+        source = f"SELECT * FROM _{name}_compacted UNION ALL BY NAME SELECT * FROM _{name}_recent"
+    else:
+        source = f"SELECT * FROM _{name}_recent"
     if name == "residuals":
-        con.sql("CREATE VIEW residuals AS SELECT r.* FROM _residuals r "
+        con.sql(f"CREATE VIEW residuals AS SELECT r.* FROM ({source}) r "
                 "SEMI JOIN catalog c ON r.version = c.version")
     else:
-        con.sql(f"CREATE VIEW {name} AS SELECT * FROM _{name}")
+        con.sql(f"CREATE VIEW {name} AS {source}")
 
 
 def views_of(query: str) -> tuple[str, ...]:
@@ -77,7 +89,7 @@ def views_of(query: str) -> tuple[str, ...]:
     return tuple(v for v in VIEWS if v in words or v == "catalog")
 
 
-def connect(lake, *, as_of=None, views=VIEWS) -> duckdb.DuckDBPyConnection:
+def connect(lake, *, as_of=None, views=VIEWS, only: dict | None = None) -> duckdb.DuckDBPyConnection:
     """An in-memory, read-only DuckDB connection with the lake's views (module docstring).
 
     Parameters
@@ -87,6 +99,9 @@ def connect(lake, *, as_of=None, views=VIEWS) -> duckdb.DuckDBPyConnection:
         Read the tables as they were at that time.
     views : sequence of str
         The views to make (``catalog`` is always made).
+    only : dict, optional
+        ``{column: value}``: the catalog view holds only those rows (read from the row
+        groups that may hold them).
 
     Returns
     -------
@@ -100,7 +115,7 @@ def connect(lake, *, as_of=None, views=VIEWS) -> duckdb.DuckDBPyConnection:
         for name in dict.fromkeys(("catalog",) + tuple(views)):
             if name not in VIEWS:
                 raise InputError(f"unknown view {name!r}; the views are {', '.join(VIEWS)}", "history")
-            _register(con, lake, name, when)
+            _register(con, lake, name, when, only)
         con.sql("SET enable_external_access = false")
         con.sql("SET lock_configuration = true")
     except duckdb.Error as e:
@@ -125,7 +140,7 @@ def _check_read_only(con, query: str) -> None:
             raise InputError(f"{READ_ONLY_NOTE} (got a {st.type.name} statement)", "sql")
 
 
-def sql(lake, query: str, params=None, *, as_of=None, views=None) -> pa.Table:
+def sql(lake, query: str, params=None, *, as_of=None, views=None, only: dict | None = None) -> pa.Table:
     """Run a read-only SQL query over the lake's views (:func:`connect`) and return its result.
 
     Parameters
@@ -147,7 +162,7 @@ def sql(lake, query: str, params=None, *, as_of=None, views=None) -> pa.Table:
         The query is not valid SQL, refers to unknown columns / tables, is not a
         ``SELECT`` or touches anything outside the views.
     """
-    con = connect(lake, as_of=as_of, views=views_of(query) if views is None else views)
+    con = connect(lake, as_of=as_of, views=views_of(query) if views is None else views, only=only)
     try:
         _check_read_only(con, query)
         try:
@@ -226,7 +241,7 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
                      ROWS BETWEEN UNBOUNDED PRECEDING AND CURRENT ROW)
         ORDER BY acquired ASC NULLS LAST, committed, version
     """
-    return sql(lake, query, [camera_id], as_of=as_of, views=("catalog",))
+    return sql(lake, query, [camera_id], as_of=as_of, views=("catalog",), only={"camera_id": camera_id})
 
 
 def _bound(value, *, end: bool):

@@ -62,6 +62,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
 
 from fieldcal.errors import InputError, LakeError
@@ -396,7 +397,8 @@ class Lake:
             pass  # the version is committed; the dictionary is written by the next commit
 
     # -- reading --------------------------------------------------------------------------
-    def catalog(self, *, as_of=None, filter=None, equal: Mapping | None = None) -> pa.Table:
+    def catalog(self, *, as_of=None, filter=None, equal: Mapping | None = None,
+                sort: bool = True) -> pa.Table:
         """Committed versions, one row each (``schemas/catalog.arrow.json``), oldest first.
 
         Parameters
@@ -408,9 +410,14 @@ class Lake:
         equal : mapping, optional
             ``{column: value}`` the rows kept must have: files whose statistics exclude it
             are not read (give ``filter`` too).
+        sort : bool
+            Order by commit time (False: file order, faster for a query that orders itself).
         """
         t = self.tables.scan("catalog", filter=filter, as_of=_as_of(as_of), equal=equal)
-        return t.sort_by([("committed", "ascending"), ("version", "ascending")])
+        if not sort or t.num_rows < 2:
+            return t
+        return t.take(pa.compute.sort_indices(t.select(["committed", "version"]),
+                                              [("committed", "ascending"), ("version", "ascending")]))
 
     def _is_committed(self, version: str) -> bool:
         return self.catalog(filter=ds.field("version") == version,

@@ -34,6 +34,7 @@ import random
 import time
 
 import pyarrow as pa
+import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from fieldcal.errors import InputError, LakeError
@@ -47,6 +48,8 @@ PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": [
               "observations_goniometer": ["camera_id"], "comparisons": []}
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions and checkpoints."""
+ROW_GROUP_ROWS = 4096
+"""Rows per row group of the compacted catalog (pruned by their camera_id statistics)."""
 COMMIT_RETRIES = 200
 """Attempts of an insert-unless-present that keeps meeting concurrent commits."""
 
@@ -200,15 +203,22 @@ class Tables:
         config = {"delta.checkpointInterval": str(self.maintain_every),
                   "delta.logRetentionDuration": "interval 3650 days",
                   "delta.deletedFileRetentionDuration": "interval 7 days"}
+        failure = None
         try:
-            return DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
-                                     partition_by=PARTITIONS[name] or None, configuration=config,
-                                     storage_options=self.storage.delta_options)
-        except Exception:  # noqa: BLE001 - another process created it first
-            table = self.open(name)
-            if table is None:
-                raise
-            return table
+            DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
+                              partition_by=PARTITIONS[name] or None, configuration=config,
+                              storage_options=self.storage.delta_options)
+        except Exception as e:  # noqa: BLE001 - another process created it first: loaded below
+            failure = e
+        # loaded afresh: the object create() returns may hold a losing creator's metadata
+        self._current.pop(name, None)
+        table = self.open(name)
+        if table is None:
+            if isinstance(failure, OSError):
+                raise failure
+            raise LakeError(f"cannot create the table {self.uri(name)}: "
+                            f"{reason(failure) if failure else 'no table after creating it'}")
+        return table
 
     # -- writing ------------------------------------------------------------------------
     def _commit_properties(self, info: dict | None):
@@ -226,7 +236,11 @@ class Tables:
         from deltalake import write_deltalake
 
         target = self.create(name)
-        write_deltalake(target, table.cast(table_schema(name)), mode="append", schema_mode="merge",
+        schema = table_schema(name)
+        # schema evolution only when needed: a metadata change conflicts with concurrent appends
+        have = set(pa.schema(target.schema().to_arrow()).names)
+        evolve = "merge" if set(schema.names) - have else None
+        write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
                         commit_properties=self._commit_properties(info))
         self._maintain(name, target)
 
@@ -272,10 +286,21 @@ class Tables:
         try:
             target.update_incremental()
             if target.version() % self.maintain_every == 0:
-                target.optimize.compact(commit_properties=self._commit_properties(
-                    {"action": "automatic compaction"}))
+                self._compact(name, target, {"action": "automatic compaction"})
         except Exception:  # noqa: BLE001, S110 - maintenance is best effort; `lake optimize` redoes it
             pass
+
+    def _compact(self, name: str, target, info: dict | None) -> dict:
+        """Compact small files; the catalog is rewritten sorted by camera (Z-order), in row
+        groups of :data:`ROW_GROUP_ROWS`, so that one camera's rows are a few row groups."""
+        from deltalake import WriterProperties
+
+        props = self._commit_properties(info)
+        if name == "catalog":
+            return target.optimize.z_order(["camera_id"], commit_properties=props,
+                                           writer_properties=WriterProperties(
+                                               max_row_group_size=ROW_GROUP_ROWS))
+        return target.optimize.compact(commit_properties=props)
 
     # -- reading ------------------------------------------------------------------------
     def files(self, name: str, *, as_of=None, partition: dict | None = None) -> list[dict]:
@@ -293,14 +318,27 @@ class Tables:
                 adds = [a for a in adds if a.get(f"partition.{col}") == value]
         return adds
 
-    def read_file(self, name: str, add: dict, fs, columns=None) -> pa.Table:
-        """One data file as rows of the table's schema (partition values filled in)."""
+    def read_file(self, name: str, add: dict, fs, columns=None, equal: dict | None = None) -> pa.Table:
+        """One data file as rows of the table's schema (partition values filled in).
+
+        ``columns`` reads only those; ``equal`` (``{column: value}``) reads only the row
+        groups whose statistics may hold the value (the catalog is written sorted by
+        ``camera_id`` in row groups of :data:`ROW_GROUP_ROWS`).
+        """
         schema = table_schema(name)
-        t = pq.read_table(add["path"], filesystem=fs)
+        with fs.open_input_file(add["path"]) as handle:
+            pf = pq.ParquetFile(handle)
+            groups = _row_groups(pf, equal or {})
+            names = set(pf.schema_arrow.names)
+            want = [c for c in (columns or schema.names) if c in names]
+            t = pf.read_row_groups(groups, columns=want) if groups else \
+                pf.schema_arrow.empty_table().select(want)
         n = t.num_rows
         cols = []
         for f in schema:
-            if f"partition.{f.name}" in add:
+            if columns and f.name not in columns:
+                cols.append(pa.nulls(n, f.type))
+            elif f"partition.{f.name}" in add:
                 cols.append(pa.array([add[f"partition.{f.name}"]] * n, f.type))
             elif f.name in t.column_names:
                 cols.append(t[f.name].cast(f.type))
@@ -334,7 +372,7 @@ class Tables:
             if any(_outside(add, col, value) for col, value in (equal or {}).items()):
                 continue
             try:
-                parts.append(self.read_file(name, add, fs, need))
+                parts.append(self.read_file(name, add, fs, need, equal))
             except FileNotFoundError as e:
                 if as_of is not None:  # not damage: vacuum removed the files of that time
                     raise LakeError(f"{name} as of {as_of} is no longer readable: its file "
@@ -348,13 +386,43 @@ class Tables:
             out = out.filter(filter)
         return out.select(columns) if columns else out
 
+    def lazy(self, name: str, *, as_of=None) -> tuple:
+        """``(dataset, rest)``: the table as a lazy pyarrow dataset of its files written with
+        plain types (compacted files: projection and filters are pushed down) and a table
+        of the rows of the other files (``string_view``, written by MERGE or DELETE since the
+        last compaction), read and cast. Unreadable files are left out and reported."""
+        schema = table_schema(name)
+        table = self.open(name, as_of=as_of)
+        if table is None:
+            return None, schema.empty_table()
+        fs = table.to_pyarrow_dataset().filesystem
+        fmt = ds.ParquetFileFormat()
+        frags, rest = [], []
+        for add in self.files(name, as_of=as_of):
+            try:
+                frag = fmt.make_fragment(add["path"], fs, partition_expression=_partition_expr(add, schema))
+                physical = frag.physical_schema
+                if any(pa.types.is_string_view(f.type) or "view" in str(f.type) for f in physical):
+                    rest.append(self.read_file(name, add, fs))
+                else:
+                    frags.append(frag)
+            except FileNotFoundError as e:
+                if as_of is not None:
+                    raise LakeError(f"{name} as of {as_of} is no longer readable: its file "
+                                    f"{add['path']} was removed by vacuum") from None
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+            except (OSError, pa.ArrowException) as e:
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+        dataset = ds.FileSystemDataset(frags, schema, fmt, fs) if frags else None
+        return dataset, (pa.concat_tables(rest) if rest else schema.empty_table())
+
     # -- maintenance and audit ------------------------------------------------------------
     def optimize(self, name: str, info: dict | None = None) -> dict:
         """Compact the table's small files and write a checkpoint."""
         target = self.open(name)
         if target is None:
             return {"table": name, "files_removed": 0, "files_added": 0}
-        metrics = target.optimize.compact(commit_properties=self._commit_properties(info))
+        metrics = self._compact(name, target, info)
         target.update_incremental()
         target.create_checkpoint()
         return {"table": name, "files_removed": int(metrics.get("numFilesRemoved", 0)),
@@ -425,3 +493,37 @@ def _outside(add: dict, column: str, value) -> bool:
         return value < lo or value > hi
     except TypeError:
         return False
+
+
+def _row_groups(pf, equal: dict) -> list[int]:
+    """Row groups of a Parquet file whose statistics do not exclude ``column == value``."""
+    keep = []
+    meta = pf.metadata
+    leaf = {meta.schema.column(j).path: j for j in range(meta.num_columns)}
+    for i in range(meta.num_row_groups):
+        rg = meta.row_group(i)
+        ok = True
+        for col, value in equal.items():
+            if col not in leaf:
+                continue
+            st = rg.column(leaf[col]).statistics
+            if st is not None and st.has_min_max:
+                lo, hi = st.min, st.max
+                lo = lo.decode() if isinstance(lo, bytes) else lo
+                hi = hi.decode() if isinstance(hi, bytes) else hi
+                try:
+                    ok = ok and not (value < lo or value > hi)
+                except TypeError:
+                    pass
+        if ok:
+            keep.append(i)
+    return keep
+
+
+def _partition_expr(add: dict, schema: pa.Schema):
+    expr = ds.scalar(True)
+    for key, value in add.items():
+        if key.startswith("partition.") and key[10:] in schema.names:
+            col = key[10:]
+            expr = expr & (ds.field(col) == pa.scalar(value, schema.field(col).type))
+    return expr

@@ -125,6 +125,10 @@ def test_cli_keeps_working_on_a_damaged_lake(damaged):
     assert out.returncode == 0, out.stderr
     assert [r["version"] for r in json.loads(out.stdout)] == [versions[("cam-a", "s1")],
                                                                versions[("cam-a", "s2")]]
+    assert out.stderr == ""  # the damaged file holds none of cam-a's rows: it is not read
+    out = cli("history", "--lake", root, "--camera", "cam-b", "--format", "json")
+    assert out.returncode == 0, out.stderr
+    assert [r["version"] for r in json.loads(out.stdout)] == [versions[("cam-b", "s1")]]
     assert out.stderr.startswith("fieldcal history: skipped catalog: catalog/part-")
     assert len(out.stderr.splitlines()) == 1
     for args in (("history", "--lake", root), ("show", "latest", "--camera", "cam-c", "--lake", root),
