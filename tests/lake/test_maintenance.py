@@ -106,3 +106,21 @@ def test_a_table_made_by_an_older_fieldcal_gains_new_columns(tmp_path):
     lake.write_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64, field_measurements(n=2))
     assert lake.read_observations("cam-a", "s1", "images/IMG_0.tif", "a" * 64).num_rows == 2
     assert "measure_settings" in DeltaTable(str(tmp_path / "observations_field")).schema().to_arrow().names
+
+
+def test_fleet_summary_compares_only_where_needed_and_once_per_pair(tmp_path, monkeypatch):
+    from fieldcal.products import report
+
+    lake = Lake(tmp_path)
+    lake.commit(field_document("cam-a", "s1", acquired="2026-01-01"), {}, residual_table())
+    lake.commit(field_document("cam-a", "s2", f_mm=50.01, acquired="2026-02-01"), {}, residual_table())
+    lake.commit(field_document("cam-b", "s1"), {}, residual_table())  # one calibration: no comparison
+    calls = []
+    real = report.compare_calibrations
+    monkeypatch.setattr(report, "compare_calibrations", lambda *a, **k: calls.append(1) or real(*a, **k))
+    first = report.fleet_summary(lake).to_pylist()
+    assert len(calls) == 1 and first[0]["p_value"] is not None and first[1]["verdict"] == "only one calibration"
+    again = report.fleet_summary(Lake(tmp_path)).to_pylist()
+    assert len(calls) == 1 and again == first  # remembered in the lake per pair of versions
+    report.fleet_summary(lake, tolerance_um=0.5)
+    assert len(calls) == 2  # other settings: compared again
