@@ -64,7 +64,7 @@ from prefect.futures import as_completed
 
 from fieldcal import pipeline, progress
 from fieldcal.errors import ImageError, InputError, LakeError, one_line
-from fieldcal.lake.store import Lake
+from fieldcal.lake.store import Lake, observations_key
 from fieldcal.measure.imageio import read_file
 from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 
@@ -323,8 +323,11 @@ def solve_session(prepared: pipeline.Prepared, lake: str, storage_options: dict 
 def commit_version(lake: str, storage_options: dict | None, outcome: pipeline.Outcome,
                    force: bool = False) -> tuple[str, bool]:
     """Commit the outcome as one immutable version; returns ``(version, new)``."""
+    from prefect.runtime import flow_run
+
     v = Lake(lake, storage_options).commit(outcome.document, outcome.arrays, outcome.residuals,
-                                           force=force, array_attrs=outcome.array_attrs)
+                                           force=force, array_attrs=outcome.array_attrs,
+                                           info={"flow_run_id": flow_run.id, "flow": flow_run.flow_name})
     return str(v), bool(v.new)
 
 
@@ -439,8 +442,7 @@ def _run_name() -> str:
 
 
 def _observation_listing(lk: Lake, camera_id: str, session_id: str) -> set[str]:
-    prefix = f"observations/camera_id={camera_id}/session_id={session_id}/"
-    return {rel[len(prefix):] for rel in lk.glob(prefix + "*.parquet")}
+    return lk.cached_observations(camera_id, session_id)
 
 
 @flow(name="calibrate-session", flow_run_name=_run_name, persist_result=False)
@@ -549,8 +551,7 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
             continue
         if n in hashes:
             key = measurement_key(hashes[n], msettings)
-            stem = lk.observations_path(sess.camera_id, sess.session_id, n, key).rsplit("/", 1)[1]
-            if stem in listing:
+            if observations_key(n, key) in listing:
                 keys[n] = key
                 counts["cached"] += 1
                 continue

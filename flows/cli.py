@@ -302,14 +302,17 @@ def cmd_history(args) -> int:
     if args.sql:
         if args.camera or args.start or args.end:
             raise UsageError("--sql cannot be combined with --camera, --from or --to")
-        table = history.sql(lake, args.sql)
+        table = history.sql(lake, args.sql, as_of=args.as_of)
     elif args.camera:
         if args.start or args.end:
             raise UsageError("--from / --to select cameras by date; with --camera use --sql for a range")
         table = history.camera_history(lake, args.camera, tuple(args.param or ("f_mm", "xp_mm", "yp_mm")),
-                                       all_versions=args.all_versions)
+                                       all_versions=args.all_versions, as_of=args.as_of)
     else:
-        table = history.fleet(lake, args.start, args.end)
+        table = history.fleet(lake, args.start, args.end, as_of=args.as_of)
+    from flows.cli_lake import report_problems
+
+    report_problems(lake, "fieldcal history")
     sys.stdout.write(history.format_table(table, args.format))
     if args.format == "json":
         sys.stdout.write("\n")
@@ -519,7 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from", dest="start", metavar="DATE", help="every camera's latest calibration acquired "
                    "from this date or time")
     p.add_argument("--to", dest="end", metavar="DATE", help="... up to this date (inclusive) or time")
-    p.add_argument("--sql", help="any DuckDB query over the views catalog, residuals, observations")
+    p.add_argument("--sql", help="a read-only DuckDB SELECT over the views catalog, residuals, "
+                   "observations_field, observations_goniometer (no COPY, ATTACH, INSTALL or file access)")
+    p.add_argument("--as-of", metavar="TIME", help="answer as the lake was at this time (ISO 8601, UTC)")
     p.add_argument("--format", choices=("text", "csv", "json"), default="text")
     extras = _history_extras()
     if extras is not None:
@@ -560,9 +565,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=cmd_demo)
 
+    from flows import cli_lake
     from flows import cli_products as cli_reports
 
     cli_reports.add_commands(sub)
+    cli_lake.add_commands(sub)
     return parser
 
 

@@ -1,22 +1,29 @@
-"""Calibration history: DuckDB SQL over the lake's catalog, residuals and observations.
+"""Calibration history: read-only DuckDB SQL over the lake's Delta tables, as of any time.
 
-:func:`connect` opens an in-memory DuckDB connection with three views:
+:func:`connect` opens an in-memory DuckDB connection with one view per table of the lake
+(:mod:`fieldcal.lake.tables`), each read through ``deltalake`` as a pyarrow dataset (the
+same code path for a local and an object-store lake; DuckDB's delta extension is not
+needed):
 
-- ``catalog``: one row per committed version (``schemas/catalog.arrow.json``), read with
-  :meth:`fieldcal.lake.store.Lake.catalog` and registered as an Arrow table (the same code path
-  for a local and an object-store lake; DuckDB's httpfs extension is not needed);
-- ``residuals``: the residual tables (``schemas/residuals.arrow.json``) of the committed
-  versions only, with the hive partition columns ``camera_id``, ``session_id``, ``version``;
-- ``observations``: the cached per-image observations with ``camera_id``, ``session_id``.
+- ``catalog``: one row per committed version (``schemas/catalog.arrow.json``);
+- ``residuals``: the residual rows of catalogued versions only (a semi-join on
+  ``version``), with ``camera_id``, ``session_id``, ``version``;
+- ``observations_field`` and ``observations_goniometer``: the cached measurements.
 
-Residuals and observations are read by DuckDB's ``read_parquet`` straight from the files
-(lazily); for an fsspec lake the lake's filesystem is registered with DuckDB
-(``register_filesystem``). Empty views have the right columns, so every query works on an
-empty lake. Timestamps are ``TIMESTAMP WITH TIME ZONE`` in UTC.
+``as_of`` (an ISO 8601 time or a datetime) reads every table as it was then (Delta time
+travel): the catalog of that time and the residuals of its versions. Empty tables have
+their columns, so every query works on an empty lake. Timestamps are ``TIMESTAMP WITH TIME
+ZONE`` in UTC. A damaged data file is left out of its view and listed in
+``lake.problems``.
+
+The connection is read-only for the query: only ``SELECT`` statements run, and DuckDB's
+external access is switched off and locked before the query (no ``COPY``, ``ATTACH``,
+``INSTALL``, ``read_csv('/etc/passwd')``: the query sees the views and nothing else).
 
 :func:`camera_history` (one camera over time), :func:`fleet` (every camera's latest
-calibration in a date range) and :func:`sql` (anything) return :class:`pyarrow.Table`;
-:func:`to_text`, :func:`to_csv` and :func:`to_json` format a table for people and scripts.
+calibration in a date range), :func:`fleet_pairs` (that and the version before it) and
+:func:`sql` (anything) return :class:`pyarrow.Table`; :func:`to_text`, :func:`to_csv` and
+:func:`to_json` format a table for people and scripts.
 """
 
 from __future__ import annotations
@@ -26,37 +33,75 @@ import datetime as dt
 import io
 import json
 import math
+import re
 
 import duckdb
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from fieldcal.errors import InputError, LakeError
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["connect", "sql", "camera_history", "fleet", "to_text", "to_csv", "to_json",
-           "format_table", "FORMATS"]
+__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "to_text", "to_csv",
+           "to_json", "format_table", "FORMATS", "VIEWS", "READ_ONLY_NOTE"]
 
 UTC = dt.UTC
-HIVE_TYPES = "{'camera_id': 'VARCHAR', 'session_id': 'VARCHAR', 'version': 'VARCHAR'}"
-HIVE_TYPES_OBS = "{'camera_id': 'VARCHAR', 'session_id': 'VARCHAR'}"
 FORMATS = ("text", "csv", "json")
+VIEWS = ("catalog", "residuals", "observations_field", "observations_goniometer")
+READ_ONLY_NOTE = ("history --sql is read-only: one or more SELECT statements over the views "
+                  f"{', '.join(VIEWS)}; no COPY, ATTACH, INSTALL or file access")
 
 
-def _quote(text: str) -> str:
-    return "'" + text.replace("'", "''") + "'"
+def _as_of(value):
+    if value is None:
+        return None
+    from fieldcal.lake.ids import parse_time
+
+    return parse_time(value, "--as-of")
 
 
-def _empty_view(con, name: str, schema: pa.Schema, keys: tuple[str, ...]) -> None:
-    fields = [pa.field(k, pa.string()) for k in keys] + [f for f in schema if f.name not in keys]
-    con.register(name, pa.schema(fields).empty_table())
+def _register(con, lake, name: str, as_of, only: dict | None = None) -> None:
+    if name == "catalog":
+        f = None
+        for col, value in (only or {}).items():
+            e = pc.field(col) == value
+            f = e if f is None else f & e
+        if only:
+            con.register("catalog", lake.catalog(as_of=as_of, filter=f, equal=only, sort=False))
+            return
+    dataset, rest = lake.tables.lazy(name, as_of=as_of)
+    con.register(f"_{name}_recent", rest)
+    if dataset is not None:
+        con.register(f"_{name}_compacted", dataset)
+        source = f"SELECT * FROM _{name}_compacted UNION ALL BY NAME SELECT * FROM _{name}_recent"
+    else:
+        source = f"SELECT * FROM _{name}_recent"
+    if name == "residuals":
+        con.sql(f"CREATE VIEW residuals AS SELECT r.* FROM ({source}) r "
+                "SEMI JOIN catalog c ON r.version = c.version")
+    else:
+        con.sql(f"CREATE VIEW {name} AS {source}")
 
 
-def connect(lake) -> duckdb.DuckDBPyConnection:
-    """An in-memory DuckDB connection with the views ``catalog``, ``residuals``, ``observations``.
+def views_of(query: str) -> tuple[str, ...]:
+    """The views a query names (each is read only when named; ``catalog`` always)."""
+    words = set(re.findall(r"[A-Za-z_]+", query.lower()))
+    return tuple(v for v in VIEWS if v in words or v == "catalog")
+
+
+def connect(lake, *, as_of=None, views=VIEWS, only: dict | None = None) -> duckdb.DuckDBPyConnection:
+    """An in-memory, read-only DuckDB connection with the lake's views (module docstring).
 
     Parameters
     ----------
     lake : fieldcal.lake.store.Lake
+    as_of : str or datetime, optional
+        Read the tables as they were at that time.
+    views : sequence of str
+        The views to make (``catalog`` is always made).
+    only : dict, optional
+        ``{column: value}``: the catalog view holds only those rows (read from the row
+        groups that may hold them).
 
     Returns
     -------
@@ -64,30 +109,15 @@ def connect(lake) -> duckdb.DuckDBPyConnection:
         Close it when done (or use it as a context manager).
     """
     con = duckdb.connect(":memory:")
+    when = _as_of(as_of)
     try:
         con.sql("SET TimeZone = 'UTC'")
-        if not lake.is_local:
-            con.register_filesystem(lake.fs)
-        catalog = lake.catalog()
-        con.register("catalog", catalog)
-
-        paths = catalog["residuals_path"].to_pylist()
-        if paths:
-            files = ", ".join(_quote(lake.uri(p)) for p in paths)
-            con.sql(f"CREATE VIEW residuals AS SELECT * FROM read_parquet([{files}], "
-                    f"hive_partitioning = true, hive_types = {HIVE_TYPES}, union_by_name = true)")
-        else:
-            _empty_view(con, "residuals", arrow_schema("residuals"),
-                        ("camera_id", "session_id", "version"))
-
-        pattern = "observations/camera_id=*/session_id=*/*.parquet"
-        if lake.glob(pattern):
-            con.sql(f"CREATE VIEW observations AS SELECT * FROM read_parquet("
-                    f"{_quote(lake.uri(pattern))}, hive_partitioning = true, "
-                    f"hive_types = {HIVE_TYPES_OBS}, union_by_name = true)")
-        else:
-            _empty_view(con, "observations", arrow_schema("observations"),
-                        ("camera_id", "session_id"))
+        for name in dict.fromkeys(("catalog",) + tuple(views)):
+            if name not in VIEWS:
+                raise InputError(f"unknown view {name!r}; the views are {', '.join(VIEWS)}", "history")
+            _register(con, lake, name, when, only)
+        con.sql("SET enable_external_access = false")
+        con.sql("SET lock_configuration = true")
     except duckdb.Error as e:
         con.close()
         raise LakeError(f"cannot open the lake {lake.url} in DuckDB: {' '.join(str(e).split())}") \
@@ -98,28 +128,50 @@ def connect(lake) -> duckdb.DuckDBPyConnection:
     return con
 
 
-def sql(lake, query: str, params=None) -> pa.Table:
-    """Run a SQL query over the lake's views (:func:`connect`) and return its result.
+def _check_read_only(con, query: str) -> None:
+    try:
+        statements = con.extract_statements(query)
+    except duckdb.Error as e:
+        raise InputError(" ".join(str(e).split()), "sql") from None
+    if not statements:
+        raise InputError("the query is empty", "sql")
+    for st in statements:
+        if st.type != duckdb.StatementType.SELECT:
+            raise InputError(f"{READ_ONLY_NOTE} (got a {st.type.name} statement)", "sql")
+
+
+def sql(lake, query: str, params=None, *, as_of=None, views=None, only: dict | None = None) -> pa.Table:
+    """Run a read-only SQL query over the lake's views (:func:`connect`) and return its result.
 
     Parameters
     ----------
     lake : fieldcal.lake.store.Lake
     query : str
-        DuckDB SQL over ``catalog``, ``residuals`` and ``observations``.
+        DuckDB ``SELECT`` over ``catalog``, ``residuals``, ``observations_field`` and
+        ``observations_goniometer``.
     params : sequence, optional
         Values for ``?`` placeholders.
+    as_of : str or datetime, optional
+        Query the lake as it was at that time.
+    views : sequence of str, optional
+        The views to read (default: those the query names).
 
     Raises
     ------
     InputError
-        The query is not valid SQL or refers to unknown columns / tables.
+        The query is not valid SQL, refers to unknown columns / tables, is not a
+        ``SELECT`` or touches anything outside the views.
     """
-    con = connect(lake)
+    con = connect(lake, as_of=as_of, views=views_of(query) if views is None else views, only=only)
     try:
+        _check_read_only(con, query)
         try:
             rel = con.sql(query, params=params)
         except duckdb.Error as e:
-            raise InputError(" ".join(str(e).split()), "sql") from None
+            text = " ".join(str(e).split())
+            if isinstance(e, duckdb.PermissionException):
+                text = f"{READ_ONLY_NOTE}: {text}"
+            raise InputError(text, "sql") from None
         return rel.to_arrow_table() if rel is not None else pa.table({})
     finally:
         con.close()
@@ -143,7 +195,7 @@ def _param_columns(parameters) -> list[str]:
 
 
 def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), *,
-                   all_versions: bool = False) -> pa.Table:
+                   all_versions: bool = False, as_of=None) -> pa.Table:
     """One camera over time: its calibrations ordered by acquisition time.
 
     Parameters
@@ -156,6 +208,8 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
         change since the first row of the history (same unit).
     all_versions : bool
         Every committed version instead of the latest version of each session.
+    as_of : str or datetime, optional
+        The history as the lake knew it at that time.
 
     Returns
     -------
@@ -187,7 +241,7 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
                      ROWS BETWEEN UNBOUNDED PRECEDING AND CURRENT ROW)
         ORDER BY acquired ASC NULLS LAST, committed, version
     """
-    return sql(lake, query, [camera_id])
+    return sql(lake, query, [camera_id], as_of=as_of, views=("catalog",), only={"camera_id": camera_id})
 
 
 def _bound(value, *, end: bool):
@@ -210,7 +264,7 @@ def _bound(value, *, end: bool):
     raise InputError(f"expected a date or time, got {type(value).__name__}", "fleet")
 
 
-def fleet(lake, start=None, end=None) -> pa.Table:
+def fleet(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     """Every camera's latest calibration acquired in ``[start, end]``.
 
     Parameters
@@ -219,6 +273,8 @@ def fleet(lake, start=None, end=None) -> pa.Table:
     start, end : str, date or datetime, optional
         Inclusive bounds on the acquisition time (the creation time for versions without
         one); a date as ``end`` includes that whole day. Naive times are UTC.
+    as_of : str or datetime, optional
+        The fleet as the lake knew it at that time.
 
     Returns
     -------
@@ -239,7 +295,50 @@ def fleet(lake, start=None, end=None) -> pa.Table:
                                    ORDER BY _t DESC, committed DESC, version DESC) = 1
         ORDER BY camera_id
     """
-    return sql(lake, query, [lo, lo, hi, hi])
+    return sql(lake, query, [lo, lo, hi, hi], as_of=as_of, views=("catalog",))
+
+
+def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
+    """Every camera's latest calibration in ``[start, end]`` and the one before it: one query.
+
+    The *previous* calibration is what :func:`camera_history` lists before the latest (the
+    latest version of each session, ordered by acquisition time, then commit time), found
+    with window functions over one read of the catalog.
+
+    Returns
+    -------
+    pyarrow.Table
+        ``camera_id, version, method, acquired, previous_version, previous_method,
+        previous_acquired`` (previous columns null for a camera with one calibration),
+        ordered by ``camera_id``.
+    """
+    lo, hi = _bound(start, end=False), _bound(end, end=True)
+    if lo is not None and hi is not None and hi < lo:
+        raise InputError(f"end {end!r} is before start {start!r}", "fleet")
+    query = """
+        WITH sessions AS (
+            SELECT * FROM catalog
+            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id
+                                       ORDER BY committed DESC, version DESC) = 1),
+        ordered AS (
+            SELECT camera_id, version, method, acquired,
+                   lag(version) OVER w AS previous_version, lag(method) OVER w AS previous_method,
+                   lag(acquired) OVER w AS previous_acquired
+            FROM sessions
+            WINDOW w AS (PARTITION BY camera_id ORDER BY acquired ASC NULLS LAST, committed, version)),
+        latest AS (
+            SELECT camera_id, version FROM catalog
+            WHERE (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) >= ?::TIMESTAMPTZ)
+              AND (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) <= ?::TIMESTAMPTZ)
+            QUALIFY row_number() OVER (PARTITION BY camera_id ORDER BY coalesce(acquired, created)
+                                       DESC, committed DESC, version DESC) = 1)
+        SELECT l.camera_id, l.version, c.method, c.acquired,
+               o.previous_version, o.previous_method, o.previous_acquired
+        FROM latest l JOIN catalog c USING (version)
+        LEFT JOIN ordered o ON o.version = l.version
+        ORDER BY l.camera_id
+    """
+    return sql(lake, query, [lo, lo, hi, hi], as_of=as_of, views=("catalog",))
 
 
 # --------------------------------------------------------------------------------------

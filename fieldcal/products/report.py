@@ -637,15 +637,38 @@ same numbers; ``chi2, dof`` are the map test's, ``p_value`` the family's (Holm) 
 (:class:`fieldcal.products.compare.Comparison`)."""
 
 
+COMPARISON_TEST = "holm-family/1"
+"""The definition of the change test (:func:`fieldcal.products.compare.compare_calibrations`)
+that cached fleet comparisons were made with; change it when the test changes."""
+
+
+def _compare_pair(lake, va: str, vb: str, grid, tolerance_um: float, alpha: float) -> dict:
+    """The fleet columns of one comparison of ``va`` with ``vb`` (or why it cannot be made)."""
+    try:
+        a = Calibration.from_lake(lake, va)
+        b = Calibration.from_lake(lake, vb)
+        c = compare_calibrations(a, b, grid=grid, tolerance_um=tolerance_um, alpha=alpha)
+    except (InputError, LakeError) as e:
+        return {"significant": False, "exceeds_tolerance": False, "flagged": False,
+                "verdict": f"cannot compare: {e}", "_cache": False}
+    return {"region": c.region, "max_change_px": c.max_px, "max_change_um": c.max_um,
+            "rms_change_px": c.rms_px, "rms_change_um": c.rms_um, "chi2": c.chi2, "dof": c.dof,
+            "p_value": c.p_value, "changed": ", ".join(c.changed), "significant": c.significant,
+            "exceeds_tolerance": c.exceeds_tolerance, "flagged": c.flagged, "verdict": c.verdict}
+
+
 def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
                   start=None, end=None, grid: tuple[int, int] = (41, 31)) -> pa.Table:
     """Every camera's latest calibration against its previous one, flagged when it moved.
 
-    For each camera, the latest calibration acquired in ``[start, end]``
-    (:func:`fieldcal.lake.history.fleet`) is compared with the latest version of the session
-    acquired before it (:func:`fieldcal.lake.history.camera_history`) by
-    :func:`fieldcal.products.compare.compare_calibrations`. A camera is *flagged* when the change is
-    significant at ``alpha`` and its largest image-plane change exceeds ``tolerance_um``.
+    For each camera, the latest calibration acquired in ``[start, end]`` and the latest
+    version of the session acquired before it come from one read of the catalog
+    (:func:`fieldcal.lake.history.fleet_pairs`); only cameras with a previous version are
+    compared (:func:`fieldcal.products.compare.compare_calibrations`), and each comparison
+    is remembered in the lake per pair of versions and settings
+    (:meth:`fieldcal.lake.store.Lake.cached_comparisons`), so a second run compares only
+    what changed. A camera is *flagged* when the change is significant at ``alpha`` and its
+    largest image-plane change exceeds ``tolerance_um``.
 
     Returns
     -------
@@ -653,38 +676,28 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
         :data:`FLEET_SCHEMA`, one row per camera ordered by ``camera_id``; the comparison
         columns are null for a camera with a single calibration.
     """
+    import json
+
     from fieldcal.lake import history
 
-    latest = history.fleet(lake, start, end).to_pylist()
+    # "test" names the comparison's definition: cached results of another definition are not reused
+    settings = json.dumps({"tolerance_um": float(tolerance_um), "alpha": float(alpha),
+                           "grid": list(grid), "test": COMPARISON_TEST}, sort_keys=True)
+    pairs = history.fleet_pairs(lake, start, end).to_pylist()
+    cached = lake.cached_comparisons(settings)
+    fresh = {}
     rows = []
-    for row in latest:
-        cam = row["camera_id"]
-        hist = history.camera_history(lake, cam).to_pylist()
-        versions = [h["version"] for h in hist]
-        out = {"camera_id": cam, "version": row["version"], "method": row["method"],
-               "acquired": row.get("acquired"), "tolerance_um": float(tolerance_um)}
-        i = versions.index(row["version"]) if row["version"] in versions else len(versions)
-        if i == 0 or not versions:
+    for row in pairs:
+        out = dict(row, tolerance_um=float(tolerance_um))
+        prev = row["previous_version"]
+        if prev is None:
             out.update(verdict="only one calibration", significant=False, exceeds_tolerance=False,
                        flagged=False)
-            rows.append(out)
-            continue
-        prev = hist[i - 1]
-        try:
-            a = Calibration.from_lake(lake, prev["version"])
-            b = Calibration.from_lake(lake, row["version"])
-            c = compare_calibrations(a, b, grid=grid, tolerance_um=tolerance_um, alpha=alpha)
-        except (InputError, LakeError) as e:
-            out.update(previous_version=prev["version"], previous_method=prev["method"],
-                       previous_acquired=prev.get("acquired"), significant=False,
-                       exceeds_tolerance=False, flagged=False, verdict=f"cannot compare: {e}")
-            rows.append(out)
-            continue
-        out.update(previous_version=prev["version"], previous_method=prev["method"],
-                   previous_acquired=prev.get("acquired"), region=c.region,
-                   max_change_px=c.max_px, max_change_um=c.max_um, rms_change_px=c.rms_px,
-                   rms_change_um=c.rms_um, chi2=c.chi2, dof=c.dof, p_value=c.p_value,
-                   changed=", ".join(c.changed), significant=c.significant,
-                   exceeds_tolerance=c.exceeds_tolerance, flagged=c.flagged, verdict=c.verdict)
+        else:
+            key = (prev, row["version"])
+            if key not in cached and key not in fresh:
+                fresh[key] = _compare_pair(lake, prev, row["version"], grid, tolerance_um, alpha)
+            out.update({k: v for k, v in (cached.get(key) or fresh[key]).items() if k != "_cache"})
         rows.append(out)
+    lake.remember_comparisons(settings, {k: v for k, v in fresh.items() if v.get("_cache", True)})
     return pa.Table.from_pylist(rows, schema=FLEET_SCHEMA)

@@ -1,6 +1,6 @@
 """Faults: a Dask worker killed, the flow killed at every step, writes that fail, runs at once.
 
-Every test checks the two promises of the lake (``fieldcal/lake.py``): a version is visible
+Every test checks the two promises of the lake (``fieldcal/lake/store.py``): a version is visible
 only once its catalog row exists, which is written last; and nothing already done is lost
 (the observations written before a fault are reused by the rerun). "Same result" means the
 rerun's parameters, sigmas and statistics equal those of an undisturbed run of the same
@@ -99,10 +99,22 @@ def assert_nothing_visible(lake_dir: Path, camera_id: str) -> None:
 
 def assert_only_the_version(lake_dir: Path, version: str) -> None:
     """After ``gc``: the lake holds the one committed version's parts and no temporary file."""
-    lake = Lake(lake_dir)
-    parts = lake.glob("calibrations/*/*/*") + lake.glob("residuals/*/*/*")
-    assert len(parts) == 3 and all(version in p for p in parts), parts
+    parts = sorted(p.name for p in (lake_dir / "calibrations").glob("*/*/*"))
+    assert parts == [f"{version}.json", f"{version}.zarr"], parts
+    assert residual_versions(lake_dir) == [version]
     assert not [p for p in lake_dir.rglob("*.tmp")]
+
+
+def residual_versions(lake_dir: Path) -> list[str]:
+    """Versions with rows in the residuals table, visible or not."""
+    rows = Lake(lake_dir).tables.scan("residuals", columns=["version"])
+    return sorted(set(rows["version"].to_pylist()))
+
+
+def cached_images(lake_dir: Path) -> int:
+    """Images with cached observations in the lake (one Delta append each)."""
+    lake = Lake(lake_dir)
+    return sum(len(lake.cached_keys(c, s)) for c, s in lake.sessions_with_observations())
 
 
 # --------------------------------------------------------------------------------------
@@ -133,7 +145,7 @@ KILLER = textwrap.dedent("""
 
     if __name__ == "__main__":
         session, lake, point = sys.argv[1:4]
-        import fieldcal.lake.store, fieldcal.pipeline
+        import fieldcal.lake.store, fieldcal.lake.tables, fieldcal.pipeline
 
         writes = []
         if point == "validated":             # the session is validated, nothing is measured
@@ -144,15 +156,10 @@ KILLER = textwrap.dedent("""
             before(fieldcal.pipeline, "solve")
         elif point == "solved":              # solved, the commit starts
             before(fieldcal.lake.store.Lake, "commit")
-        elif point == "zarr-written":        # residuals and Zarr group written, no document, no row
+        elif point == "zarr-written":        # document and Zarr group written, no residuals, no row
             after(fieldcal.lake.store.Lake, "_write_zarr")
-        elif point == "row-unlinked":        # the catalog row's file is complete but not yet linked
-            link = os.link
-            def linked(src, dst, *a, **k):
-                if os.sep + "catalog" + os.sep in os.fspath(dst):
-                    die()
-                return link(src, dst, *a, **k)
-            os.link = linked
+        elif point == "residuals-appended":  # residual rows committed, the catalog row not
+            before(fieldcal.lake.tables.Tables, "insert_unless")
         else:
             raise SystemExit(f"unknown point {point}")
         from flows.calibrate import calibrate_session
@@ -164,7 +171,7 @@ KILLER = textwrap.dedent("""
 @pytest.mark.parametrize("point, written", [("validated", (0, 0)), ("measuring", (20, N_FRAMES - 1)),
                                             ("observed", (N_FRAMES, N_FRAMES)), ("solved", (N_FRAMES, N_FRAMES)),
                                             ("zarr-written", (N_FRAMES, N_FRAMES)),
-                                            ("row-unlinked", (N_FRAMES, N_FRAMES))])
+                                            ("residuals-appended", (N_FRAMES, N_FRAMES))])
 def test_flow_killed_at_any_step_leaves_no_version_and_the_rerun_gives_the_same_result(
         prefect_server, small_gonio, tmp_path, point, written):
     folder, ref = small_gonio
@@ -175,12 +182,12 @@ def test_flow_killed_at_any_step_leaves_no_version_and_the_rerun_gives_the_same_
                           env=child_env(prefect_server), cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
     assert_nothing_visible(lake_dir, "cam-faults")
-    obs = list((lake_dir / "observations").rglob("*.parquet"))
-    assert written[0] <= len(obs) <= written[1]  # what was done before the kill is kept ...
+    n_obs = cached_images(lake_dir)
+    assert written[0] <= n_obs <= written[1]  # what was done before the kill is kept ...
 
     out = calibrate_session(str(folder), str(lake_dir))
     assert out["status"] == "committed"
-    assert out["images"]["cached"] == len(obs)  # ... and reused, not measured again
+    assert out["images"]["cached"] == n_obs  # ... and reused, not measured again
     assert out["images"]["cached"] + out["images"]["measured"] == N_FRAMES
     lake = Lake(lake_dir)
     assert lake.catalog()["version"].to_pylist() == [out["version"]]
@@ -197,13 +204,11 @@ def test_flow_killed_at_any_step_leaves_no_version_and_the_rerun_gives_the_same_
 def test_a_dask_worker_killed_during_extraction_does_not_stop_the_run(small_gonio, tmp_path):
     folder, ref = small_gonio
     lake_dir = tmp_path / "lake"
-    obs_dir = lake_dir / "observations"
     killed = {}
 
     def kill_when_measuring(procs):
-        standalone.wait_for(lambda: len(list(obs_dir.rglob("*.parquet"))) >= 12, 120,
-                            "no observation was written")
-        killed["n_obs"] = len(list(obs_dir.rglob("*.parquet")))
+        standalone.wait_for(lambda: cached_images(lake_dir) >= 12, 120, "no observation was written")
+        killed["n_obs"] = cached_images(lake_dir)
         procs[0].send_signal(signal.SIGKILL)
         killed["pid"] = procs[0].pid
 
@@ -259,7 +264,7 @@ def test_a_full_destination_fails_the_commit_cleanly_and_the_next_run_commits(
         prefect_server, field_sessions, tmp_path):
     lake_dir = tmp_path / "lake"
     session = field_sessions["wall-a"]
-    # 64 KiB per file: the claims fit, the version's residual table (~150 KiB) does not
+    # 64 KiB per file: the document fits, the version's residual rows (~100 KiB) do not
     proc = fieldcal_run(prefect_server, session, "--lake", lake_dir, limit_bytes=64 * 1024)
     assert proc.returncode == 1, proc.stderr[-3000:]
     lines = proc.stderr.strip().splitlines()
@@ -267,10 +272,10 @@ def test_a_full_destination_fails_the_commit_cleanly_and_the_next_run_commits(
     assert str(lake_dir) in lines[0] and "File too large" in lines[0]
     assert proc.stdout == ""
     assert_nothing_visible(lake_dir, "cam-wall")
-    # the failed commit removed what it had written and released its claims at once
-    assert not list((lake_dir / "calibrations").rglob("*")) and not list((lake_dir / "residuals").rglob("*.parquet"))
-    claims = [json.loads(p.read_text()) for p in (lake_dir / "_claims").rglob("*.json")]
-    assert claims and all(c["released"] for c in claims)
+    # the failed commit removed what it had written (a data file delta-rs could not finish
+    # is in no commit: no reader sees it)
+    assert not [p for p in (lake_dir / "calibrations").rglob("*") if p.is_file()]
+    assert residual_versions(lake_dir) == []
 
     proc = fieldcal_run(prefect_server, session, "--lake", lake_dir, "--json", tmp_path / "out.json")
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -327,6 +332,8 @@ def test_concurrent_runs_of_the_same_and_different_sessions_lose_nothing(
     for i in range(len(sessions)):
         assert json.loads((tmp_path / f"run{i}.json").read_text())["version"] == versions[i]
     # the two runs of the image session measured the same frames at once: the cache holds
-    # one file per frame, and the calibration is the undisturbed one
-    assert len(list((lake_dir / "observations").rglob("*.parquet"))) == N_FRAMES
+    # each frame once (a frame cached twice reads back once), and the calibration is the
+    # undisturbed one; the losers of the same inputs removed their residual rows
+    assert cached_images(lake_dir) == N_FRAMES
+    assert residual_versions(lake_dir) == sorted({versions[0], versions[2], versions[3]})
     assert_same_result(lake.load_document(versions[3]), ref)

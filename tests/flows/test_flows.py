@@ -14,7 +14,6 @@ from pathlib import Path
 
 import duckdb
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
 import tifffile
 import yaml
@@ -105,16 +104,17 @@ def test_goniometer_flow_on_a_local_cluster_passes_the_accuracy_checks(first_run
     assert doc["stats"]["sigma_fit_px"] < 0.1      # the centroid noise level (0.03-0.05 px here)
 
 
-def test_observations_are_one_parquet_file_per_image_and_the_version_has_one_catalog_row(first_run, gonio):
+def test_observations_are_cached_per_image_and_the_version_has_one_catalog_row(first_run, gonio):
     lake_dir, r = first_run
-    files = sorted((lake_dir / "observations" / "camera_id=cam-gonio" / "session_id=lab-2026-11-20").glob("*.parquet"))
-    assert len(files) == 180
-    meta = pq.read_schema(files[0]).metadata
-    name = meta[b"fieldcal.image"].decode()
-    # keyed by the image's content hash (with the measuring settings); the hash is in the file
-    assert meta[b"fieldcal.image_sha256"].decode() == sha256_file(gonio[0].folder / name)
-    assert json.loads(meta[b"fieldcal.measure"])["method"] == "goniometer"
-    assert Lake(lake_dir).catalog()["version"].to_pylist() == [r["version"]]
+    lake = Lake(lake_dir)
+    assert len(lake.cached_keys("cam-gonio", "lab-2026-11-20")) == 180
+    rows = history.sql(lake, "SELECT image, key, image_sha256, measure_settings FROM observations_goniometer "
+                             "ORDER BY image LIMIT 1").to_pylist()[0]
+    # keyed by the image's content hash (with the measuring settings); the hash is in the row
+    assert rows["image_sha256"] == sha256_file(gonio[0].folder / rows["image"])
+    assert json.loads(rows["measure_settings"])["method"] == "goniometer"
+    assert rows["key"] == flow_mod.measurement_key(rows["image_sha256"], json.loads(rows["measure_settings"]))
+    assert lake.catalog()["version"].to_pylist() == [r["version"]]
 
 
 def test_rerun_of_the_same_session_is_a_no_op_that_reads_no_image(first_run, gonio, monkeypatch):
@@ -238,21 +238,24 @@ def test_bad_input_fails_with_the_file_named_and_writes_nothing(prefect_server, 
 # --------------------------------------------------------------------------------------
 # outputs readable without fieldcal; DuckDB history
 # --------------------------------------------------------------------------------------
-def test_outputs_open_with_plain_pyarrow_zarr_and_duckdb(first_run, gonio):
+def test_outputs_open_with_plain_deltalake_zarr_and_duckdb(first_run, gonio):
+    from deltalake import DeltaTable
+
     lake_dir, r = first_run
     version = r["version"]
-    row = pq.read_table(lake_dir / "catalog" / f"{version}.parquet").to_pylist()[0]
+    (row,) = [r for r in DeltaTable(str(lake_dir / "catalog")).to_pyarrow_table().to_pylist()
+              if r["version"] == version]
     assert row["camera_id"] == "cam-gonio" and row["method"] == "goniometer"
     group = zarr.open_group(str(lake_dir / row["zarr_path"]), mode="r")
     assert group["parameters"][:].shape == (13,)
     assert group["parameters"][PARAM_NAMES.index("f_mm")] == pytest.approx(row["f_mm"], rel=1e-12)
     assert group.attrs["document"]["version"] == version
     with duckdb.connect() as con:
-        n_obs = con.execute(f"SELECT count(DISTINCT file) FROM read_parquet('{lake_dir}/observations/*/*/*.parquet', "
-                            "hive_partitioning = true) WHERE camera_id = 'cam-gonio'").fetchone()[0]
-        n_res = con.execute(f"SELECT count(*) FROM read_parquet('{lake_dir}/{row['residuals_path']}') "
-                            "WHERE used").fetchone()[0]
-    assert n_obs == 180                          # one file of spot measurements per frame
+        con.register("spots", DeltaTable(str(lake_dir / "observations_goniometer")).to_pyarrow_table())
+        con.register("res", DeltaTable(str(lake_dir / row["residuals_path"])).to_pyarrow_table())
+        n_obs = con.execute("SELECT count(DISTINCT file) FROM spots WHERE camera_id = 'cam-gonio'").fetchone()[0]
+        n_res = con.execute(f"SELECT count(*) FROM res WHERE used AND version = '{version}'").fetchone()[0]
+    assert n_obs == 180                          # one row of spot measurements per frame
     assert n_res == 60                           # one residual per angle (35 x + 25 y)
 
 

@@ -6,14 +6,14 @@ import io
 import json
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 import pytest
 
 from fieldcal.errors import InputError
 from fieldcal.lake import history
+from fieldcal.lake.parts import conform_residuals
 from fieldcal.lake.store import Lake, new_version
 from fieldcal.session.schemas import arrow_schema
-from tests.lake.test_lake import field_document, goniometer_document, residual_table
+from tests.lake.test_lake import field_document, field_measurements, goniometer_document, residual_table
 
 UTC = dt.UTC
 
@@ -41,17 +41,15 @@ def lake(tmp_path_factory):
                 {"image": ["images/F000.tif"], "u_px": [1.0], "v_px": [2.0], "du_px": [0.1],
                  "dv_px": [0.0], "sigma_px": [0.05], "used": [True], "reason": [None],
                  "axis": ["x"], "angle_deg": [-10.0]})
-    # an uncommitted leftover (a crashed run): must not show in any view
+    # an uncommitted leftover (a crashed run): its residual rows must not show in any view
     ghost = new_version(field_document("cam-a", "s9")["inputs"]["fingerprint"])
-    path = root / "residuals" / "camera_id=cam-a" / "session_id=s9" / f"version={ghost}"
-    path.mkdir(parents=True)
-    pq.write_table(residual_table(5), path / "residuals.parquet")
+    rows = conform_residuals(residual_table(5), "ghost")
+    keys = {"camera_id": ["cam-a"] * 5, "session_id": ["s9"] * 5, "version": [ghost] * 5}
+    lake.tables.append("residuals", pa.table({**keys, **{c: rows[c] for c in rows.column_names}}))
     # cached observations of two images
     for i in range(2):
         lake.write_observations("cam-a", "s1", f"images/IMG_{i}.tif", f"{i:064x}",
-                                pa.table({"image": [f"images/IMG_{i}.tif"] * 3,
-                                          "target_id": ["T1", "T2", "T3"], "u_px": [1.0, 2, 3],
-                                          "v_px": [4.0, 5, 6], "sigma_px": [0.1] * 3}))
+                                field_measurements(f"images/IMG_{i}.tif", n=3, seed=i))
     return lake
 
 
@@ -114,7 +112,7 @@ def test_sql_over_catalog_residuals_and_observations(lake):
     drift = history.sql(lake, "SELECT camera_id FROM catalog GROUP BY camera_id "
                               "HAVING max(f_mm) - min(f_mm) > ? ORDER BY 1", [0.003])
     assert drift["camera_id"].to_pylist() == ["cam-a"]
-    obs = history.sql(lake, "SELECT camera_id, session_id, count(*) AS n FROM observations "
+    obs = history.sql(lake, "SELECT camera_id, session_id, count(*) AS n FROM observations_field "
                             "GROUP BY ALL")
     assert obs.to_pylist() == [{"camera_id": "cam-a", "session_id": "s1", "n": 6}]
     with pytest.raises(InputError, match="sql: .*nonexistent"):
@@ -127,8 +125,10 @@ def test_empty_lake_gives_empty_results_with_columns(tmp_path):
     assert cat.num_rows == 0 and cat.schema.names == arrow_schema("catalog").names
     res = history.sql(empty, "SELECT * FROM residuals")
     assert res.num_rows == 0 and {"camera_id", "version", "du_px", "used"} <= set(res.column_names)
-    obs = history.sql(empty, "SELECT * FROM observations")
+    obs = history.sql(empty, "SELECT * FROM observations_field")
     assert obs.num_rows == 0 and {"camera_id", "session_id", "u_px"} <= set(obs.column_names)
+    spots = history.sql(empty, "SELECT * FROM observations_goniometer")
+    assert spots.num_rows == 0 and {"camera_id", "file", "peak_dn"} <= set(spots.column_names)
     assert history.fleet(empty).num_rows == 0
     hist = history.camera_history(empty, "cam-a")
     assert hist.num_rows == 0 and "delta_f_mm" in hist.column_names
@@ -153,3 +153,54 @@ def test_formatters_round_trip(lake):
     assert history.format_table(t, "json") == history.to_json(t)
     with pytest.raises(InputError, match="format must be one of text, csv, json"):
         history.format_table(t, "xml")
+
+
+def test_fleet_pairs_take_the_version_before_the_latest_from_one_query(lake):
+    t = history.fleet_pairs(lake).to_pylist()
+    by_cam = {r["camera_id"]: r for r in t}
+    hist_a = history.camera_history(lake, "cam-a")["version"].to_pylist()
+    assert by_cam["cam-a"]["version"] == hist_a[-1]
+    assert by_cam["cam-a"]["previous_version"] == hist_a[-2]  # s2's latest (the forced one)
+    hist_b = history.camera_history(lake, "cam-b")["version"].to_pylist()
+    assert (by_cam["cam-b"]["version"], by_cam["cam-b"]["previous_version"]) == (hist_b[1], hist_b[0])
+    assert by_cam["cam-g"]["previous_version"] is None  # one calibration only
+    assert [r["version"] for r in t] == history.fleet(lake)["version"].to_pylist()
+
+
+@pytest.mark.parametrize("query", [
+    "COPY (SELECT * REPLACE (9.99 AS f_mm) FROM catalog) TO '{lake}/catalog/x.parquet'",
+    "SELECT * FROM read_csv('/etc/passwd')",
+    "SELECT * FROM read_parquet('{lake}/catalog/*.parquet')",
+    "ATTACH '{lake}/evil.db'",
+    "INSTALL httpfs",
+    "CREATE TABLE t AS SELECT 1",
+    "SET enable_external_access = true",
+    "SELECT 1; COPY (SELECT 1) TO '{lake}/x.csv'",
+])
+def test_sql_is_read_only_and_sees_nothing_beyond_the_views(lake, query):
+    root = lake.uri("")
+    before = sorted(p for p in __import__("pathlib").Path(root).rglob("*"))
+    with pytest.raises(InputError, match="read-only"):
+        history.sql(lake, query.format(lake=root))
+    assert sorted(p for p in __import__("pathlib").Path(root).rglob("*")) == before
+
+
+def test_as_of_answers_as_the_lake_was_then(tmp_path):
+    import time
+
+    lake = Lake(tmp_path)
+    v1 = lake.commit(field_document("cam-a", "s1", f_mm=50.0), {}, residual_table(10))
+    time.sleep(0.05)  # commit times are milliseconds apart at least
+    then = dt.datetime.now(UTC)
+    time.sleep(0.05)
+    v2 = lake.commit(field_document("cam-a", "s2", f_mm=50.1), {}, residual_table(12))
+    assert history.camera_history(lake, "cam-a")["version"].to_pylist() == [v1, v2]
+    assert history.camera_history(lake, "cam-a", as_of=then)["version"].to_pylist() == [v1]
+    assert history.fleet(lake, as_of=then.isoformat())["version"].to_pylist() == [v1]
+    n = history.sql(lake, "SELECT count(*) AS n FROM residuals", as_of=then)
+    assert n["n"].to_pylist() == [10]
+    assert lake.catalog(as_of=then)["version"].to_pylist() == [v1]
+    before_all = then - dt.timedelta(days=1)
+    assert history.sql(lake, "SELECT count(*) AS n FROM catalog", as_of=before_all)["n"].to_pylist() == [0]
+    with pytest.raises(InputError, match="not an ISO 8601"):
+        history.fleet(lake, as_of="yesterday-ish")

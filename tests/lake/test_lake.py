@@ -17,14 +17,15 @@ from pathlib import Path
 import duckdb
 import numpy as np
 import pyarrow as pa
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 import zarr
 
 import fieldcal
 from fieldcal.errors import InputError, LakeError
+from fieldcal.lake import history
 from fieldcal.lake.store import Lake, new_version, observations_key, version_time
+from fieldcal.lake.tables import Tables
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, PARAM_NAMES
 from fieldcal.model.rotations import R_world_to_camera_from_opk
 from fieldcal.session.fingerprint import (
@@ -119,8 +120,44 @@ def residual_table(n=20, *, seed=0, n_rejected=2):
     })
 
 
+def field_measurements(image="images/IMG_0000.tif", n=3, *, seed=0):
+    """A field image's measured targets (schemas/measurements.arrow.json), n rows."""
+    from fieldcal.session.schemas import arrow_schema
+
+    rng = np.random.default_rng(seed)
+    rows = [{"image": image, "blob": i, "kind": "disc", "code": None,
+             "u_px": float(rng.uniform(0, 820)), "v_px": float(rng.uniform(0, 628)),
+             "sigma_px": 0.05, "diameter_px": 12.0, "major_px": 12.5, "minor_px": 11.5,
+             "angle_deg": 30.0, "roundness": 0.92, "edge_rms_px": 0.1, "contrast": 90.0,
+             "snr": 40.0, "saturated": False, "truncated": False, "method": "ellipse",
+             "corners_px": None} for i in range(n)]
+    return pa.Table.from_pylist(rows, schema=arrow_schema("measurements"))
+
+
+def spot_measurement(file="images/F000.tif", u_px=400.0):
+    """A goniometer frame's spot (fieldcal.goniometer.method.MEASUREMENT_SCHEMA), one row."""
+    from fieldcal.goniometer.method import measurements_table
+
+    return measurements_table([{"file": file, "u_px": u_px, "v_px": 300.0, "peak_dn": 900.0,
+                                "flag": "ok", "reason": ""}])
+
+
+def same_rows(a: pa.Table, b: pa.Table) -> bool:
+    """Equal column names, types and values (NaN equal to NaN; metadata ignored)."""
+    def plain(t):
+        return [{k: ("nan" if isinstance(v, float) and v != v else v) for k, v in r.items()}
+                for r in t.to_pylist()]
+    return a.schema.equals(b.schema, check_metadata=False) and plain(a) == plain(b)
+
+
 def lake_files(root: Path) -> list[str]:
     return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file())
+
+
+def version_files(root: Path) -> list[str]:
+    """The documents and Zarr groups of the lake (one entry per version part)."""
+    base = root / "calibrations"
+    return sorted(str(p.relative_to(root)) for p in base.glob("*/*/*")) if base.exists() else []
 
 
 # --------------------------------------------------------------------------------------
@@ -181,8 +218,7 @@ def test_field_commit_round_trip(tmp_path):
     assert row["rmse_px"] == 0.21 and row["sigma0"] == 1.02 and row["sigma_fit_px"] is None
     assert row["fingerprint"] == doc["inputs"]["fingerprint"]
     assert row["code_version"].startswith(fieldcal.__version__)
-    assert row["residuals_path"] == (f"residuals/camera_id=cam-a/session_id=s1/version={version}"
-                                     "/residuals.parquet")
+    assert row["residuals_path"] == "residuals"  # the Delta table, rows of this version
 
     # the residuals: given columns exact, missing nullable goniometer columns null
     back = lake.read_residuals(version)
@@ -255,27 +291,28 @@ def test_goniometer_commit_round_trip(tmp_path):
     assert lake.load_document(version)["stats"]["sigma_axes"]["px_mm"] is None
 
 
-def test_outputs_open_with_plain_pyarrow_duckdb_and_zarr(tmp_path):
+def test_outputs_open_with_plain_deltalake_pyarrow_duckdb_and_zarr(tmp_path):
+    from deltalake import DeltaTable
+
     lake = Lake(tmp_path)
     v1 = lake.commit(field_document("cam-a", "s1"), {}, residual_table(20))
     v2 = lake.commit(field_document("cam-b", "s7"), {}, residual_table(30, seed=1))
 
-    catalog = pq.read_table(tmp_path / "catalog")
+    catalog = DeltaTable(str(tmp_path / "catalog")).to_pyarrow_table()
     assert sorted(catalog["version"].to_pylist()) == sorted([v1, v2])
+    res = DeltaTable(str(tmp_path / "residuals")).to_pyarrow_table()
+    assert res.num_rows == 50 and sorted(set(res["version"].to_pylist())) == sorted([v1, v2])
+    assert DeltaTable(str(tmp_path / "residuals")).metadata().partition_columns == ["camera_id"]
 
-    part = ds.partitioning(pa.schema([("camera_id", pa.string()), ("session_id", pa.string()),
-                                      ("version", pa.string())]), flavor="hive")
-    res = ds.dataset(tmp_path / "residuals", format="parquet", partitioning=part).to_table()
-    assert res.num_rows == 50
-    assert sorted(set(res["version"].to_pylist())) == sorted([v1, v2])
-
-    counts = duckdb.sql(
-        "SELECT camera_id, session_id, count(*) AS n, sum(CASE WHEN used THEN 0 ELSE 1 END) "
-        f"FROM read_parquet('{tmp_path}/residuals/*/*/*/*.parquet', hive_partitioning = true) "
-        "GROUP BY ALL ORDER BY camera_id").fetchall()
+    con = duckdb.connect()
+    con.register("residuals", res)
+    counts = con.sql("SELECT camera_id, session_id, count(*) AS n, "
+                     "sum(CASE WHEN used THEN 0 ELSE 1 END) FROM residuals "
+                     "GROUP BY ALL ORDER BY camera_id").fetchall()
     assert counts == [("cam-a", "s1", 20, 2), ("cam-b", "s7", 30, 2)]
-    f_mm = duckdb.sql(f"SELECT f_mm FROM read_parquet('{tmp_path}/catalog/*.parquet')").fetchall()
-    assert f_mm == [(50.0,), (50.0,)]
+    # each data file is plain Parquet too
+    files = DeltaTable(str(tmp_path / "catalog")).file_uris()
+    assert sum(pq.read_table(f).num_rows for f in files) == 2
 
     group = zarr.open_group(str(tmp_path / "calibrations" / "cam-b" / "s7" / f"{v2}.zarr"),
                             mode="r")
@@ -283,6 +320,13 @@ def test_outputs_open_with_plain_pyarrow_duckdb_and_zarr(tmp_path):
     assert group["exterior/center_m"].shape == (3, 3)
     doc = json.loads((tmp_path / "calibrations" / "cam-b" / "s7" / f"{v2}.json").read_text())
     assert doc["version"] == v2 and doc["session_id"] == "s7"
+    # the data dictionary names every table and column
+    readme = (tmp_path / "README.md").read_text()
+    for name in ("catalog", "residuals", "observations_field", "observations_goniometer"):
+        assert f"### {name}" in readme
+    for column in ("sigma_f_mm", "du_px", "normalized_residual", "diameter_px", "peak_dn"):
+        assert f"| `{column}` |" in readme
+    assert "[mm^-2]" in readme and "Polars" in readme and "Spark" in readme
 
 
 # --------------------------------------------------------------------------------------
@@ -320,7 +364,8 @@ def test_bad_documents_are_refused_before_anything_is_written(tmp_path, mutate, 
     (lambda t: t.set_column(8, "reason", pa.nulls(t.num_rows, pa.string())),
      "reason must be null exactly when used is true"),
     (lambda t: t.set_column(2, "u_px", pa.array(["a"] * t.num_rows)), "u_px"),
-    (lambda t: t.append_column("version", pa.array(["x"] * t.num_rows)), "partition keys"),
+    (lambda t: t.append_column("version", pa.array(["x"] * t.num_rows)), "added by the lake"),
+    (lambda t: t.append_column("colour", pa.array(["x"] * t.num_rows)), "not in schemas/residuals"),
     (lambda t: None, "a residual table is required"),
 ])
 def test_bad_residual_tables_are_refused(tmp_path, make, match):
@@ -347,14 +392,12 @@ def test_committed_version_is_immutable(tmp_path):
     lake = Lake(tmp_path)
     doc = field_document()
     version = lake.commit(doc, {}, residual_table())
-    before = {p: (tmp_path / p).read_bytes() for p in lake_files(tmp_path)
-              if not p.startswith("_claims")}
+    before = {p: (tmp_path / p).read_bytes() for p in lake_files(tmp_path)}
     again = field_document(f_mm=51.0)
     again["version"] = str(version)
     with pytest.raises(LakeError, match="already committed.*immutable"):
         lake.commit(again, {}, residual_table(), force=True)
-    after = {p: (tmp_path / p).read_bytes() for p in lake_files(tmp_path)
-             if not p.startswith("_claims")}
+    after = {p: (tmp_path / p).read_bytes() for p in lake_files(tmp_path)}
     assert after == before
     assert lake.load_document(version)["parameters"]["f_mm"] == 50.0
 
@@ -394,11 +437,18 @@ def test_latest_and_sessions(tmp_path):
 # --------------------------------------------------------------------------------------
 def _crashing_commit(root, storage_options=None):
     """Child process: write every part of a version, then die before the catalog row."""
-    def crash(self, rel, data):
-        os._exit(17)
+    def crash(self, name, *args, **kwargs):
+        if name == "catalog":
+            os._exit(17)
+        raise AssertionError(f"unexpected insert into {name}")
 
-    Lake._write_catalog_row = crash
+    Tables.insert_unless = crash
     Lake(root, storage_options).commit(field_document(), {}, residual_table())
+
+
+def _residual_versions(lake: Lake) -> list[str]:
+    """Versions with rows in the residuals table (visible or not)."""
+    return sorted(set(lake.tables.scan("residuals", columns=["version"])["version"].to_pylist()))
 
 
 def test_crash_before_the_catalog_row_leaves_no_visible_version(tmp_path):
@@ -408,46 +458,45 @@ def test_crash_before_the_catalog_row_leaves_no_visible_version(tmp_path):
     child.join(120)
     assert child.exitcode == 17
     lake = Lake(tmp_path)
-    leftovers = [p for p in lake_files(tmp_path) if p.startswith(("calibrations", "residuals"))]
-    assert any(p.endswith(".json") for p in leftovers) and any(".zarr/" in p for p in leftovers)
+    leftovers = version_files(tmp_path)
+    (crashed,) = {re.search(r"\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4}", p).group(0) for p in leftovers}
+    assert sorted(Path(p).suffix for p in leftovers) == [".json", ".zarr"]
+    assert _residual_versions(lake) == [crashed]           # written, but not visible:
     assert lake.catalog().num_rows == 0 and lake.latest("cam-a") is None
+    assert history.sql(lake, "SELECT count(*) AS n FROM residuals")["n"].to_pylist() == [0]
     doc = field_document()
     assert lake.find_committed(doc["inputs"]["fingerprint"]) is None
 
-    # a re-commit takes over the dead process's claim and completes
+    # a re-commit completes without waiting for anything of the dead process
     version = lake.commit(doc, {}, residual_table())
-    assert version.new and lake.catalog()["version"].to_pylist() == [version]
-    claims = sorted((tmp_path / "_claims" / "fingerprint").rglob("*.json"))
-    assert [c.name for c in claims] == ["000000.json", "000001.json"]
+    assert version.new and version != crashed and lake.catalog()["version"].to_pylist() == [version]
 
     # gc removes the crashed version's parts, nothing of the committed one
-    (crashed,) = {re.search(r"\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4}", p).group(0)
-                  for p in leftovers}
-    assert crashed != version
-    assert lake.gc(grace_s=3600.0) == [f"_claims/version/{version}"]  # the crash is too young
-    assert sorted(lake.gc(grace_s=0.0)) == sorted([
-        f"calibrations/cam-a/s1/{crashed}.json", f"calibrations/cam-a/s1/{crashed}.zarr",
-        f"residuals/camera_id=cam-a/session_id=s1/version={crashed}",
-        f"_claims/version/{crashed}"])
-    assert not any(crashed in p for p in lake_files(tmp_path))
+    assert lake.gc(grace_s=3600.0) == []  # the crash is too young
+    assert sorted(lake.gc(grace_s=0.0, dry_run=True)) == sorted(
+        [f"calibrations/cam-a/s1/{crashed}.json", f"calibrations/cam-a/s1/{crashed}.zarr",
+         f"residuals: version={crashed}"])
+    assert _residual_versions(lake) == sorted([crashed, version])  # a dry run removes nothing
+    lake.gc(grace_s=0.0)
+    assert not any(crashed in p for p in lake_files(tmp_path) if "_delta_log" not in p)
+    assert _residual_versions(lake) == [version]
     assert lake.load_document(version)["version"] == version
     assert lake.open_zarr(version)["parameters"].shape == (13,)
+    assert lake.read_residuals(version).num_rows == 20
 
 
-def test_failed_catalog_write_releases_the_claim_and_cleans_up(tmp_path, monkeypatch):
+def test_failed_catalog_commit_cleans_up_and_the_next_commit_succeeds(tmp_path, monkeypatch):
     lake = Lake(tmp_path)
 
-    def fail(self, rel, data):
+    def fail(self, name, *args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(Lake, "_write_catalog_row", fail)
+    monkeypatch.setattr(Tables, "insert_unless", fail)
     with pytest.raises(LakeError, match="cannot commit to .*Permission denied") as info:
         lake.commit(field_document(), {}, residual_table())
     assert "\n" not in str(info.value)
     assert lake.catalog().num_rows == 0
-    assert not [p for p in lake_files(tmp_path) if p.startswith(("calibrations", "residuals"))]
-    claim = json.loads(next((tmp_path / "_claims" / "fingerprint").rglob("*.json")).read_text())
-    assert claim["released"] is True
+    assert version_files(tmp_path) == [] and _residual_versions(lake) == []
     monkeypatch.undo()
     version = lake.commit(field_document(), {}, residual_table())
     assert version.new and lake.catalog().num_rows == 1
@@ -462,8 +511,8 @@ def test_destination_that_cannot_be_written_fails_cleanly(tmp_path):
         lake.commit(field_document(), {}, residual_table())
     assert "\n" not in str(info.value)
     assert lake.catalog().num_rows == 0
-    with pytest.raises(LakeError, match="cannot write"):
-        lake.write_observations("cam-a", "s1", "images/a.tif", "0" * 64, pa.table({"u": [1.0]}))
+    with pytest.raises(LakeError, match="cannot write .*not-a-dir/lake"):
+        lake.write_observations("cam-a", "s1", "images/a.tif", "0" * 64, field_measurements())
 
 
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,
@@ -484,7 +533,7 @@ def test_read_only_directory_fails_cleanly(tmp_path):
 # concurrency: several processes, one lake
 # --------------------------------------------------------------------------------------
 def _commit_worker(root, camera_id, sessions, seed, barrier, queue):
-    lake = Lake(root, poll_s=0.05)
+    lake = Lake(root)
     barrier.wait(600)  # start together (spawned children import slowly on a loaded machine)
     out = []
     for session_id in sessions:
@@ -527,23 +576,28 @@ def test_concurrent_commits_of_different_sessions_lose_no_row(tmp_path):
     results = _run_workers(tmp_path, jobs)
     made = sorted(v for _, out in results for v, new in out if new)
     assert len(made) == 9
-    cat = Lake(tmp_path).catalog()
+    lake = Lake(tmp_path)
+    cat = lake.catalog()
     assert sorted(cat["version"].to_pylist()) == made
     pairs = zip(cat["camera_id"].to_pylist(), cat["session_id"].to_pylist(), strict=True)
     assert sorted(pairs) == [(f"cam-{i}", f"s{j}") for i in range(3) for j in (1, 2, 3)]
+    assert _residual_versions(lake) == made
 
 
 def test_concurrent_commits_of_the_same_inputs_make_one_version(tmp_path):
-    jobs = [("cam-a", ["s1"], 0)] * 4
+    jobs = [("cam-a", ["s1"], 0)] * 5
     results = _run_workers(tmp_path, jobs)
     outs = [out[0] for _, out in results]
     versions = {v for v, _ in outs}
     assert len(versions) == 1, outs
     assert sum(new for _, new in outs) == 1
-    cat = Lake(tmp_path).catalog()
-    assert cat["version"].to_pylist() == list(versions)
-    claims = list((tmp_path / "_claims" / "fingerprint").rglob("*.json"))
-    assert [c.name for c in claims] == ["000000.json"]
+    (version,) = versions
+    lake = Lake(tmp_path)
+    assert lake.catalog()["version"].to_pylist() == [version]
+    # the losers removed their own parts: only the winner's remain
+    assert version_files(tmp_path) == [f"calibrations/cam-a/s1/{version}.json",
+                                       f"calibrations/cam-a/s1/{version}.zarr"]
+    assert _residual_versions(lake) == [version]
 
 
 # --------------------------------------------------------------------------------------
@@ -559,9 +613,9 @@ def test_observations_cache_round_trip_and_rerun_reads_no_image(tmp_path):
         images[f"images/IMG_{i}.tif"] = p
     measured = []
 
-    def measure(path):  # stands in for reading and measuring the image
-        measured.append(path)
-        return pa.table({"u_px": [1.0 * len(measured)], "v_px": [2.0]})
+    def measure(name):  # stands in for reading and measuring the image
+        measured.append(name)
+        return field_measurements(name, n=len(measured) % 3, seed=len(measured))
 
     def run():
         tables = {}
@@ -569,27 +623,46 @@ def test_observations_cache_round_trip_and_rerun_reads_no_image(tmp_path):
             sha = sha256_file(path)
             cached = lake.read_observations("cam-a", "s1", name, sha)
             if cached is None:
-                cached = measure(path)
+                cached = measure(name)
                 lake.write_observations("cam-a", "s1", name, sha, cached)
             tables[name] = cached
         return tables
 
     first = run()
-    assert len(measured) == 3
+    assert len(measured) == 3 and first["images/IMG_2.tif"].num_rows == 0  # nothing found
     second = run()
-    assert len(measured) == 3  # nothing measured again
-    assert {k: t["u_px"].to_pylist() for k, t in second.items()} == \
-        {k: t["u_px"].to_pylist() for k, t in first.items()}
+    assert len(measured) == 3  # nothing measured again, the empty image neither
+    for name, t in first.items():
+        assert same_rows(second[name], t), name
+    fresh = Lake(tmp_path).read_observations("cam-a", "s1", "images/IMG_0.tif",
+                                             sha256_file(images["images/IMG_0.tif"]))
+    assert same_rows(fresh, first["images/IMG_0.tif"])
     images["images/IMG_1.tif"].write_bytes(b"changed")
     run()
-    assert measured[-1] == images["images/IMG_1.tif"] and len(measured) == 4
+    assert measured[-1] == "images/IMG_1.tif" and len(measured) == 4
     assert lake.sessions_with_observations() == [("cam-a", "s1")]
-    files = sorted(p.name for p in (tmp_path / "observations" / "camera_id=cam-a" /
-                                    "session_id=s1").iterdir())
-    assert len(files) == 4 and files[0].startswith("images_IMG_0.tif-")
+    assert len(lake.cached_observations("cam-a", "s1")) == 4
+    assert observations_key("images/IMG_0.tif", sha256_file(images["images/IMG_0.tif"])) in \
+        lake.cached_observations("cam-a", "s1")
     assert lake.has_observations("cam-a", "s1", "images/IMG_0.tif",
                                  sha256_file(images["images/IMG_0.tif"]))
     assert not lake.has_observations("cam-a", "s1", "images/IMG_0.tif", "f" * 64)
+
+
+def test_goniometer_spots_have_their_own_table(tmp_path):
+    lake = Lake(tmp_path)
+    for i in range(3):
+        lake.write_observations("cam-g", "lab-1", f"images/F{i:03d}.tif", f"{i:064x}",
+                                spot_measurement(f"images/F{i:03d}.tif", u_px=100.0 + i))
+    lake.write_observations("cam-a", "s1", "images/IMG_0.tif", "e" * 64, field_measurements())
+    back = lake.read_observations("cam-g", "lab-1", "images/F001.tif", f"{1:064x}")
+    assert same_rows(back, spot_measurement("images/F001.tif", u_px=101.0))
+    assert back.schema.metadata == spot_measurement().schema.metadata  # its documentation
+    spots = history.sql(lake, "SELECT image, u_px FROM observations_goniometer ORDER BY image")
+    assert spots["u_px"].to_pylist() == [100.0, 101.0, 102.0]
+    targets = history.sql(lake, "SELECT count(*) AS n FROM observations_field")
+    assert targets["n"].to_pylist() == [3]
+    assert lake.sessions_with_observations() == [("cam-a", "s1"), ("cam-g", "lab-1")]
 
 
 def test_observations_key_and_bad_arguments(tmp_path):
@@ -598,10 +671,14 @@ def test_observations_key_and_bad_arguments(tmp_path):
     with pytest.raises(InputError, match="64 lower-case hex"):
         observations_key("images/a.tif", "sha256:" + sha)
     lake = Lake(tmp_path)
-    with pytest.raises(InputError, match="partition keys"):
-        lake.write_observations("cam-a", "s1", "a.tif", sha, pa.table({"camera_id": ["x"]}))
-    with pytest.raises(InputError, match="camera_id must match"):
+    with pytest.raises(InputError, match="added by the lake"):
+        lake.write_observations("cam-a", "s1", "a.tif", sha,
+                                field_measurements().append_column("camera_id", pa.array(["x"] * 3)))
+    with pytest.raises(InputError, match="columns of schemas/measurements"):
+        lake.write_observations("cam-a", "s1", "a.tif", sha, pa.table({"u": [1.0]}))
+    with pytest.raises(InputError, match="camera_id must be"):
         lake.has_observations("../etc", "s1", "a.tif", sha)
+    assert lake_files(tmp_path) == []
 
 
 # --------------------------------------------------------------------------------------

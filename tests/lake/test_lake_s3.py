@@ -5,7 +5,6 @@ import threading
 
 import duckdb
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
 import s3fs
 import zarr
@@ -15,7 +14,13 @@ from fieldcal.lake import history
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import FIELD_PARAMS, PARAM_NAMES
 from tests import conftest_s3
-from tests.lake.test_lake import _crashing_commit, field_document, goniometer_document, residual_table
+from tests.lake.test_lake import (
+    _crashing_commit,
+    field_document,
+    field_measurements,
+    goniometer_document,
+    residual_table,
+)
 
 s3_server = conftest_s3.s3_server  # the fixtures (the shared conftest may import them too)
 s3_lake = conftest_s3.s3_lake
@@ -61,31 +66,35 @@ def test_s3_commit_catalog_zarr_history_round_trip(s3_lake):
     sha = "ab" * 32
     assert lake.read_observations("cam-a", "s1", "images/IMG_0000.tif", sha) is None
     lake.write_observations("cam-a", "s1", "images/IMG_0000.tif", sha,
-                            residual_table(4).select(["image", "target_id", "u_px", "v_px"]))
+                            field_measurements("images/IMG_0000.tif", n=4))
     assert lake.has_observations("cam-a", "s1", "images/IMG_0000.tif", sha)
     assert lake.read_observations("cam-a", "s1", "images/IMG_0000.tif", sha).num_rows == 4
-    assert history.sql(lake, "SELECT count(*) AS n FROM observations").to_pylist() == [{"n": 4}]
+    assert history.sql(lake, "SELECT count(*) AS n FROM observations_field").to_pylist() == [{"n": 4}]
+    assert lake.gc(grace_s=0.0) == []
 
-    # the same objects with plain s3fs / pyarrow / zarr / duckdb, without fieldcal
-    fs = s3fs.S3FileSystem(**options)
-    prefix = url[len("s3://"):]
-    plain = pq.read_table(f"{prefix}/catalog", filesystem=fs)
+    # the same objects with plain deltalake / s3fs / zarr / duckdb, without fieldcal
+    from deltalake import DeltaTable
+
+    from fieldcal.lake.storage import delta_options
+
+    plain = DeltaTable(f"{url}/catalog", storage_options=delta_options(options)).to_pyarrow_table()
     assert sorted(plain["version"].to_pylist()) == sorted([v1, v2, v3])
     group = zarr.open_group(store=zarr.storage.FsspecStore.from_url(
         f"{url}/calibrations/cam-a/s1/{v1}.zarr", storage_options=options, read_only=True),
         mode="r")
     assert group.attrs["document"]["version"] == v1
+    res = DeltaTable(f"{url}/residuals", storage_options=delta_options(options)).to_pyarrow_table()
     con = duckdb.connect()
-    con.register_filesystem(fs)
-    n = con.sql(f"SELECT count(*) FROM read_parquet('{url}/residuals/*/*/*/*.parquet', "
-                "hive_partitioning = true) WHERE camera_id = 'cam-a'").fetchall()
+    con.register("res", res)
+    n = con.sql("SELECT count(*) FROM res WHERE camera_id = 'cam-a'").fetchall()
     con.close()
     assert n == [(30,)]
-    assert sorted(lake.gc(grace_s=0.0)) == sorted(f"_claims/version/{v}" for v in (v1, v2, v3))
+    fs = s3fs.S3FileSystem(**options)
+    assert fs.cat_file(f"{url[5:]}/README.md").decode().startswith("# fieldcal lake")
 
 
-def test_s3_conditional_put_makes_claims_exclusive(s3_lake):
-    """moto honours If-None-Match: * (what the claims and the catalog row rely on)."""
+def test_s3_delta_commits_are_conditional_puts(s3_lake):
+    """moto honours If-None-Match: * (what delta-rs's commits on S3 rely on, conditional_put=etag)."""
     url, options = s3_lake
     fs = s3fs.S3FileSystem(**options)
     path = url[len("s3://"):] + "/probe.json"
@@ -99,24 +108,27 @@ def test_s3_concurrent_commits_of_the_same_inputs_make_one_version(s3_lake):
     url, options = s3_lake
     doc = field_document("cam-a", "s1", seed=5)
     results, errors = [], []
-    barrier = threading.Barrier(3)
+    barrier = threading.Barrier(5)
 
     def commit():
         try:
-            lake = Lake(url, options, poll_s=0.05)
+            lake = Lake(url, options)
             barrier.wait(30)
             results.append(lake.commit(doc, {}, residual_table()))
         except Exception as e:  # noqa: BLE001 - reported below
             errors.append(e)
 
-    threads = [threading.Thread(target=commit) for _ in range(3)]
+    threads = [threading.Thread(target=commit) for _ in range(5)]
     for t in threads:
         t.start()
     for t in threads:
         t.join(120)
     assert not errors
     assert len(set(results)) == 1 and sum(v.new for v in results) == 1
-    assert Lake(url, options).catalog().num_rows == 1
+    lake = Lake(url, options)
+    assert lake.catalog().num_rows == 1
+    assert lake.tables.scan("residuals", columns=["version"])["version"].unique().to_pylist() == \
+        [results[0]]  # the losers removed their rows
 
 
 def test_s3_crash_before_the_catalog_row_is_invisible_and_recoverable(s3_lake):
@@ -127,14 +139,14 @@ def test_s3_crash_before_the_catalog_row_is_invisible_and_recoverable(s3_lake):
     child.join(120)
     assert child.exitcode == 17
     lake = Lake(url, options)
-    leftovers = lake.glob("calibrations/*/*/*")
+    leftovers = lake.storage.listdir("calibrations/cam-a/s1")
     assert len(leftovers) == 2 and lake.catalog().num_rows == 0
-    version = lake.commit(field_document(), {}, residual_table())  # takes over the dead claim
+    version = lake.commit(field_document(), {}, residual_table())  # waits for nothing
     assert version.new and lake.catalog()["version"].to_pylist() == [version]
     removed = lake.gc(grace_s=0.0)
-    assert set(leftovers) <= set(removed)
-    assert lake.glob("calibrations/*/*/*") == [f"calibrations/cam-a/s1/{version}.json",
-                                               f"calibrations/cam-a/s1/{version}.zarr"]
+    assert {f"calibrations/cam-a/s1/{n}" for n in leftovers} <= set(removed)
+    assert lake.storage.listdir("calibrations/cam-a/s1") == [f"{version}.json", f"{version}.zarr"]
+    assert lake.read_residuals(version).num_rows == 20
 
 
 def test_s3_missing_bucket_fails_cleanly(s3_server):

@@ -1,0 +1,146 @@
+"""The lake's data dictionary: ``LAKE/README.md``, written at the first commit and kept current.
+
+:func:`data_dictionary` makes the text from the schemas (every table, every column with its
+type and unit from the schema's documentation), so it cannot drift from what the code
+writes: a commit rewrites ``README.md`` whenever its text differs.
+"""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+from fieldcal.lake.tables import PARTITIONS, TABLES, goniometer_spot_schema, table_schema
+from fieldcal.session.schemas import arrow_schema
+
+__all__ = ["data_dictionary", "column_docs"]
+
+_TABLE_DOCS = {
+    "catalog": "One row per committed version: the commit point. A version exists exactly when "
+               "its row is here. Camera parameters of CONTRACT section 2 with their sigmas.",
+    "residuals": "Image-space residuals of every version, one row per image measurement. "
+                 "Rows of a version whose catalog row is absent belong to a commit that failed "
+                 "or is in progress: join with the catalog (as fieldcal's views do).",
+    "observations_field": "Targets measured in each field image before identification "
+                          "(schemas/measurements.arrow.json): the cache that lets a rerun skip "
+                          "the pixels. A row with row = -1 marks an image measured with no result.",
+    "observations_goniometer": "The spot measured in each goniometer frame: the same cache for "
+                               "the goniometer method. row = -1 as above.",
+    "comparisons": "Cached comparisons of two versions (history --fleet); derived, may be deleted.",
+}
+
+_KEY_DOCS = {
+    "camera_id": "camera identifier (session.json camera_id)",
+    "session_id": "calibration session identifier",
+    "version": "version id (catalog.version)",
+    "image": "image (field) or frame (goniometer) path relative to the session folder",
+    "key": "cache key: SHA-256 (hex) of the image's content and the measuring settings",
+    "image_sha256": "SHA-256 (hex) of the image file's bytes, when known",
+    "measure_settings": "the session's measuring settings (method, sensor, polarity, coded targets) "
+                        "as canonical JSON, when known",
+    "row": "position of the row in the image's measurement table; -1: measured, nothing found",
+    "version_a": "the earlier version compared",
+    "version_b": "the later version compared",
+    "settings": "comparison settings (tolerance, alpha, grid) as canonical JSON",
+    "computed": "when the comparison was computed [UTC]",
+    "result": "the comparison's figures as a JSON object",
+}
+
+
+def column_docs(name: str) -> dict[str, str]:
+    """``{column: description with unit}`` of a table, from the schemas' documentation."""
+    docs = dict(_KEY_DOCS)
+    sources = {"catalog": arrow_schema("catalog"), "residuals": arrow_schema("residuals"),
+               "observations_field": arrow_schema("measurements"),
+               "observations_goniometer": goniometer_spot_schema()}
+    src = sources.get(name)
+    if src is not None:
+        for f in src:
+            doc = (f.metadata or {}).get(b"doc") or (f.metadata or {}).get(b"description")
+            if doc:
+                docs[f.name] = doc.decode()
+    return {f.name: docs.get(f.name, "") for f in table_schema(name)}
+
+
+def _type(t: pa.DataType) -> str:
+    return str(t).replace("timestamp[us, tz=UTC]", "timestamp (UTC, us)")
+
+
+_READING = """\
+## Reading the lake without fieldcal
+
+Every table is a Delta Lake table (a folder with `_delta_log/` and Parquet files). Read the
+*table*, not the Parquet files: files of failed commits and of old snapshots may lie beside
+the live ones. The documents (`calibrations/C/S/V.json`) and the Zarr v3 groups
+(`calibrations/C/S/V.zarr`) are named by the catalog's `document_path` and `zarr_path`.
+
+Only versions in `catalog` exist. Residuals: `residuals SEMI JOIN catalog USING (version)`.
+
+**Python, pyarrow** (through the `deltalake` package)
+
+```python
+from deltalake import DeltaTable
+catalog = DeltaTable("LAKE/catalog").to_pyarrow_table()
+res = DeltaTable("LAKE/residuals").to_pyarrow_dataset()       # lazy, partitioned by camera_id
+old = DeltaTable("LAKE/catalog"); old.load_as_version("2026-11-01T00:00:00Z")  # time travel
+```
+
+**DuckDB** (the `delta` extension, or through Arrow where extensions cannot be installed)
+
+```sql
+SELECT camera_id, version, f_mm, sigma_f_mm FROM delta_scan('LAKE/catalog') ORDER BY committed;
+```
+```python
+import duckdb; from deltalake import DeltaTable
+con = duckdb.connect(); con.register("catalog", DeltaTable("LAKE/catalog").to_pyarrow_dataset())
+```
+
+**Polars**
+
+```python
+import polars as pl
+cat = pl.read_delta("LAKE/catalog")
+res = pl.scan_delta("LAKE/residuals").filter(pl.col("camera_id") == "cam-1").collect()
+```
+
+**Spark** (delta-spark)
+
+```python
+spark.read.format("delta").load("LAKE/catalog").createOrReplaceTempView("catalog")
+spark.read.format("delta").option("timestampAsOf", "2026-11-01").load("LAKE/catalog")
+```
+
+**fieldcal**: `fieldcal history --sql "SELECT ..." --lake LAKE` (read-only views of every
+table; `--as-of TIME` for the lake as it was), `fieldcal lake log` (who committed what),
+`fieldcal lake check` (damaged objects).
+
+On S3 pass the credentials and endpoint as storage options (`AWS_ENDPOINT_URL`,
+`AWS_ACCESS_KEY_ID`, ...); writers need conditional PUTs (`conditional_put=etag`).
+"""
+
+
+def data_dictionary() -> str:
+    """The text of ``LAKE/README.md``."""
+    out = ["# fieldcal lake", "",
+           "Written by fieldcal at every commit whose dictionary changed: do not edit.",
+           "Conventions and units: CONTRACT.md (pixel (u, v) right/down from the centre of the",
+           "top-left pixel; image plane (x, y) in mm, y up; world in metres).", "",
+           "## Layout", "", "```",
+           "catalog/                    Delta: one row per committed version (the commit point)",
+           "residuals/                  Delta: residuals of every version, partitioned by camera_id",
+           "observations_field/         Delta: targets measured per field image (cache), by camera_id",
+           "observations_goniometer/    Delta: the spot of each goniometer frame (cache), by camera_id",
+           "comparisons/                Delta: cached comparisons of two versions (derived)",
+           "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
+           "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
+           "                            exterior/*, correction_field, grid_u_px, grid_v_px",
+           "```", "", _READING, "## Tables", ""]
+    for name in TABLES:
+        part = ", ".join(PARTITIONS[name]) or "not partitioned"
+        out += [f"### {name}", "", _TABLE_DOCS[name], "", f"Partitioned by: {part}.", "",
+                "| column | type | null | description [unit] |", "| --- | --- | --- | --- |"]
+        docs = column_docs(name)
+        for f in table_schema(name):
+            text = docs.get(f.name, "").replace("|", "\\|")
+            out.append(f"| `{f.name}` | {_type(f.type)} | {'yes' if f.nullable else 'no'} | {text} |")
+        out.append("")
+    return "\n".join(out) + "\n"

@@ -1,0 +1,529 @@
+"""The lake's Delta tables: their schemas, and every read and write of them.
+
+Four tables, each a Delta Lake table (delta-rs through the ``deltalake`` package) in its
+own folder of the lake, one schema each:
+
+===========================  ===============  =====================================================
+table                        partitioned by   rows
+===========================  ===============  =====================================================
+``catalog``                  (none)           one per committed version (the commit point)
+``residuals``                ``camera_id``    per-observation residuals of every version
+``observations_field``       ``camera_id``    targets measured in each field image (cache)
+``observations_goniometer``  ``camera_id``    the spot of each goniometer frame (cache)
+``comparisons``              (none)           cached comparisons of two versions (derived)
+===========================  ===============  =====================================================
+
+Writes are Delta commits: appends, an insert-unless-present (``MERGE ... WHEN NOT MATCHED
+INSERT``, whose conflict check makes "one row per key" hold under concurrency), deletes.
+Each carries the caller's commit metadata (code version, host, process, flow run) into the
+table's history. Every ``maintain_every`` commits of a table, the commit that reaches the
+multiple compacts the table's small files (``optimize.compact``) and delta-rs writes a
+checkpoint (``delta.checkpointInterval``), so that reading stays fast as versions pile up.
+
+Reads never let one bad file take a table down: a data file that cannot be read (zero
+bytes, garbage, truncated) is skipped and reported as a :class:`Problem`; a damaged commit
+file makes the table read as of its last readable version, also reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import os
+import random
+import time
+
+import pyarrow as pa
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+
+from fieldcal.errors import InputError, LakeError
+from fieldcal.lake.parts import reason
+from fieldcal.session.schemas import arrow_schema
+
+__all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
+
+TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons")
+PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
+              "observations_goniometer": ["camera_id"], "comparisons": []}
+DEFAULT_MAINTAIN_EVERY = 100
+"""Commits of a table between compactions and checkpoints."""
+ROW_GROUP_ROWS = 4096
+"""Rows per row group of the compacted catalog (pruned by their camera_id statistics)."""
+COMMIT_RETRIES = 200
+"""Attempts of an insert-unless-present that keeps meeting concurrent commits."""
+
+_KEYS = [pa.field("camera_id", pa.string(), nullable=False),
+         pa.field("session_id", pa.string(), nullable=False)]
+_OBS_KEYS = _KEYS + [
+    pa.field("image", pa.string(), nullable=False),
+    pa.field("key", pa.string(), nullable=False),
+    pa.field("image_sha256", pa.string()),
+    pa.field("measure_settings", pa.string()),
+    pa.field("row", pa.int32(), nullable=False)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """A damaged object found while reading: which table or file, and why."""
+
+    table: str
+    path: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.table}: {self.path}: {self.reason}"
+
+
+def _plain(schema: pa.Schema) -> list[pa.Field]:
+    return [pa.field(f.name, f.type, nullable=f.nullable) for f in schema]
+
+
+def goniometer_spot_schema() -> pa.Schema:
+    """The columns of a goniometer frame's measurement (``fieldcal.goniometer``)."""
+    from fieldcal.goniometer.method import MEASUREMENT_SCHEMA
+
+    return MEASUREMENT_SCHEMA
+
+
+def table_schema(name: str) -> pa.Schema:
+    """The Arrow schema of one of the lake's Delta tables (partition columns included)."""
+    if name == "catalog":
+        return pa.schema(_plain(arrow_schema("catalog")))
+    if name == "residuals":
+        return pa.schema(_KEYS + [pa.field("version", pa.string(), nullable=False)]
+                         + _plain(arrow_schema("residuals")))
+    if name == "observations_field":  # measurement columns nullable: see observations.py
+        return pa.schema(_OBS_KEYS + [f.with_nullable(True) for f in _plain(arrow_schema("measurements"))
+                                      if f.name != "image"])
+    if name == "observations_goniometer":
+        return pa.schema(_OBS_KEYS + [f.with_nullable(True) for f in _plain(goniometer_spot_schema())])
+    if name == "comparisons":
+        return pa.schema([pa.field("version_a", pa.string(), nullable=False),
+                          pa.field("version_b", pa.string(), nullable=False),
+                          pa.field("settings", pa.string(), nullable=False),
+                          pa.field("computed", pa.timestamp("us", "UTC"), nullable=False),
+                          pa.field("result", pa.string(), nullable=False)])
+    raise InputError(f"unknown table {name!r}; the lake's tables are {', '.join(TABLES)}", "lake")
+
+
+def _quote(text: str) -> str:
+    return "'" + str(text).replace("'", "''") + "'"
+
+
+class Tables:
+    """The Delta tables of one lake (see the module docstring).
+
+    Parameters
+    ----------
+    storage : fieldcal.lake.storage.Storage
+    maintain_every : int
+        Commits of a table between compactions and checkpoints.
+    """
+
+    def __init__(self, storage, maintain_every: int = DEFAULT_MAINTAIN_EVERY):
+        if int(maintain_every) < 2:
+            raise InputError(f"maintain_every must be >= 2, got {maintain_every}", "lake")
+        self.storage = storage
+        self.maintain_every = int(maintain_every)
+        self.problems: list[Problem] = []
+        self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
+
+    # -- opening ------------------------------------------------------------------------
+    def uri(self, name: str) -> str:
+        table_schema(name)  # checks the name
+        return self.storage.uri(name)
+
+    def _load(self, name: str, version=None):
+        from deltalake import DeltaTable
+
+        return DeltaTable(self.storage.delta_uri(name), version=version,
+                          storage_options=self.storage.delta_options)
+
+    def exists(self, name: str) -> bool:
+        return bool(self.storage.listdir(f"{name}/_delta_log"))
+
+    def open(self, name: str, *, as_of=None):
+        """The table (a ``deltalake.DeltaTable``), as of a time if given; None if it has none.
+
+        A damaged commit file makes the table load at its last readable version (reported
+        in :attr:`problems`).
+        """
+        from deltalake.exceptions import TableNotFoundError
+
+        cached = self._current.get(name)
+        if cached is not None and as_of is None:
+            try:
+                cached.update_incremental()  # reads only the commits made since
+                return cached
+            except Exception:  # noqa: BLE001 - reload below (and report if the log is damaged)
+                self._current.pop(name, None)
+        if not self.exists(name):
+            return None
+        try:
+            table = self._load(name)
+        except TableNotFoundError:
+            return None
+        except Exception as e:  # noqa: BLE001 - delta-rs raises several types for a bad log
+            table = self._load_last_good(name, e)
+        if as_of is None:
+            self._current[name] = table
+        else:
+            try:
+                table.load_as_version(as_of)
+            except Exception as e:  # noqa: BLE001 - before the table's first commit, or vacuumed
+                if "earliest" in str(e).lower() or "before" in str(e).lower() or \
+                        table.history(1) and _first_commit_after(table, as_of):
+                    return None
+                raise LakeError(f"cannot read {self.uri(name)} as of {as_of}: {reason(e)}") from None
+        return table
+
+    def _load_last_good(self, name: str, error: Exception):
+        versions = sorted((int(n[:20]) for n in self.storage.listdir(f"{name}/_delta_log")
+                           if n.endswith(".json") and n[:20].isdigit()), reverse=True)
+        for v in versions[1:self.maintain_every + 2]:
+            try:
+                table = self._load(name, version=v)
+            except Exception:  # noqa: BLE001, S112 - keep looking for a readable version
+                continue
+            self.problems.append(Problem(name, f"{name}/_delta_log", f"cannot load the latest "
+                                         f"commit ({reason(error)}); read as of commit {v}"))
+            return table
+        raise LakeError(f"cannot read the table {self.uri(name)}: {reason(error)}") from None
+
+    def create(self, name: str):
+        """Open the table, creating it empty first when the lake has none (race-safe)."""
+        from deltalake import DeltaTable
+
+        table = self.open(name)
+        if table is not None:
+            return table
+        if self.storage.local:
+            os.makedirs(self.storage.root, exist_ok=True)
+        config = {"delta.checkpointInterval": str(self.maintain_every),
+                  "delta.logRetentionDuration": "interval 3650 days",
+                  "delta.deletedFileRetentionDuration": "interval 7 days"}
+        failure = None
+        try:
+            DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
+                              partition_by=PARTITIONS[name] or None, configuration=config,
+                              storage_options=self.storage.delta_options)
+        except Exception as e:  # noqa: BLE001 - another process created it first: loaded below
+            failure = e
+        # loaded afresh: the object create() returns may hold a losing creator's metadata
+        self._current.pop(name, None)
+        table = self.open(name)
+        if table is None:
+            if isinstance(failure, OSError):
+                raise failure
+            raise LakeError(f"cannot create the table {self.uri(name)}: "
+                            f"{reason(failure) if failure else 'no table after creating it'}")
+        return table
+
+    # -- writing ------------------------------------------------------------------------
+    def _commit_properties(self, info: dict | None):
+        from deltalake import CommitProperties
+
+        meta = {f"fieldcal.{k}": str(v) for k, v in (info or {}).items() if v is not None}
+        return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES)
+
+    def append(self, name: str, table: pa.Table, info: dict | None = None) -> None:
+        """Append rows (a blind append: concurrent appends never conflict).
+
+        A table made by an older fieldcal with fewer columns gains the new ones (Delta
+        schema evolution); its old rows read them as null.
+        """
+        from deltalake import write_deltalake
+
+        target = self.create(name)
+        schema = table_schema(name)
+        # schema evolution only when needed: a metadata change conflicts with concurrent appends
+        have = set(pa.schema(target.schema().to_arrow()).names)
+        evolve = "merge" if set(schema.names) - have else None
+        write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
+                        commit_properties=self._commit_properties(info))
+        self._maintain(name, target)
+
+    def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
+                      *, poll_s: float = 0.02) -> bool:
+        """Insert ``row`` unless a row matching ``match`` exists; True when inserted.
+
+        ``match`` is a predicate over ``t`` (the table) and ``s`` (the row), e.g.
+        ``t.fingerprint = s.fingerprint``. Two processes inserting rows that match each
+        other: the MERGE's conflict check fails the second commit, which then sees the
+        first's row and inserts nothing.
+        """
+        from deltalake.exceptions import CommitFailedError
+
+        self.create(name)
+        for attempt in range(COMMIT_RETRIES):
+            target = self._load(name)
+            try:
+                metrics = (target.merge(row.cast(table_schema(name)), match, source_alias="s",
+                                        target_alias="t",
+                                        commit_properties=self._commit_properties(info))
+                           .when_not_matched_insert_all().execute())
+            except CommitFailedError:
+                time.sleep(poll_s * (1 + random.random()) * min(attempt + 1, 10))
+                continue
+            inserted = int(metrics.get("num_target_rows_inserted", 0)) > 0
+            if inserted:
+                self._maintain(name, target)
+            return inserted
+        raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent "
+                        "commits in a row")
+
+    def delete(self, name: str, predicate: str, info: dict | None = None) -> int:
+        """Delete the rows matching a SQL predicate; returns how many were deleted."""
+        target = self.open(name)
+        if target is None:
+            return 0
+        metrics = target.delete(predicate, commit_properties=self._commit_properties(info))
+        return int(metrics.get("num_deleted_rows", 0))
+
+    def _maintain(self, name: str, target) -> None:
+        """Compact the table when this commit's number is a multiple of ``maintain_every``."""
+        try:
+            target.update_incremental()
+            if target.version() % self.maintain_every == 0:
+                self._compact(name, target, {"action": "automatic compaction"})
+        except Exception:  # noqa: BLE001, S110 - maintenance is best effort; `lake optimize` redoes it
+            pass
+
+    def _compact(self, name: str, target, info: dict | None) -> dict:
+        """Compact small files; the catalog is rewritten sorted by camera (Z-order), in row
+        groups of :data:`ROW_GROUP_ROWS`, so that one camera's rows are a few row groups."""
+        from deltalake import WriterProperties
+
+        props = self._commit_properties(info)
+        if name == "catalog":
+            return target.optimize.z_order(["camera_id"], commit_properties=props,
+                                           writer_properties=WriterProperties(
+                                               max_row_group_size=ROW_GROUP_ROWS))
+        return target.optimize.compact(commit_properties=props)
+
+    # -- reading ------------------------------------------------------------------------
+    def files(self, name: str, *, as_of=None, partition: dict | None = None) -> list[dict]:
+        """The table's live files (add actions: ``path``, ``num_records``, ``partition.*``, stats).
+
+        ``partition`` keeps only the files of those partition values (``{"camera_id": c}``).
+        """
+        table = self.open(name, as_of=as_of)
+        if table is None:
+            return []
+        adds = pa.table(table.get_add_actions(flatten=True)).to_pylist()
+        parts = set(table.metadata().partition_columns)
+        for col, value in (partition or {}).items():
+            if col in parts:
+                adds = [a for a in adds if a.get(f"partition.{col}") == value]
+        return adds
+
+    def read_file(self, name: str, add: dict, fs, columns=None, equal: dict | None = None) -> pa.Table:
+        """One data file as rows of the table's schema (partition values filled in).
+
+        ``columns`` reads only those; ``equal`` (``{column: value}``) reads only the row
+        groups whose statistics may hold the value (the catalog is written sorted by
+        ``camera_id`` in row groups of :data:`ROW_GROUP_ROWS`).
+        """
+        schema = table_schema(name)
+        with fs.open_input_file(add["path"]) as handle:
+            pf = pq.ParquetFile(handle)
+            groups = _row_groups(pf, equal or {})
+            names = set(pf.schema_arrow.names)
+            want = [c for c in (columns or schema.names) if c in names]
+            t = pf.read_row_groups(groups, columns=want) if groups else \
+                pf.schema_arrow.empty_table().select(want)
+        n = t.num_rows
+        cols = []
+        for f in schema:
+            if columns and f.name not in columns:
+                cols.append(pa.nulls(n, f.type))
+            elif f"partition.{f.name}" in add:
+                cols.append(pa.array([add[f"partition.{f.name}"]] * n, f.type))
+            elif f.name in t.column_names:
+                cols.append(t[f.name].cast(f.type))
+            else:
+                cols.append(pa.nulls(n, f.type))
+        out = pa.Table.from_arrays(cols, schema=schema)
+        return out.select(columns) if columns else out
+
+    def scan(self, name: str, *, filter=None, columns=None, as_of=None,
+             partition: dict | None = None, equal: dict | None = None) -> pa.Table:
+        """The table's rows (those matching ``filter``, a pyarrow expression), bad files skipped.
+
+        Each file is read with its own types (delta-rs's DataFusion writes strings as
+        ``string_view``, which pyarrow cannot filter), cast to :func:`table_schema` and
+        filtered in memory; ``partition`` (``{"camera_id": c}``) selects files first, and
+        ``equal`` (``{"version": v}``) skips files whose min/max statistics exclude the
+        value (it does not filter rows: give ``filter`` too).
+        An unreadable file is left out and reported in :attr:`problems`.
+        """
+        table = self.open(name, as_of=as_of)
+        schema = table_schema(name)
+        if table is None:
+            empty = schema.empty_table()
+            return empty.select(columns) if columns else empty
+        fs = table.to_pyarrow_dataset().filesystem
+        need = None
+        if columns:
+            need = list(dict.fromkeys(list(columns) + _filter_columns(filter, schema)))
+        parts = []
+        for add in self.files(name, as_of=as_of, partition=partition):
+            if any(_outside(add, col, value) for col, value in (equal or {}).items()):
+                continue
+            try:
+                parts.append(self.read_file(name, add, fs, need, equal))
+            except FileNotFoundError as e:
+                if as_of is not None:  # not damage: vacuum removed the files of that time
+                    raise LakeError(f"{name} as of {as_of} is no longer readable: its file "
+                                    f"{add['path']} was removed by vacuum") from None
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+            except (OSError, pa.ArrowException) as e:
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+        out = pa.concat_tables(parts) if parts else (schema.empty_table().select(need) if need
+                                                     else schema.empty_table())
+        if filter is not None:
+            out = out.filter(filter)
+        return out.select(columns) if columns else out
+
+    def lazy(self, name: str, *, as_of=None) -> tuple:
+        """``(dataset, rest)``: the table as a lazy pyarrow dataset of its files written with
+        plain types (compacted files: projection and filters are pushed down) and a table
+        of the rows of the other files (``string_view``, written by MERGE or DELETE since the
+        last compaction), read and cast. Unreadable files are left out and reported."""
+        schema = table_schema(name)
+        table = self.open(name, as_of=as_of)
+        if table is None:
+            return None, schema.empty_table()
+        fs = table.to_pyarrow_dataset().filesystem
+        fmt = ds.ParquetFileFormat()
+        frags, rest = [], []
+        for add in self.files(name, as_of=as_of):
+            try:
+                frag = fmt.make_fragment(add["path"], fs, partition_expression=_partition_expr(add, schema))
+                physical = frag.physical_schema
+                if any(pa.types.is_string_view(f.type) or "view" in str(f.type) for f in physical):
+                    rest.append(self.read_file(name, add, fs))
+                else:
+                    frags.append(frag)
+            except FileNotFoundError as e:
+                if as_of is not None:
+                    raise LakeError(f"{name} as of {as_of} is no longer readable: its file "
+                                    f"{add['path']} was removed by vacuum") from None
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+            except (OSError, pa.ArrowException) as e:
+                self.problems.append(Problem(name, f"{name}/{add['path']}", reason(e)))
+        dataset = ds.FileSystemDataset(frags, schema, fmt, fs) if frags else None
+        return dataset, (pa.concat_tables(rest) if rest else schema.empty_table())
+
+    # -- maintenance and audit ------------------------------------------------------------
+    def optimize(self, name: str, info: dict | None = None) -> dict:
+        """Compact the table's small files and write a checkpoint."""
+        target = self.open(name)
+        if target is None:
+            return {"table": name, "files_removed": 0, "files_added": 0}
+        metrics = self._compact(name, target, info)
+        target.update_incremental()
+        target.create_checkpoint()
+        return {"table": name, "files_removed": int(metrics.get("numFilesRemoved", 0)),
+                "files_added": int(metrics.get("numFilesAdded", 0)), "version": target.version()}
+
+    def vacuum(self, name: str, retention_hours: float, *, dry_run: bool,
+               info: dict | None = None) -> list[str]:
+        """Files no longer referenced by the table's current state and older than the retention.
+
+        Only files that a commit removed (compaction, deletes) and that the current state
+        does not reference are candidates (delta-rs "lite" vacuum: a file not yet committed
+        by a running writer is never touched); the catalog rows and residual rows of every
+        committed version are in the current state, so their files stay.
+        """
+        target = self.open(name)
+        if target is None:
+            return []
+        return list(target.vacuum(retention_hours=int(retention_hours), dry_run=dry_run,
+                                  enforce_retention_duration=False,
+                                  commit_properties=self._commit_properties(info)))
+
+    def log(self, name: str, limit: int | None = None) -> list[dict]:
+        """The table's commits, newest first: version, time, operation, fieldcal metadata."""
+        target = self.open(name)
+        if target is None:
+            return []
+        out = []
+        for h in target.history(limit):
+            ts = h.get("timestamp")
+            when = dt.datetime.fromtimestamp(ts / 1000.0, dt.UTC) if isinstance(ts, (int, float)) else None
+            out.append({"table": name, "commit": h.get("version"), "time": when,
+                        "operation": h.get("operation"),
+                        **{k[len("fieldcal."):]: v for k, v in h.items()
+                           if isinstance(k, str) and k.startswith("fieldcal.")}})
+        return out
+
+
+def _first_commit_after(table, when) -> bool:
+    """True when the table's first commit is later than ``when``."""
+    try:
+        hist = table.history()
+    except Exception:  # noqa: BLE001
+        return False
+    first = min((h.get("timestamp") for h in hist if isinstance(h.get("timestamp"), (int, float))),
+                default=None)
+    if first is None:
+        return False
+    t = when if isinstance(when, dt.datetime) else dt.datetime.fromisoformat(str(when))
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return first / 1000.0 > t.timestamp()
+
+
+def _filter_columns(expr, schema: pa.Schema) -> list[str]:
+    """Column names a filter expression refers to (from its text; all when unsure)."""
+    if expr is None:
+        return []
+    text = str(expr)
+    return [n for n in schema.names if n in text]
+
+
+def _outside(add: dict, column: str, value) -> bool:
+    """True when a file's statistics show it holds no row with ``column == value``."""
+    lo, hi = add.get(f"min.{column}"), add.get(f"max.{column}")
+    if lo is None or hi is None:
+        return False
+    try:
+        return value < lo or value > hi
+    except TypeError:
+        return False
+
+
+def _row_groups(pf, equal: dict) -> list[int]:
+    """Row groups of a Parquet file whose statistics do not exclude ``column == value``."""
+    keep = []
+    meta = pf.metadata
+    leaf = {meta.schema.column(j).path: j for j in range(meta.num_columns)}
+    for i in range(meta.num_row_groups):
+        rg = meta.row_group(i)
+        ok = True
+        for col, value in equal.items():
+            if col not in leaf:
+                continue
+            st = rg.column(leaf[col]).statistics
+            if st is not None and st.has_min_max:
+                lo, hi = st.min, st.max
+                lo = lo.decode() if isinstance(lo, bytes) else lo
+                hi = hi.decode() if isinstance(hi, bytes) else hi
+                try:
+                    ok = ok and not (value < lo or value > hi)
+                except TypeError:
+                    pass
+        if ok:
+            keep.append(i)
+    return keep
+
+
+def _partition_expr(add: dict, schema: pa.Schema):
+    expr = ds.scalar(True)
+    for key, value in add.items():
+        if key.startswith("partition.") and key[10:] in schema.names:
+            col = key[10:]
+            expr = expr & (ds.field(col) == pa.scalar(value, schema.field(col).type))
+    return expr
