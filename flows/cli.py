@@ -260,7 +260,7 @@ def cmd_server(args) -> int:
         state = server.server_status()
         if state is None:
             print(f"no local Prefect server under {server.prefect_home()}")
-            return 3
+            return 0
         print(f"{state['url']}  pid {state['pid']}  started {state['started']}  linger {state['linger_s']:g} s")
     else:
         state = server.stop_server()

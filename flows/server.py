@@ -174,16 +174,23 @@ def _remove_state(home: Path, pid: int) -> None:
             (home / STATE_FILE).unlink()
 
 
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except OSError:
+        return False
+
+
 def _is_server_process(pid: int) -> bool:
-    """Whether ``pid`` is a live (not zombie) ``flows.server`` process."""
+    """Whether ``pid`` is a live ``flows.server`` process (its command line empties as it exits)."""
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as f:
             cmd = f.read().split(b"\0")
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            state = f.read().rsplit(b")", 1)[1].split()[0]
     except OSError:
         return False
-    return state != b"Z" and b"flows.server" in cmd
+    return b"flows.server" in cmd and _alive(pid)
 
 
 def _healthy(url: str, timeout_s: float = 5.0) -> bool:
@@ -251,8 +258,9 @@ def _log_tail(home: Path) -> str:
 def _start(home: Path, linger_s: float, note) -> dict:
     port = _free_port()
     if note:
-        note(f"starting a local Prefect server under {home} (kept for {linger_s:g} s after the last "
-             "command; `fieldcal server stop` stops it, PREFECT_API_URL uses another)")
+        kept = f"kept for {linger_s:g} s after the last command" if linger_s > 0 else "kept until stopped"
+        note(f"starting a local Prefect server under {home} ({kept}; `fieldcal server stop` stops it, "
+             "PREFECT_API_URL uses another)")
     t = time.perf_counter()
     pid = _launch(home, port, linger_s)
     deadline = time.monotonic() + START_TIMEOUT_S
@@ -262,7 +270,7 @@ def _start(home: Path, linger_s: float, note) -> dict:
             if note:
                 note(f"Prefect server ready at {state['url']} in {time.perf_counter() - t:.1f} s")
             return state
-        if not _is_server_process(pid):
+        if not _alive(pid):
             raise ServerError(f"the local Prefect server stopped while starting: {_log_tail(home)} "
                               f"(log: {home / LOG_FILE})")
         time.sleep(0.1)
@@ -303,10 +311,13 @@ def stop_server(timeout_s: float = 30.0) -> dict | None:
         if _is_server_process(pid):
             os.kill(pid, signal.SIGTERM)
             deadline = time.monotonic() + timeout_s
-            while _is_server_process(pid) and time.monotonic() < deadline:
+            while _alive(pid) and time.monotonic() < deadline:
                 time.sleep(0.1)
-            if _is_server_process(pid):
+            if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+                deadline = time.monotonic() + 10.0
+                while _alive(pid) and time.monotonic() < deadline:
+                    time.sleep(0.05)
         _remove_state(home, pid)
         return state
 

@@ -217,7 +217,8 @@ def test_a_closed_pipe_ends_a_command_quietly(cli_run, tmp_path):
                              "--format", "csv"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
     proc.stdout.close()
-    err = proc.stderr.read()
+    with proc.stderr:
+        err = proc.stderr.read()
     assert proc.wait(timeout=300) == 141                          # as a command killed by SIGPIPE
     assert err == b""                                             # no BrokenPipeError, no traceback
 

@@ -68,7 +68,23 @@ def root(tmp_path):
     return root
 
 
-def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_others(root, tmp_path, monkeypatch):
+def fleet_logs(root) -> str | None:
+    """The log lines of the latest fleet flow run over ``root`` on the test's Prefect server."""
+    from prefect import get_client
+    from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
+    from prefect.client.schemas.sorting import FlowRunSort
+
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(sort=FlowRunSort.EXPECTED_START_TIME_DESC, limit=50)
+        runs = [r for r in runs if r.parameters.get("root") == str(root)]
+        if not runs:
+            return None
+        logs = client.read_logs(LogFilter(flow_run_id=LogFilterFlowRunId(any_=[runs[0].id])), limit=200)
+    return "\n".join(log.message for log in logs)
+
+
+def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_others(root, tmp_path, monkeypatch,
+                                                                                       capsys):
     meet = Rendezvous(2, timeout_s=120.0)
     solve = pipeline.solve
 
@@ -81,9 +97,12 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
 
     monkeypatch.setattr(pipeline, "solve", solve_together)
     monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
+    monkeypatch.setattr(server, "quiet_prefect", lambda verbose: None)
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
     lake = str(tmp_path / "lake")
-    state = recalibrate_fleet(lake, str(root), n_workers=2, return_state=True)
-    first = state.result()
+    assert cli.main(["fleet", str(root), "--lake", lake, "--format", "json"]) == 1          # 2 failed
+    first = json.loads(capsys.readouterr().out)
     status = {(s["camera_id"], s["session_id"]): s["status"] for s in first["sessions"]}
     assert status == {("cam-w0", "2026-05-01"): "committed", ("cam-w1", "2026-05-02"): "committed",
                       ("cam-w0", "2026-05-03"): "committed", ("cam-w1", "2026-05-04"): "committed",
@@ -98,46 +117,21 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
     committed = {s["version"] for s in first["sessions"] if s["status"] == "committed"}
     assert committed == set(Lake(lake).catalog()["version"].to_pylist()) and len(committed) == 5
 
+    # progress per session on the terminal (not the sessions' own image counts) and in the logs
+    text = term.getvalue()
+    for k in range(1, 7):
+        assert f"session {k} of 6: " in text
+    assert ": committed " in text and ": failed " in text and "measuring images [" not in text
+    deadline = time.monotonic() + 60
+    while (logs := fleet_logs(root) or "").count(" of 6: ") < 12 and time.monotonic() < deadline:
+        time.sleep(0.5)                                         # logs reach the server in batches
+    assert logs.count(" of 6: ") >= 12 and "session 6 of 6: " in logs   # started and finished, each
+
+    # the next night: the calibrated sessions keep their versions, the failing one is tried again
     second = recalibrate_fleet(lake, str(root), n_workers=2)
     again = {(s["camera_id"], s["session_id"]): (s["status"], s["version"]) for s in second["sessions"]}
     for s in first["sessions"]:
         if s["status"] == "committed":
             assert again[(s["camera_id"], s["session_id"])] == ("calibrated already", s["version"])
+    assert again[("cam-few", "2026-05-10")] == ("failed", None)
     assert (second["n_committed"], second["n_skipped"], second["n_failed"]) == (0, 5, 2)
-
-
-def test_fleet_shows_session_k_of_n_on_a_terminal_and_in_the_flow_run_logs(root, tmp_path, monkeypatch, capsys):
-    from prefect import get_client
-    from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
-    from prefect.client.schemas.sorting import FlowRunSort
-
-    monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
-    monkeypatch.setattr(server, "quiet_prefect", lambda verbose: None)
-    term = Terminal()
-    monkeypatch.setattr(sys, "stderr", term)
-    assert cli.main(["fleet", str(root), "--lake", str(tmp_path / "lake"), "--format", "json"]) == 1   # 2 failed
-    summary = json.loads(capsys.readouterr().out)
-    text = term.getvalue()
-    for k in range(1, 7):
-        assert f"session {k} of 6: " in text
-    assert "session" in text and "committed" in text and "failed" in text
-    assert "measuring images [" not in text               # the sessions' own progress is not interleaved
-    assert sorted(s["status"] for s in summary["sessions"]) == ["committed"] * 5 + ["failed"] * 2
-
-    def fleet_logs():
-        with get_client(sync_client=True) as client:
-            runs = client.read_flow_runs(sort=FlowRunSort.EXPECTED_START_TIME_DESC, limit=50)
-            runs = [r for r in runs if r.parameters.get("root") == str(root)]
-            if not runs:
-                return None
-            logs = client.read_logs(LogFilter(flow_run_id=LogFilterFlowRunId(any_=[runs[0].id])), limit=500)
-        text = "\n".join(log.message for log in logs)
-        return text if text.count(" of 6: ") >= 12 else None      # started + finished, six sessions
-
-    deadline = time.monotonic() + 60
-    logs = None
-    while logs is None and time.monotonic() < deadline:
-        logs = fleet_logs()
-        time.sleep(0.5)
-    assert logs is not None, "the fleet flow run's logs do not show every session's progress"
-    assert "session 6 of 6: " in logs and ": committed " in logs

@@ -98,11 +98,12 @@ def test_two_commands_at_once_share_one_server_in_a_temporary_prefect_home(world
     assert (home / "prefect.db").is_file()
     assert not (tmp / "file").is_dir()
     status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
-    if status.returncode == 0:           # still lingering: it is the one of the log
+    assert status.returncode == 0
+    if status.stdout.startswith("http"):  # still lingering: it is the one of the log
         pid = json.loads((home / "fieldcal-server.json").read_text())["pid"]
         assert f"pid {pid}" in status.stdout and f"pid {pid}," in log
-    else:                                # lingered out already (a slow machine): nothing is left
-        assert status.returncode == 3 and server_pids(home) == []
+    else:                                # lingered out already (a slow machine): it is stopping or gone
+        wait_for(lambda: server_pids(home) == [], 60, "the lingered-out server to exit")
 
 
 def test_kill_9_of_a_run_leaves_no_process_behind(world):
@@ -145,4 +146,4 @@ def test_server_start_status_stop(world):
     assert stop.returncode == 0 and stop.stdout == f"stopped the local Prefect server at {url} (pid {pid})\n"
     assert not alive(pid) and server_pids(home) == []
     status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
-    assert status.returncode == 3 and status.stdout == f"no local Prefect server under {home}\n"
+    assert status.returncode == 0 and status.stdout == f"no local Prefect server under {home}\n"
