@@ -11,7 +11,8 @@ Writes into ``OUT/`` (default ``demo-out/``):
 - ``lake/``: the lake the flows commit into.
 
 Sessions already written by an earlier demo are reused, so a second ``make demo`` shows
-the reruns being recognised (no image is read, no version is added).
+the reruns being recognised (no image is read, no version is added, and no Prefect server
+is needed: the reruns are answered from the lake).
 """
 
 from __future__ import annotations
