@@ -234,8 +234,10 @@ def server_status(home: Path | None = None) -> dict | None:
 
 def _launch(home: Path, port: int, linger_s: float) -> int:
     """Start ``python -m flows.server`` detached (its own session, not our child); returns its pid."""
+    source = str(Path(__file__).resolve().parents[1])          # where `flows` is, installed or not
     env = dict(os.environ, PREFECT_HOME=str(home), PREFECT_UI_ENABLED="false",
-               PREFECT_SERVER_ANALYTICS_ENABLED="false", PREFECT_SERVER_LOGGING_LEVEL="WARNING")
+               PREFECT_SERVER_ANALYTICS_ENABLED="false", PREFECT_SERVER_LOGGING_LEVEL="WARNING",
+               PYTHONPATH=os.pathsep.join(p for p in (source, os.environ.get("PYTHONPATH")) if p))
     env.pop("PREFECT_API_URL", None)
     cmd = [sys.executable, "-m", "flows.server", "--port", str(port), "--linger", str(linger_s)]
     launcher = ("import subprocess, sys\n"
@@ -244,7 +246,7 @@ def _launch(home: Path, port: int, linger_s: float) -> int:
                 " start_new_session=True, close_fds=True)\n"
                 "print(p.pid)\n")
     out = subprocess.run([sys.executable, "-c", launcher, str(home / LOG_FILE), *cmd], env=env,
-                         capture_output=True, text=True, check=True, cwd=os.getcwd())
+                         capture_output=True, text=True, check=True, cwd=home)     # holds no user folder
     return int(out.stdout.strip())
 
 
