@@ -190,13 +190,17 @@ def drop_sparse_images(data: FieldData, min_points: int | None = None) -> tuple[
 
 
 def _field_result(prepared, measurements, progress, left_out):
-    from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
+    from fieldcal.field.adjustment import MIN_IMAGES, AdjustmentOptions, adjust_field
 
     sess = prepared.session
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver)
     if sess.observations_path is not None:
         data, left = drop_sparse_images(field_data_from_observations(sess))
+        if left and len(data.images) < MIN_IMAGES:
+            more = f" (and {len(left) - 1} more image(s) left out)" if len(left) > 1 else ""
+            raise GeometryError(f"{left[0]['image']}: {left[0]['reason']}{more}; {len(data.images)} image(s) "
+                                f"remain, the field method needs at least {MIN_IMAGES}")
         left_out.extend(left)
         return data, adjust_field(data, options, progress=progress)
     from fieldcal.field.from_images import calibrate_from_measurements

@@ -5,6 +5,8 @@ oriented is reported and left out, exactly as in an image session, and the run g
 while enough images remain.
 """
 
+import re
+
 import pytest
 
 from fieldcal import pipeline
@@ -50,5 +52,9 @@ def test_the_run_stops_when_too_few_images_remain(tmp_path):
     two = [im.file for im in pipeline.prepare(folder).session.images][:2]
     _keep_rows(folder, lambda line: line.split(",")[0] in two)
     prepared = pipeline.prepare(folder)
-    with pytest.raises(GeometryError, match=r"only 2 image\(s\).*needs at least 3"):
+    names = [im.file for im in prepared.session.images]
+    first = next(n for n in names if n not in two)
+    with pytest.raises(GeometryError, match=rf"^{re.escape(first)}: only 0 observed target\(s\); an image needs at "
+                       rf"least {MIN_POINTS_PER_IMAGE} \(and {len(names) - 3} more image\(s\) left out\); 2 "
+                       r"image\(s\) remain, the field method needs at least 3$"):
         pipeline.solve(prepared, {}, fingerprint_=pipeline.input_fingerprint(prepared, {}))
