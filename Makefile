@@ -32,4 +32,5 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
+	-test -x $(VENV)/bin/fieldcal && $(VENV)/bin/fieldcal server stop
 	rm -rf $(VENV) .pytest_cache demo-out

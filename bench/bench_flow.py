@@ -193,9 +193,9 @@ def main() -> int:
     print(f"session: {session} ({size / 2**30:.2f} GiB)", flush=True)
 
     os.environ["FIELDCAL_HASH_CACHE"] = str(out / "hashes.sqlite")
-    from flows.cli import _prefect_env, prefect_api
+    from flows.server import prefect_api, quiet_prefect
 
-    _prefect_env(verbose=False)
+    quiet_prefect(verbose=False)
     t = time.perf_counter()
     with prefect_api() as url:
         results["prefect_server_s"] = time.perf_counter() - t

@@ -16,20 +16,27 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
+import numpy as np
 import pyarrow as pa
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field
-from fieldcal.goniometer import method as goniometer
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
 from fieldcal.session.fingerprint import fingerprint, sha256_file
 from fieldcal.session.loader import Session, field_data_from_observations, load_session
 
+if TYPE_CHECKING:
+    from fieldcal.field.adjustment import FieldResult
+    from fieldcal.field.data import FieldData
+
+# The solvers (SciPy, ~1-2 s to import) are imported where they are used, so that
+# validating a session (`prepare`) answers in well under a second.
+
 __all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "image_hash",
-           "input_fingerprint"]
+           "input_fingerprint", "drop_sparse_images"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +114,8 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
                 raise InputError("images without coded targets need marks.csv (a few hand-identified "
                                  "targets per image) to be identified", str(sess.folder / "session.json"))
         return Prepared(sess, settings, to_measure, tables, field_data=field_data)
+    from fieldcal.goniometer import method as goniometer
+
     frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
     tables[sess.frames_path.name] = sess.frames_path.read_bytes()
     names = [str(f) for f in frames.column("file").to_pylist()]
@@ -123,6 +132,8 @@ def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
     sess = prepared.session
     path = sess.image_path(name) if source is None else source
     if prepared.method == "goniometer":
+        from fieldcal.goniometer import method as goniometer
+
         row = goniometer.measure_frame(path, sess.sensor, name=name)
         return goniometer.measurements_table([row])
     from fieldcal.measure.targets import measure_image
@@ -154,12 +165,54 @@ def solve(prepared: Prepared, measurements: Mapping[str, pa.Table], *, fingerpri
 
 
 # ---------------------------------------------------------------------------- field method
+def drop_sparse_images(data: FieldData, min_points: int | None = None) -> tuple[FieldData, list[dict]]:
+    """Leave out the images with fewer observations than an image needs to be oriented.
+
+    Parameters
+    ----------
+    data : fieldcal.field.data.FieldData
+        The field data of an observations-only session (every image it lists).
+    min_points : int, optional
+        Default :data:`fieldcal.field.adjustment.MIN_POINTS_PER_IMAGE`.
+
+    Returns
+    -------
+    (FieldData, list of dict)
+        The data without those images (observations re-indexed), and one
+        ``{image, status, reason}`` per image left out, as for an image session.
+    """
+    from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE
+
+    need = MIN_POINTS_PER_IMAGE if min_points is None else int(min_points)
+    counts = np.bincount(data.obs.image, minlength=len(data.images)) if len(data.obs) else \
+        np.zeros(len(data.images), int)
+    keep = counts >= need
+    if keep.all():
+        return data, []
+    left = [{"image": data.images[i].file, "status": "left out",
+             "reason": f"only {int(counts[i])} observed target(s); an image needs at least {need}"}
+            for i in np.flatnonzero(~keep)]
+    new_index = np.cumsum(keep) - 1
+    sel = keep[data.obs.image]
+    o = data.obs
+    obs = type(o)(new_index[o.image[sel]], o.target[sel], o.uv_px[sel], o.sigma_px[sel])
+    images = [im for im, k in zip(data.images, keep, strict=True) if k]
+    return replace(data, images=images, obs=obs), left
+
+
 def _field_result(prepared, measurements, progress, left_out):
+    from fieldcal.field.adjustment import MIN_IMAGES, AdjustmentOptions, adjust_field
+
     sess = prepared.session
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver)
     if sess.observations_path is not None:
-        data = prepared.field_data or field_data_from_observations(sess)
+        data, left = drop_sparse_images(prepared.field_data or field_data_from_observations(sess))
+        if left and len(data.images) < MIN_IMAGES:
+            more = f" (and {len(left) - 1} more image(s) left out)" if len(left) > 1 else ""
+            raise GeometryError(f"{left[0]['image']}: {left[0]['reason']}{more}; {len(data.images)} image(s) "
+                                f"remain, the field method needs at least {MIN_IMAGES}")
+        left_out.extend(left)
         return data, adjust_field(data, options, progress=progress)
     from fieldcal.field.from_images import calibrate_from_measurements
 
@@ -211,6 +264,8 @@ def _field_summary(sess, res: FieldResult) -> list[str]:
 # ---------------------------------------------------------------------------- goniometer
 def _solve_goniometer(prepared, measurements, fp, left_out) -> Outcome:
     sess = prepared.session
+    from fieldcal.goniometer import method as goniometer
+
     rows = [measurements[n] for n in prepared.to_measure if n in measurements]
     if not rows:
         raise GeometryError("no goniometer frame could be measured")

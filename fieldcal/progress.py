@@ -8,8 +8,14 @@ script that pipes ``fieldcal run`` gets only the version on standard output.
 Events (keyword fields):
 
 - ``"stage"``: ``text`` (a step begins: validating, measuring, solving, committing);
-- ``"images"``: ``done``, ``total``, ``cached``, ``bad`` (image extraction advanced);
+- ``"images"``: ``done``, ``total``, ``cached``, ``bad`` (image extraction advanced;
+  ``label``, default "measuring images", names other work counted in images, e.g.
+  rendering);
 - ``"note"``: ``text`` (a line worth showing: a bad image, the solver's progress).
+
+Inside :func:`quiet` (a context variable, so it holds for the threads and tasks started
+from there) events are dropped: the fleet runs several sessions at once and shows one line
+per session instead of their interleaved image counts.
 
 This module imports nothing beyond the standard library; it never imports Prefect.
 """
@@ -17,20 +23,24 @@ This module imports nothing beyond the standard library; it never imports Prefec
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import sys
 import threading
 import time
 from collections.abc import Callable
 
-__all__ = ["emit", "listening", "TerminalProgress", "Sink"]
+__all__ = ["emit", "listening", "quiet", "is_quiet", "TerminalProgress", "Sink"]
 
 Sink = Callable[..., None]
 _sinks: list[Sink] = []
 _lock = threading.Lock()
+_quiet = contextvars.ContextVar("fieldcal_progress_quiet", default=False)
 
 
 def emit(event: str, **fields) -> None:
-    """Send an event to every listening sink (none by default). Never raises."""
+    """Send an event to every listening sink (none by default, none inside :func:`quiet`). Never raises."""
+    if _quiet.get():
+        return
     with _lock:
         sinks = list(_sinks)
     for sink in sinks:
@@ -56,6 +66,21 @@ def listening(sink: Sink | None):
         close = getattr(sink, "close", None)
         if close is not None:
             close()
+
+
+@contextlib.contextmanager
+def quiet():
+    """Drop the events emitted in this block (and in threads and tasks started from it)."""
+    token = _quiet.set(True)
+    try:
+        yield
+    finally:
+        _quiet.reset(token)
+
+
+def is_quiet() -> bool:
+    """Whether events are dropped here (inside :func:`quiet`)."""
+    return _quiet.get()
 
 
 class TerminalProgress:
@@ -94,7 +119,8 @@ class TerminalProgress:
                 extra.append(f"{f['cached']} cached")
             if f.get("bad"):
                 extra.append(f"{f['bad']} bad")
-            line = (f"measuring images [{'#' * filled}{'.' * (width - filled)}] {done}/{total}"
+            label = str(f.get("label") or "measuring images")
+            line = (f"{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}"
                     + (f" ({', '.join(extra)})" if extra else "")
                     + f"  {time.monotonic() - self._t0:5.1f} s")
             self._clear()

@@ -1,147 +1,78 @@
 """The calibration flow of one session: validate -> measure the images on Dask -> solve -> commit.
 
-:func:`calibrate_session` (Prefect flow ``calibrate-session``) wraps the plain steps of
-:mod:`fieldcal.pipeline`; every piece of real work is there, the flow only decides what
-runs where and what can be skipped:
+:func:`calibrate_session` (Prefect flow ``calibrate-session``) decides what runs where; every
+piece of real work and every decision a notebook would also make is a plain function of
+:mod:`fieldcal.pipeline` (validate, measure, solve) and :mod:`fieldcal.batch` (cache keys,
+what is cached, the no-op check, batch sizes):
 
 1. **validate** (task, in the flow's process): :func:`fieldcal.pipeline.prepare`. Bad input
-   raises :class:`~fieldcal.errors.InputError` naming the file and nothing is written
-   anywhere (the lake, the hash store).
-2. **what is known already**: each image's SHA-256 from the hash store
-   (:mod:`flows.hashcache`, no image is read for it) and the lake's cached observations
-   (one listing). When every image's hash is known and a version with the same
-   fingerprint (inputs and settings) is committed, the run ends there: it is a no-op
-   that returns that version (``force=True`` makes a new one).
-3. **measure** (sub-flow ``measure-images`` on a :class:`prefect_dask.DaskTaskRunner`: a
-   temporary local cluster, or the scheduler at ``dask_address``): one task
-   (:func:`measure_batch`) per image or per small batch of images. Each task hashes its
-   images (unless known), skips those whose observations are cached under that hash,
-   measures the others (:func:`fieldcal.pipeline.measure`) and writes one Parquet file
-   per image into the lake. A bad image (:class:`~fieldcal.errors.ImageError`, a missing
-   file) is reported and left out; the run goes on. The Dask cluster is only started
-   when some image has to be read.
-4. **solve** (one task): reads the observations back from the lake and runs
-   :func:`fieldcal.pipeline.solve`, which dispatches on the session's method (field or
-   goniometer; a field session with ``observations.csv`` has no images to measure).
-5. **commit** (one task): :meth:`fieldcal.lake.store.Lake.commit`: everything of the version
+   raises :class:`~fieldcal.errors.InputError` naming the file; nothing is written anywhere.
+2. **plan**: each image's SHA-256 from the hash store (:mod:`flows.hashcache`, no image is
+   read for it), then :func:`fieldcal.batch.plan_session`: missing files, cached
+   observations, the images left to measure, and the no-op (every hash known and a version
+   with the same fingerprint committed: that version is returned; ``force=True`` makes a
+   new one).
+3. **measure** (tasks :func:`measure_batch` on Dask, one per image or small batch, the
+   sizes chosen by measurement, :func:`fan_out`): each task hashes its images (unless
+   known), skips those cached under that hash and measures the others
+   (:func:`fieldcal.batch.measure_into_lake`), their observations into the lake. A
+   bad image is reported and left out; the run goes on. Where the tasks run:
+
+   - the flow's own task runner when it is a :class:`prefect_dask.DaskTaskRunner` (the
+     command line and the fleet call ``calibrate_session.with_options(task_runner=...)``);
+     it connects to the cluster, or starts a local one, at the first task only;
+   - otherwise a sub-flow ``measure-images`` on a runner for ``dask_address`` (or
+     ``$FIELDCAL_DASK_ADDRESS``, or a temporary local cluster), started only when some
+     image has to be read.
+4. **solve** (task): reads the observations back from the lake and runs
+   :func:`fieldcal.pipeline.solve`, on the Dask cluster when the flow runs on one that is
+   reached by address or was started for the images (so that the fleet's sessions share
+   the workers), else in the flow's process.
+5. **commit** (task): :meth:`fieldcal.lake.store.Lake.commit`: everything of the version
    first, its catalog row last. A run killed before this point leaves no visible version;
    the rerun finds the observations cached and completes the work.
 
-Batch sizes "chosen by measurement": the first wave is one single-image task per worker
-(probes). From the first probe back, the flow knows the work per image ``t_img`` (timed
-inside the task) and the per-task overhead ``t_ovh`` (time from submitting the task to
-having its result, minus its work: Prefect's context serialisation and state reports,
-Dask scheduling, the result's trip back). The remaining images are split by guided
-self-scheduling (:func:`plan_batches`): each batch takes a quarter (with two workers) of
-the images left, so batches start large (overhead negligible) and shrink towards the end
-(the workers finish together), but never below ``ceil(t_ovh / t_img)`` images (no task
-shorter than its own overhead). Full-size images (``t_img`` ~1 s, ``t_ovh`` ~0.3 s) go in
-batches of 18, 13, 10, ... down to 1; the 5 ms frames of a goniometer session in a few
-batches of 50 or more.
+Batch sizes (:func:`fieldcal.batch.plan_batches`): the first wave is one single-image task
+per worker (probes). From the first probe back, the flow knows the work per image
+``t_img`` (timed inside the task) and the per-task overhead ``t_ovh`` (time from
+submitting the task to having its result, minus its work); the remaining images are split
+by guided self-scheduling, never below ``ceil(t_ovh / t_img)`` images per task.
+Full-size images (``t_img`` ~1 s, ``t_ovh`` ~0.3 s) go in batches of 18, 13, 10, ... down
+to 1; the 5 ms frames of a goniometer session in a few batches of 50 or more.
 
-Cached observations are keyed by the image's content hash combined with the session's
-measuring settings (method, sensor, target polarity, coded-target dictionary): an image
-is measured again when its bytes change or when the session changes how it is measured,
-never otherwise. The key and the image's own SHA-256 are in each Parquet file's metadata.
-
-Progress goes to :mod:`fieldcal.progress` (the CLI shows it on a terminal) and to the
-Prefect logger (the flow run's logs in the Prefect UI).
+Progress goes to :mod:`fieldcal.progress` (the command line shows it on a terminal) and to
+the Prefect logger (the flow run's logs on the Prefect server).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import resource
 import statistics
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from prefect.context import FlowRunContext
 from prefect.futures import as_completed
+from prefect_dask import DaskTaskRunner
 
-from fieldcal import pipeline, progress
-from fieldcal.errors import ImageError, InputError, LakeError, one_line
-from fieldcal.lake.store import Lake, observations_key
-from fieldcal.measure.imageio import read_file
-from fieldcal.session.fingerprint import canonical_json, sha256_bytes
+from fieldcal import batch, pipeline, progress
+from fieldcal.errors import InputError, LakeError
+from fieldcal.lake.store import Lake
 
 from . import cluster
-from .hashcache import HashCache, file_stamp
+from .hashcache import HashCache, file_stamp, known_hashes
 
 __all__ = ["calibrate_session", "measure_images", "measure_batch", "validate_session", "solve_session",
-           "commit_version", "plan_batches", "measure_settings", "measurement_key"]
-
-TASKS_PER_WORKER = 2
-"""Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left."""
-MAX_TASK_S = 60.0
-"""Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
-_META_KEYS = (b"fieldcal.image", b"fieldcal.content_sha256", b"fieldcal.image_sha256",
-              b"fieldcal.measure")
+           "commit_version", "fan_out"]
 
 
 # --------------------------------------------------------------------------------------
-# plain helpers (no Prefect): keys and batch sizes
+# small helpers
 # --------------------------------------------------------------------------------------
-def measure_settings(prepared: pipeline.Prepared) -> dict:
-    """What in a session decides how its images are measured (part of the observations' key)."""
-    sess = prepared.session
-    out = {"method": sess.method, "sensor": sess.sensor.to_dict()}
-    if sess.method == "field":
-        out["target_polarity"] = sess.target_polarity
-        out["coded"] = sess.coded
-    return out
-
-
-def measurement_key(image_sha256: str, settings: dict) -> str:
-    """The observations' cache key: SHA-256 of the image's hash and the measuring settings."""
-    return sha256_bytes(canonical_json({"image_sha256": image_sha256, "measure": settings}))
-
-
-def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
-                 tasks_per_worker: int = TASKS_PER_WORKER, max_task_s: float = MAX_TASK_S) -> list[int]:
-    """Batch sizes (images per task) for ``n`` images, from the measured costs.
-
-    Guided self-scheduling: each batch takes ``ceil(left / (tasks_per_worker * n_workers))``
-    of the images still left, so batches are large first and shrink towards the end and
-    the workers finish together; but no batch is smaller than ``ceil(overhead_s /
-    image_s)`` (a task at least as long as its own overhead) or, beyond that, larger than
-    ``max_task_s`` of work (progress and retries stay fine-grained).
-
-    Parameters
-    ----------
-    n : int
-        Images to distribute.
-    n_workers : int
-        Worker threads of the cluster.
-    image_s : float
-        Measured work per image [s] (hashing, reading, extraction, writing).
-    overhead_s : float
-        Measured overhead per task [s] (from submission to result, minus the work).
-
-    Returns
-    -------
-    list of int
-        Sizes summing to ``n``, in submission order (non-increasing).
-    """
-    if n <= 0:
-        return []
-    w = max(1, int(n_workers))
-    if image_s > 0:
-        floor_ = max(1, math.ceil(max(overhead_s, 0.0) / image_s))
-        cap = max(floor_, int(max_task_s // image_s))
-    else:                       # no work to speak of (cached images): one task
-        floor_ = cap = n
-    sizes, left = [], n
-    while left > 0:
-        b = min(left, cap, max(floor_, math.ceil(left / (tasks_per_worker * w))))
-        sizes.append(b)
-        left -= b
-    return sizes
-
-
 def _settings(settings: dict | None) -> pipeline.Settings:
     try:
         return pipeline.Settings(**(settings or {}))
@@ -149,12 +80,6 @@ def _settings(settings: dict | None) -> pipeline.Settings:
         known = sorted(pipeline.Settings().to_dict())
         raise InputError(f"unknown setting(s) {sorted(set(settings or {}) - set(known))}; known: "
                          f"{known}", "settings") from None
-
-
-
-def _strip_meta(table):
-    meta = {k: v for k, v in (table.schema.metadata or {}).items() if k not in _META_KEYS}
-    return table.replace_schema_metadata(meta or None)
 
 
 def _worker_info() -> tuple[str | None, int | None]:
@@ -235,87 +160,53 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     known : dict
         ``{name: sha256}`` of images whose hash is known already (not read for hashing).
     lake, storage_options
-        Where the observations go (one Parquet file per image).
+        Where the observations go (the lake's observation tables).
 
     Returns
     -------
     dict
-        ``rows``: per image ``image, sha256, key, status ("measured" | "cached" | "bad"),
-        reason, n_rows, stamp, hash_s, measure_s, write_s`` (times [s]; ``hash_s`` reads and
-        hashes the file once, ``measure_s`` decodes those bytes and measures); ``task_s`` the
-        time of the whole batch [s]; ``worker`` the Dask worker's address (None outside
-        Dask); ``rss_peak_mb`` the peak resident memory of the process the task ran in
-        so far [MiB] (a worker process, or the flow's own process for in-process workers).
+        ``rows``: per image the row of :func:`fieldcal.batch.measure_into_lake` plus
+        ``stamp`` (the file's stamp before hashing, for the hash store; None when the hash
+        was known); ``task_s`` the time of the whole batch [s]; ``worker`` the Dask
+        worker's address (None outside Dask); ``pid``; ``rss_peak_mb`` the peak resident
+        memory of the process the task ran in so far [MiB].
     """
     worker, nthreads = _worker_info()
     _warm(prepared.method, nthreads)
     t_task = time.perf_counter()
     lk = Lake(lake, storage_options)
-    sess = prepared.session
-    msettings = measure_settings(prepared)
     rows = []
     for name in names:
-        row = {"image": name, "sha256": None, "key": None, "status": None, "reason": None, "n_rows": 0,
-               "stamp": None, "hash_s": 0.0, "measure_s": 0.0, "write_s": 0.0}
-        rows.append(row)
-        source = sess.image_path(name)
-        t = time.perf_counter()
         sha = known.get(name)
-        if sha is None:
-            try:     # one read: the bytes hashed here are the ones decoded below
-                source = read_file(source)
-            except (InputError, OSError) as e:
-                row.update(status="bad", reason=getattr(e, "reason", None) or one_line(e))
-                continue
-            sha, row["stamp"] = source.sha256, source.stamp
-            row["hash_s"] = time.perf_counter() - t
-        key = measurement_key(sha, msettings)
-        row.update(sha256=sha, key=key)
-        if lk.has_observations(sess.camera_id, sess.session_id, name, key):
-            row["status"] = "cached"
-            continue
-        t = time.perf_counter()
-        try:
-            table = pipeline.measure(prepared, name, source)
-        except ImageError as e:
-            row.update(status="bad", reason=e.reason, measure_s=time.perf_counter() - t)
-            continue
-        row["measure_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        meta = dict(table.schema.metadata or {})
-        meta.update({b"fieldcal.image_sha256": sha.encode(),
-                     b"fieldcal.measure": canonical_json(msettings)})
-        lk.write_observations(sess.camera_id, sess.session_id, name, key,
-                              table.replace_schema_metadata(meta))
-        row.update(status="measured", n_rows=int(table.num_rows), write_s=time.perf_counter() - t)
+        stamp = None if sha is not None else file_stamp(prepared.session.image_path(name))
+        row = batch.measure_into_lake(prepared, name, lk, sha)
+        row["stamp"] = stamp
+        rows.append(row)
     return {"rows": rows, "task_s": time.perf_counter() - t_task, "worker": worker, "pid": os.getpid(),
             "rss_peak_mb": _peak_rss_mb()}
 
 
 @task(name="solve", cache_policy=NO_CACHE, persist_result=False)
 def solve_session(prepared: pipeline.Prepared, lake: str, storage_options: dict | None,
-                  keys: dict[str, str], left_out: list[dict], fingerprint: str
+                  keys: dict[str, str], left_out: list[dict], fingerprint: str, show_progress: bool = True
                   ) -> tuple[pipeline.Outcome, dict[str, float]]:
     """Read the observations back from the lake and calibrate (:func:`fieldcal.pipeline.solve`).
 
     ``keys`` maps every measured image to its observations' cache key; ``left_out`` lists
     the images that could not be measured (``{image, status, reason}``). Returns the
     outcome and the times [s] of reading the observations (``read_s``) and of the
-    solver itself (``solver_s``).
+    solver itself (``solver_s``). The outcome leaves the solver's own result object
+    behind (``result`` None): its matrices are ~70 MB for a 24-image session, and the
+    flow needs only the document, the arrays and the residuals, which on a Dask cluster
+    travel back from the worker.
     """
     t = time.perf_counter()
-    lk = Lake(lake, storage_options)
-    sess = prepared.session
-    measurements = {}
-    for name, key in keys.items():
-        table = lk.read_observations(sess.camera_id, sess.session_id, name, key)
-        if table is None:
-            raise LakeError(f"the observations of {name} are missing from {lk.url} (removed during the run?)")
-        measurements[name] = _strip_meta(table)
+    measurements = batch.read_observations(prepared, Lake(lake, storage_options), keys)
     read_s = time.perf_counter() - t
     t = time.perf_counter()
-    outcome = pipeline.solve(prepared, measurements, fingerprint_=fingerprint,
-                             progress=lambda text: progress.emit("note", text=text), left_out=left_out)
+    note = (lambda text: progress.emit("note", text=text)) if show_progress else None
+    outcome = pipeline.solve(prepared, measurements, fingerprint_=fingerprint, progress=note, left_out=left_out)
+    outcome.result = None
     return outcome, {"read_s": read_s, "solver_s": time.perf_counter() - t}
 
 
@@ -334,286 +225,236 @@ def commit_version(lake: str, storage_options: dict | None, outcome: pipeline.Ou
 # --------------------------------------------------------------------------------------
 # the fan-out
 # --------------------------------------------------------------------------------------
-def _runner_threads(runner) -> tuple[int, float]:
-    """(worker threads, seconds it took to reach / start the cluster) of the flow's task runner."""
+def _dask_runner() -> DaskTaskRunner | None:
+    runner = FlowRunContext.get().task_runner
+    return runner if isinstance(runner, DaskTaskRunner) else None
+
+
+def _cluster_threads(runner: DaskTaskRunner) -> tuple[int, float]:
+    """(worker threads, seconds it took to reach or start the cluster) of a Dask task runner."""
     t = time.perf_counter()
-    client = getattr(runner, "client", None)  # a DaskTaskRunner starts its cluster here
-    if client is not None:
-        return cluster.worker_count(client), time.perf_counter() - t
-    return int(getattr(runner, "_max_workers", None) or os.cpu_count() or 1), 0.0
+    client = runner.client                 # connects, or starts the local cluster, on first use
+    return cluster.worker_count(client), time.perf_counter() - t
 
 
-@flow(name="measure-images", persist_result=False, validate_parameters=False)
-def measure_images(session: str, settings: dict | None, names: list[str], known: dict[str, str],
-                   lake: str, storage_options: dict | None = None, batch_size: int | None = None) -> dict:
-    """Fan the images out as :func:`measure_batch` tasks (batch size chosen by measurement).
+class _Collector:
+    """Results of the measuring tasks as they come back: rows, per-task figures, progress."""
 
-    Returns
-    -------
-    dict
-        ``rows`` (per image, see :func:`measure_batch`), ``tasks`` (per task: ``n``,
-        ``wall_s``, ``task_s``, ``submit_s``, ``worker``, ``rss_peak_mb``), ``batches``
-        (the sizes planned after the probes), ``batch_size`` (the largest), ``n_workers``,
-        ``cluster_s`` (time to start or reach the cluster [s]), ``estimate`` (``image_s``,
-        ``overhead_s`` from the probe) and ``body_s`` (this flow's own time [s]; the rest
-        of its run is Prefect's start and end of a flow run and the shutdown of a cluster
-        it started).
-    """
-    t_body = time.perf_counter()
-    logger = get_run_logger()
-    prepared = pipeline.prepare(session, _settings(settings))
-    progress.emit("stage", text="starting the Dask cluster" if getattr(FlowRunContext.get().task_runner,
-                                                                        "address", None) is None
-                  else "connecting to the Dask cluster")
-    n_workers, cluster_s = _runner_threads(FlowRunContext.get().task_runner)
-    logger.info(f"{len(names)} image(s) to measure on {n_workers} worker thread(s) "
-                f"(cluster ready in {cluster_s:.1f} s)")
-    queue = list(names)
-    submitted: dict = {}
-    total = len(queue)
-    counts = {"done": 0, "cached": 0, "bad": 0}
+    def __init__(self, total: int, logger):
+        self.rows: list[dict] = []
+        self.tasks: list[dict] = []
+        self.counts = {"done": 0, "cached": 0, "bad": 0}
+        self.total = total
+        self.logger = logger
+        self.submitted: dict = {}
+        progress.emit("images", total=total, **self.counts)
 
-    def submit(batch):
+    def submit(self, prepared, batch_names, known, lake, storage_options):
         t0 = time.perf_counter()
-        fut = measure_batch.submit(prepared, batch, {n: known[n] for n in batch if n in known}, lake,
+        fut = measure_batch.submit(prepared, batch_names, {n: known[n] for n in batch_names if n in known}, lake,
                                    storage_options)
-        submitted[fut] = (batch, t0, time.perf_counter() - t0)
+        self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
 
-    def collect(fut, tasks, rows):
-        batch, t0, submit_s = submitted[fut]
+    def collect(self, fut) -> dict:
+        names, t0, submit_s = self.submitted[fut]
         res = fut.result()
-        wall = time.perf_counter() - t0
-        rows.extend(res["rows"])
-        tasks.append({"n": len(batch), "wall_s": wall, "task_s": res["task_s"], "submit_s": submit_s,
-                      "worker": res["worker"], "pid": res["pid"], "rss_peak_mb": res["rss_peak_mb"]})
-        counts["done"] += len(batch)
-        counts["cached"] += sum(r["status"] == "cached" for r in res["rows"])
-        counts["bad"] += sum(r["status"] == "bad" for r in res["rows"])
+        self.rows.extend(res["rows"])
+        self.tasks.append({"n": len(names), "wall_s": time.perf_counter() - t0, "task_s": res["task_s"],
+                           "submit_s": submit_s, "worker": res["worker"], "pid": res["pid"],
+                           "rss_peak_mb": res["rss_peak_mb"]})
+        self.counts["done"] += len(names)
         for r in res["rows"]:
+            if r["status"] in ("cached", "bad"):
+                self.counts[r["status"]] += 1
             if r["status"] == "bad":
-                logger.warning(f"{r['image']}: {r['reason']} (left out)")
-        progress.emit("images", total=total, **counts)
+                self.logger.warning(f"{r['image']}: {r['reason']} (left out)")
+        progress.emit("images", total=self.total, **self.counts)
         return res
 
-    rows: list[dict] = []
-    tasks: list[dict] = []
-    estimate = None
-    progress.emit("images", total=total, **counts)
+
+def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
+            storage_options: dict | None, batch_size: int | None, n_workers: int) -> dict:
+    """Submit :func:`measure_batch` tasks to the current flow's task runner and collect them.
+
+    With ``batch_size`` every task takes that many images; otherwise the first wave is
+    one image per worker (probes) and the rest follows :func:`fieldcal.batch.plan_batches`
+    from the first probe's figures. Call it inside a flow. Returns ``rows`` (per image, in
+    ``names`` order), ``tasks`` (per task: ``n``, ``wall_s``, ``task_s``, ``submit_s``,
+    ``worker``, ``pid``, ``rss_peak_mb``), ``batches`` (the sizes planned after the probes),
+    ``batch_size`` (the largest) and ``estimate`` (``image_s``, ``overhead_s``, or None).
+    """
+    logger = get_run_logger()
+    c = _Collector(len(names), logger)
+    queue, first, sizes, estimate = list(names), [], [], None
     if batch_size:
         b = max(1, int(batch_size))
         sizes = [min(b, len(queue) - i) for i in range(0, len(queue), b)]
-        first = []
     else:
-        first = [submit([n]) for n in queue[:n_workers]]
+        first = [c.submit(prepared, [n], known, lake, storage_options) for n in queue[:n_workers]]
         queue = queue[n_workers:]
-        sizes = []
         if queue:
             probe = next(iter(as_completed(first)))
-            res = collect(probe, tasks, rows)
             first.remove(probe)
+            res = c.collect(probe)
             work = [r["hash_s"] + r["measure_s"] + r["write_s"] for r in res["rows"]]
             image_s = statistics.median(work) if work else 0.0
-            overhead_s = max(0.0, tasks[-1]["wall_s"] - res["task_s"])
-            sizes = plan_batches(len(queue), n_workers, image_s, overhead_s)
+            overhead_s = max(0.0, c.tasks[-1]["wall_s"] - res["task_s"])
+            sizes = batch.plan_batches(len(queue), n_workers, image_s, overhead_s)
             estimate = {"image_s": image_s, "overhead_s": overhead_s}
             logger.info(f"probe: {image_s:.3f} s per image, {overhead_s:.3f} s overhead per task "
                         f"-> {len(sizes)} batches of {sizes[0]} down to {sizes[-1]} images")
     rest, i = [], 0
     for size in sizes:
-        rest.append(submit(queue[i:i + size]))
+        rest.append(c.submit(prepared, queue[i:i + size], known, lake, storage_options))
         i += size
     for fut in as_completed(first + rest):
-        collect(fut, tasks, rows)
-    order = {n: i for i, n in enumerate(names)}
-    rows.sort(key=lambda r: order[r["image"]])
-    return {"rows": rows, "tasks": tasks, "batches": sizes, "batch_size": max(sizes, default=1),
-            "n_workers": n_workers, "cluster_s": cluster_s, "estimate": estimate,
-            "body_s": time.perf_counter() - t_body}
+        c.collect(fut)
+    order = {n: k for k, n in enumerate(names)}
+    c.rows.sort(key=lambda r: order[r["image"]])
+    return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),
+            "estimate": estimate}
 
 
-# --------------------------------------------------------------------------------------
-# the flow
-# --------------------------------------------------------------------------------------
-def _run_name() -> str:
-    from prefect.runtime import flow_run
-
-    return f"calibrate-{Path(str(flow_run.parameters.get('session', 'session'))).name}"
-
-
-def _observation_listing(lk: Lake, camera_id: str, session_id: str) -> set[str]:
-    return lk.cached_observations(camera_id, session_id)
+def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size) -> dict:
+    t_body = time.perf_counter()
+    progress.emit("stage", text="connecting to the Dask cluster" if runner.address else "starting the Dask cluster")
+    n_workers, cluster_s = _cluster_threads(runner)
+    get_run_logger().info(f"{len(names)} image(s) to measure on {n_workers} worker thread(s) "
+                          f"(cluster ready in {cluster_s:.1f} s)")
+    out = fan_out(prepared, names, known, lake, storage_options, batch_size, n_workers)
+    out.update(n_workers=n_workers, cluster_s=cluster_s, body_s=time.perf_counter() - t_body)
+    return out
 
 
-@flow(name="calibrate-session", flow_run_name=_run_name, persist_result=False)
-def calibrate_session(session: str, lake: str, storage_options: dict | None = None, force: bool = False,
-                      settings: dict | None = None, dask_address: str | None = None,
-                      n_workers: int = cluster.DEFAULT_WORKERS, batch_size: int | None = None,
-                      cluster_kwargs: dict | None = None, rehash: bool = False) -> dict:
-    """Calibrate one session folder into the lake (see the module docstring).
+@flow(name="measure-images", persist_result=False, validate_parameters=False)
+def measure_images(session: str, settings: dict | None, names: list[str], known: dict[str, str],
+                   lake: str, storage_options: dict | None = None, batch_size: int | None = None) -> dict:
+    """Measure ``names`` on this sub-flow's Dask task runner (:func:`fan_out`).
 
-    Parameters
-    ----------
-    session : str
-        The session folder (docs/conventions.md section 3), on a filesystem the Dask workers see
-        under the same path.
-    lake : str
-        The lake: a local path or an fsspec URL (``s3://bucket/prefix``).
-    storage_options : dict, optional
-        fsspec options of the lake (e.g. ``{"endpoint_url": ...}``). They are flow
-        parameters, stored by the Prefect server: give credentials through the
-        environment (``AWS_ACCESS_KEY_ID`` ...) rather than here.
-    force : bool
-        Make a new version even when these inputs and settings are committed already.
-    settings : dict, optional
-        :class:`fieldcal.pipeline.Settings` fields (``targets_adjusted``, ``solver``,
-        ``rigorous_goniometer``); part of the inputs' fingerprint.
-    dask_address : str, optional
-        Scheduler of an existing Dask cluster (else ``$FIELDCAL_DASK_ADDRESS``, else a
-        temporary local cluster of ``n_workers`` single-threaded worker processes).
-    n_workers : int
-        Workers of the temporary local cluster.
-    batch_size : int, optional
-        Images per measuring task; default: chosen by measurement (module docstring).
-    cluster_kwargs : dict, optional
-        Extra :class:`distributed.LocalCluster` arguments.
-    rehash : bool
-        Hash every image from its bytes (ignore the remembered hashes; the new ones are
-        remembered).
-
-    Returns
-    -------
-    dict
-        ``version`` (str), ``new`` (False when the inputs were committed already),
-        ``status`` (``"committed"`` or ``"unchanged"``), ``camera_id``, ``session_id``,
-        ``method``, ``lake``, ``fingerprint``, ``images`` (counts: ``total``, ``measured``,
-        ``cached``, ``bad``, ``hashed``), ``left_out`` (``{image, status, reason}``),
-        ``summary`` (the solver's lines), ``measure`` (the fan-out's figures, or None),
-        ``timings`` (seconds per step: ``validate_s``, ``lookup_s``, ``measure_s`` (the
-        sub-flow, cluster start included), ``solve_s`` (the task; of it
-        ``read_observations_s`` and ``solver_s``), ``commit_s``, ``total_s``).
+    Returns what :func:`fan_out` returns plus ``n_workers``, ``cluster_s`` (time to start or
+    reach the cluster [s]) and ``body_s`` (this flow's own time [s]; the rest of its run is
+    Prefect's start and end of a flow run and the shutdown of a cluster it started).
     """
-    logger = get_run_logger()
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
+    prepared = pipeline.prepare(session, _settings(settings))
+    return _measure_on(_dask_runner(), prepared, names, known, lake, storage_options, batch_size)
 
-    def lap(name, t0):
-        timings[name] = time.perf_counter() - t0
 
+# --------------------------------------------------------------------------------------
+# the flow's steps
+# --------------------------------------------------------------------------------------
+@dataclass
+class _Run:
+    """What one run of :func:`calibrate_session` has learnt so far."""
+
+    session: str
+    lake: str
+    storage_options: dict | None
+    settings: dict | None
+    logger: object
+    t_start: float = field(default_factory=time.perf_counter)
+    timings: dict = field(default_factory=dict)
+    prepared: pipeline.Prepared | None = None
+    plan: batch.SessionPlan | None = None
+    counts: dict = field(default_factory=dict)
+    keys: dict = field(default_factory=dict)
+    measured: dict | None = None
+    on_cluster: bool = False
+
+    def lap(self, name: str, t0: float) -> None:
+        self.timings[name] = time.perf_counter() - t0
+
+    def base(self) -> dict:
+        sess = self.prepared.session
+        return {"session": str(self.session), "camera_id": sess.camera_id, "session_id": sess.session_id,
+                "method": sess.method, "lake": Lake(self.lake, self.storage_options).url}
+
+
+def _plan(run: _Run, rehash: bool, force: bool) -> None:
+    """Step 2: hashes known by file stamp, then :func:`fieldcal.batch.plan_session`."""
     t = time.perf_counter()
-    progress.emit("stage", text=f"validating {session}")
-    prepared = validate_session(session, settings)
-    lap("validate_s", t)
-    sess = prepared.session
-    lk = Lake(lake, storage_options)
-    logger.info(f"{sess.camera_id} / {sess.session_id}: {sess.method} method, "
-                f"{len(prepared.to_measure)} image(s) to measure, lake {lk.url}")
+    prepared = run.prepared
+    known = {} if rehash else known_hashes(prepared)
+    run.plan = batch.plan_session(prepared, Lake(run.lake, run.storage_options), known, force=force)
+    run.keys = dict(run.plan.cached)
+    run.counts = {"total": len(prepared.to_measure), "measured": 0, "cached": len(run.plan.cached),
+                  "bad": len(run.plan.missing), "hashed": 0}
+    run.lap("lookup_s", t)
 
-    # what is known without reading an image
+
+def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> None:
+    """Step 3: measure the images left on Dask; remember the new hashes."""
+    plan, todo = run.plan, run.plan.todo
     t = time.perf_counter()
-    paths = {n: os.fspath(sess.image_path(n)) for n in prepared.to_measure}
-    remembered = {}
-    if not rehash:
-        with HashCache() as store:
-            remembered = store.lookup(paths.values())
-    hashes = {n: remembered[p] for n, p in paths.items() if p in remembered}
-    bad: dict[str, str] = {}
-    for n, p in paths.items():
-        if n not in hashes and file_stamp(p) is None:
-            bad[n] = "file not found" if not os.path.exists(p) else "not a regular file"
-            hashes[n] = "missing"
-    msettings = measure_settings(prepared)
-    base = dict(session=str(session), camera_id=sess.camera_id, session_id=sess.session_id,
-                method=sess.method, lake=lk.url)
-    counts = {"total": len(paths), "measured": 0, "cached": 0, "bad": len(bad), "hashed": 0}
+    progress.emit("stage", text=f"measuring {len(todo)} image(s)"
+                  + (f" ({run.counts['cached']} cached)" if run.counts["cached"] else ""))
+    known = {n: plan.hashes[n] for n in todo if n in plan.hashes}
+    runner = _dask_runner()
+    if runner is not None:
+        run.on_cluster = True
+        run.measured = _measure_on(runner, run.prepared, todo, known, run.lake, run.storage_options, batch_size)
+    else:
+        sub = measure_images.with_options(task_runner=cluster.task_runner(dask_address, n_workers, cluster_kwargs))
+        run.measured = sub(str(run.session), run.settings, todo, known, run.lake, run.storage_options, batch_size)
+    run.lap("measure_s", t)
+    stamps = []
+    for r in run.measured["rows"]:
+        if r["sha256"]:
+            plan.hashes[r["image"]] = r["sha256"]
+            if r["stamp"] is not None:
+                stamps.append((os.fspath(run.prepared.session.image_path(r["image"])), r["sha256"], r["stamp"]))
+                run.counts["hashed"] += 1
+        if r["status"] == "bad":
+            plan.missing[r["image"]] = r["reason"]
+            plan.hashes.setdefault(r["image"], batch.UNREADABLE)
+        else:
+            run.keys[r["image"]] = r["key"]
+            run.counts[r["status"]] += 1
+    run.counts["bad"] = len(plan.missing)
+    with HashCache() as store:
+        store.remember(stamps)
 
-    def unchanged(version, fp):
-        lap("total_s", t_start)
-        logger.info(f"unchanged: version {version} has the same inputs and settings (use force for a new one)")
-        progress.emit("note", text=f"unchanged: version {version} was made from the same inputs and settings")
-        return dict(base, version=version, new=False, status="unchanged", fingerprint=fp,
-                    images=counts, left_out=[{"image": n, "status": "left out", "reason": r}
-                                             for n, r in bad.items()],
-                    summary=[], measure=None, timings=timings)
 
-    if not force and len(hashes) == len(paths):
-        fp = pipeline.input_fingerprint(prepared, hashes)
-        existing = lk.find_committed(fp)
-        if existing is not None:
-            counts["cached"] = len(paths) - len(bad)
-            lap("lookup_s", t)
-            return unchanged(existing, fp)
-    listing = _observation_listing(lk, sess.camera_id, sess.session_id) if paths else set()
-    keys: dict[str, str] = {}
-    todo = []
-    for n in prepared.to_measure:
-        if n in bad:
-            continue
-        if n in hashes:
-            key = measurement_key(hashes[n], msettings)
-            if observations_key(n, key) in listing:
-                keys[n] = key
-                counts["cached"] += 1
-                continue
-        todo.append(n)
-    lap("lookup_s", t)
+def _unchanged(run: _Run, version: str, fp: str) -> dict:
+    run.lap("total_s", run.t_start)
+    run.logger.info(f"unchanged: version {version} has the same inputs and settings (use force for a new one)")
+    progress.emit("note", text=f"unchanged: version {version} was made from the same inputs and settings")
+    if not run.measured:
+        run.counts["cached"] = run.counts["total"] - run.counts["bad"]
+    return dict(run.base(), version=version, new=False, status="unchanged", fingerprint=fp, images=run.counts,
+                left_out=[{"image": n, "status": "left out", "reason": r} for n, r in run.plan.missing.items()],
+                summary=[], measure=run.measured, timings=run.timings)
 
-    # measure on Dask
-    measured = None
-    if todo:
-        t = time.perf_counter()
-        progress.emit("stage", text=f"measuring {len(todo)} image(s)"
-                      + (f" ({counts['cached']} cached)" if counts["cached"] else ""))
-        runner = cluster.task_runner(dask_address, n_workers, cluster_kwargs)
-        measured = measure_images.with_options(task_runner=runner)(
-            str(session), settings, todo, {n: hashes[n] for n in todo if n in hashes}, lake,
-            storage_options, batch_size)
-        lap("measure_s", t)
-        stamps = []
-        for r in measured["rows"]:
-            if r["sha256"]:
-                hashes[r["image"]] = r["sha256"]
-                if r["stamp"] is not None:
-                    stamps.append((paths[r["image"]], r["sha256"], r["stamp"]))
-                    counts["hashed"] += 1
-            if r["status"] == "bad":
-                bad[r["image"]] = r["reason"]
-                hashes.setdefault(r["image"], "unreadable")
-            else:
-                keys[r["image"]] = r["key"]
-                counts[r["status"]] += 1
-        counts["bad"] = len(bad)
-        with HashCache() as store:
-            store.remember(stamps)
 
-    fp = pipeline.input_fingerprint(prepared, hashes)
-    if not force:
-        existing = lk.find_committed(fp)
-        if existing is not None:
-            result = unchanged(existing, fp)
-            result["measure"] = measured
-            return result
-
-    left_out = [{"image": n, "status": "left out", "reason": r} for n, r in bad.items()]
+def _solve_and_commit(run: _Run, fp: str, force: bool) -> dict:
+    """Steps 4-5: solve (on the cluster when the flow runs on one), then commit."""
+    sess = run.prepared.session
+    left_out = [{"image": n, "status": "left out", "reason": r} for n, r in run.plan.missing.items()]
     t = time.perf_counter()
     progress.emit("stage", text=f"solving ({sess.method} method)")
-    outcome, solve_times = solve_session(prepared, lake, storage_options, keys, left_out, fp)
-    lap("solve_s", t)
-    timings["read_observations_s"] = solve_times["read_s"]
-    timings["solver_s"] = solve_times["solver_s"]
+    args = (run.prepared, run.lake, run.storage_options, run.keys, left_out, fp, not progress.is_quiet())
+    runner = _dask_runner()
+    if runner is not None and (runner.address or run.on_cluster):
+        outcome, solve_times = solve_session.submit(*args).result()
+    else:
+        outcome, solve_times = solve_session(*args)
+    run.lap("solve_s", t)
+    run.timings["read_observations_s"] = solve_times["read_s"]
+    run.timings["solver_s"] = solve_times["solver_s"]
     t = time.perf_counter()
     progress.emit("stage", text="committing")
-    version, new = commit_version(lake, storage_options, outcome, force)
-    lap("commit_s", t)
-    lap("total_s", t_start)
+    version, new = commit_version(run.lake, run.storage_options, outcome, force)
+    run.lap("commit_s", t)
+    run.lap("total_s", run.t_start)
     for line in outcome.summary:
-        logger.info(line)
-    for item in _left_out(outcome.left_out):
-        logger.warning(f"left out {item.get('image')}: {item.get('reason')}")
-    logger.info(f"{'committed' if new else 'unchanged'}: version {version}")
-    return dict(base, version=version, new=new, status="committed" if new else "unchanged", fingerprint=fp,
-                images=counts, left_out=_left_out(outcome.left_out), summary=list(outcome.summary),
-                measure=measured, timings=timings)
+        run.logger.info(line)
+    left = _left_out(outcome.left_out)
+    for item in left:
+        run.logger.warning(f"left out {item.get('image')}: {item.get('reason')}")
+    run.logger.info(f"{'committed' if new else 'unchanged'}: version {version}")
+    return dict(run.base(), version=version, new=new, status="committed" if new else "unchanged", fingerprint=fp,
+                images=run.counts, left_out=left, summary=list(outcome.summary), measure=run.measured,
+                timings=run.timings)
 
 
 def _left_out(items: list[dict]) -> list[dict]:
@@ -628,3 +469,79 @@ def _left_out(items: list[dict]) -> list[dict]:
                     for k, v in item.items()})
     return out
 
+
+def _run_name() -> str:
+    from prefect.runtime import flow_run
+
+    return f"calibrate-{Path(str(flow_run.parameters.get('session', 'session'))).name}"
+
+
+# --------------------------------------------------------------------------------------
+# the flow
+# --------------------------------------------------------------------------------------
+@flow(name="calibrate-session", flow_run_name=_run_name, persist_result=False)
+def calibrate_session(session: str, lake: str, storage_options: dict | None = None, force: bool = False,
+                      settings: dict | None = None, dask_address: str | None = None,
+                      n_workers: int = cluster.DEFAULT_WORKERS, batch_size: int | None = None,
+                      cluster_kwargs: dict | None = None, rehash: bool = False) -> dict:
+    """Calibrate one session folder into the lake (see the module docstring).
+
+    Parameters
+    ----------
+    session : str
+        The session folder (CONTRACT section 3), on a filesystem the Dask workers see
+        under the same path.
+    lake : str
+        The lake: a local path or an fsspec URL (``s3://bucket/prefix``).
+    storage_options : dict, optional
+        fsspec options of the lake (e.g. ``{"endpoint_url": ...}``). They are flow
+        parameters, stored by the Prefect server: give credentials through the
+        environment (``AWS_ACCESS_KEY_ID`` ...) rather than here.
+    force : bool
+        Make a new version even when these inputs and settings are committed already.
+    settings : dict, optional
+        :class:`fieldcal.pipeline.Settings` fields (``targets_adjusted``, ``solver``,
+        ``rigorous_goniometer``); part of the inputs' fingerprint.
+    dask_address : str, optional
+        When the flow's own task runner is not a Dask one: the scheduler of an existing
+        cluster for the measuring sub-flow (else ``$FIELDCAL_DASK_ADDRESS``, else a
+        temporary local cluster of ``n_workers`` single-threaded workers).
+    n_workers : int
+        Workers of that temporary local cluster.
+    batch_size : int, optional
+        Images per measuring task; default: chosen by measurement (module docstring).
+    cluster_kwargs : dict, optional
+        Extra :class:`distributed.LocalCluster` arguments.
+    rehash : bool
+        Hash every image from its bytes (ignore the remembered hashes; the new ones are
+        remembered).
+
+    Returns
+    -------
+    dict
+        ``version`` (str), ``new`` (False when the inputs were committed already),
+        ``status`` (``"committed"`` or ``"unchanged"``), ``session``, ``camera_id``,
+        ``session_id``, ``method``, ``lake``, ``fingerprint``, ``images`` (counts:
+        ``total``, ``measured``, ``cached``, ``bad``, ``hashed``), ``left_out`` (``{image,
+        status, reason}``), ``summary`` (the solver's lines), ``measure`` (the fan-out's
+        figures, or None), ``timings`` (seconds per step: ``validate_s``, ``lookup_s``,
+        ``measure_s`` (cluster start included), ``solve_s`` (of it ``read_observations_s``
+        and ``solver_s``), ``commit_s``, ``total_s``).
+    """
+    run = _Run(session, lake, storage_options, settings, get_run_logger())
+    t = time.perf_counter()
+    progress.emit("stage", text=f"validating {session}")
+    run.prepared = validate_session(session, settings)
+    run.lap("validate_s", t)
+    sess = run.prepared.session
+    run.logger.info(f"{sess.camera_id} / {sess.session_id}: {sess.method} method, "
+                    f"{len(run.prepared.to_measure)} image(s) to measure, lake {run.base()['lake']}")
+    _plan(run, rehash, force)
+    if run.plan.unchanged is not None:
+        return _unchanged(run, run.plan.unchanged, run.plan.fingerprint)
+    if run.plan.todo:
+        _measure(run, dask_address, n_workers, cluster_kwargs, batch_size)
+    fp, existing = batch.unchanged_version(run.prepared, Lake(lake, storage_options), run.plan.hashes)
+    if existing is not None and not force:
+        return _unchanged(run, existing, fp)
+    return _solve_and_commit(run, fp, force)

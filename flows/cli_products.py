@@ -39,50 +39,37 @@ import os
 import sys
 from pathlib import Path
 
-from fieldcal.errors import FieldcalError, InputError
+from fieldcal import progress
+from flows.cli_common import (
+    EXIT_ERROR,
+    EXIT_USAGE,
+    LAKE_ENV,
+    OPTIONS_ENV,
+    UsageError,
+    add_lake_arguments,
+    check_input_file,
+    check_output_file,
+    open_lake,
+    progress_sink,
+    resolve_version,
+)
 
 __all__ = ["add_commands", "history_extras", "history_handler", "resolve_version",
-           "open_lake", "EXIT_ERROR", "EXIT_USAGE", "EXIT_NOT_EXACT"]
+           "open_lake", "EXIT_ERROR", "EXIT_USAGE", "EXIT_NOT_EXACT", "LAKE_ENV", "OPTIONS_ENV"]
 
-EXIT_ERROR = 1
-EXIT_USAGE = 2
 EXIT_NOT_EXACT = 3
-LAKE_ENV = "FIELDCAL_LAKE"
-OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
 
 
 # --------------------------------------------------------------------------------------
 # shared arguments
 # --------------------------------------------------------------------------------------
 def _add_lake(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--lake", default=None,
-                   help=f"the lake: a path or fsspec URL (default: ${LAKE_ENV})")
-    p.add_argument("--storage-options", metavar="JSON", default=None,
-                   help=f"fsspec options of the lake as JSON (default: ${OPTIONS_ENV})")
+    add_lake_arguments(p)
 
 
 def _add_camera(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", default=None, metavar="ID",
                    help="camera id, to name a version as 'latest' (or 'previous')")
-
-
-def open_lake(args):
-    """The lake of ``--lake`` or ``$FIELDCAL_LAKE``."""
-    from fieldcal.lake.store import Lake
-
-    url = getattr(args, "lake", None) or os.environ.get(LAKE_ENV)
-    if not url:
-        raise InputError(f"no lake given: use --lake LAKE or set {LAKE_ENV}", "fieldcal")
-    text = getattr(args, "storage_options", None) or os.environ.get(OPTIONS_ENV)
-    options = None
-    if text:
-        try:
-            options = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise InputError(f"--storage-options is not JSON: {e.msg}", "fieldcal") from None
-        if not isinstance(options, dict):
-            raise InputError("--storage-options must be a JSON object", "fieldcal")
-    return Lake(url, options)
 
 
 def _lake_and_version(args):
@@ -91,48 +78,18 @@ def _lake_and_version(args):
     return lake, resolve_version(lake, args.version, args.camera)
 
 
-def resolve_version(lake, name: str, camera: str | None) -> str:
-    """A version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``)."""
-    if name not in ("latest", "previous"):
-        lake.row(name)                                  # checks it is committed
-        return name
-    if not camera:
-        raise InputError(f"'{name}' needs --camera ID", "fieldcal")
-    if name == "latest":
-        v = lake.latest(camera)
-        if v is None:
-            raise InputError(f"camera {camera!r} has no calibration in {lake.url}", "fieldcal")
-        return v
-    from fieldcal.lake import history
-
-    hist = history.camera_history(lake, camera).to_pylist()
-    latest = lake.latest(camera)
-    versions = [h["version"] for h in hist]
-    if latest in versions:
-        i = versions.index(latest)
-        if i > 0:
-            return versions[i - 1]
-    elif len(versions) >= 2:
-        return versions[-2]
-    raise InputError(f"camera {camera!r} has no calibration before its latest in {lake.url}",
-                     "fieldcal")
-
-
 def _run(fn):
-    """Wrap a command: fieldcal errors become one line on stderr and exit status 2 or 1."""
-    def run(args) -> int:
-        name = f"fieldcal {getattr(args, 'command', '') or ''}".rstrip()
-        try:
-            return int(fn(args) or 0)
-        except FieldcalError as e:
-            print(f"{name}: {' '.join(str(e).split())}", file=sys.stderr)
-            return EXIT_USAGE if isinstance(e, InputError) else EXIT_ERROR
-        except OSError as e:
-            print(f"{name}: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
-            return EXIT_ERROR
-    run.__doc__ = fn.__doc__
-    run.__name__ = fn.__name__
-    return run
+    """Mark a command function (kept for the commands registered here): errors propagate to
+    :func:`flows.cli.main`, which prints them as one line naming the command and sets the
+    exit status (2 for bad input, 1 otherwise)."""
+    return fn
+
+
+def _check_outputs(*pairs) -> None:
+    """Check every ``(path, option)`` output before any work (None paths are skipped)."""
+    for path, what in pairs:
+        if path:
+            check_output_file(path, what)
 
 
 def _write_text(text: str, out: str | None) -> None:
@@ -149,10 +106,14 @@ def _write_text(text: str, out: str | None) -> None:
 def _report(args) -> int:
     from fieldcal.products.report import write_report
 
+    if args.out and os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise UsageError(f"--out {args.out}: exists and is not a folder")
     lake = open_lake(args)
     version = resolve_version(lake, args.version, args.camera)
     out = args.out or f"fieldcal-report-{version}"
-    files = write_report(lake, version, out)
+    with progress.listening(progress_sink(sys.stderr)):
+        progress.emit("stage", text=f"report of {version}: reading the version and drawing the plots")
+        files = write_report(lake, version, out)
     print(files.html)
     return 0
 
@@ -191,6 +152,7 @@ def _compare(args) -> int:
     from fieldcal.products.compare import compare_calibrations
     from fieldcal.products.uncertainty import Calibration
 
+    _check_outputs((args.plot, "--plot"), (args.out, "--out"))
     lake = open_lake(args)
     va = resolve_version(lake, args.v1, args.camera)
     vb = resolve_version(lake, args.v2, args.camera)
@@ -214,6 +176,7 @@ def _export(args) -> int:
     from fieldcal.products.export import export_text
     from fieldcal.products.uncertainty import Calibration
 
+    _check_outputs((args.out, "--out"))
     cal = Calibration.from_lake(*_lake_and_version(args))
     exp = export_text(cal, args.format, model=args.model)
     for line in exp.report_lines():
@@ -231,6 +194,11 @@ def _undistort(args) -> int:
     from fieldcal.products.uncertainty import Calibration
     from fieldcal.products.undistort import undistort_file
 
+    check_input_file(args.image, "IMAGE")
+    check_output_file(args.output, "OUT")
+    if os.path.exists(args.output) and os.path.samefile(args.image, args.output):
+        raise UsageError(f"OUT {args.output} is the input image {args.image} (the same file): "
+                         "refusing to overwrite the photograph")
     cal = Calibration.from_lake(*_lake_and_version(args))
     doc = cal.document
     info = undistort_file(cal.camera, args.image, args.output, f_px=args.f_px,
@@ -384,6 +352,7 @@ def _history(args) -> int:
     from fieldcal.products import plots
     from fieldcal.products.report import fleet_summary, parameter_tolerance
 
+    _check_outputs((args.plot, "--plot"), (getattr(args, "out", None), "--out"))
     lake = open_lake(args)
     if args.fleet:
         table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
@@ -397,11 +366,11 @@ def _history(args) -> int:
         return 0
     camera = getattr(args, "camera", None)
     if not camera:
-        raise InputError("history --plot needs --camera ID (or --fleet)", "fieldcal history")
+        raise UsageError("--plot needs --camera ID (or --fleet)")
     names = _history_parameters(args)
     table = history.camera_history(lake, camera, names)
     if table.num_rows == 0:
-        raise InputError(f"camera {camera!r} has no calibration in {lake.url}", "fieldcal history")
+        raise UsageError(f"camera {camera!r} has no calibration in {lake.url}")
     from fieldcal.model.camera import Sensor
 
     row = lake.row(table["version"][0].as_py())

@@ -11,7 +11,8 @@ Writes into ``OUT/`` (default ``demo-out/``):
 - ``lake/``: the lake the flows commit into.
 
 Sessions already written by an earlier demo are reused, so a second ``make demo`` shows
-the reruns being recognised (no image is read, no version is added).
+the reruns being recognised (no image is read, no version is added, and no Prefect server
+is needed: the reruns are answered from the lake).
 """
 
 from __future__ import annotations
@@ -59,17 +60,83 @@ def _truth_table(doc: dict, truth: dict) -> list[str]:
     return lines
 
 
+def _synthetic(folder: Path, spec: dict, say) -> dict:
+    """Write a demo session (or reuse the one an earlier demo wrote); returns its truth."""
+    from flows.synth import write_synthetic
+
+    t = time.perf_counter()
+    if (folder / "truth.json").is_file():
+        say(f"   {folder.name}: reused ({folder})")
+        return json.loads((folder / "truth.json").read_text())
+    truth = write_synthetic(folder, **spec)
+    say(f"   {folder.name}: written in {time.perf_counter() - t:.1f} s ({folder})")
+    return truth
+
+
+def _unchanged(folder: Path, lake) -> dict | None:
+    """The result of a rerun answered from the lake (the inputs are calibrated), else None."""
+    from fieldcal import batch, pipeline
+    from flows.hashcache import known_hashes
+
+    prepared = pipeline.prepare(folder)
+    version = batch.plan_session(prepared, lake, known_hashes(prepared), find_cached=False).unchanged
+    if version is None:
+        return None
+    n = len(prepared.to_measure)
+    return {"status": "unchanged", "version": version, "left_out": [],
+            "images": {"measured": 0, "cached": n, "bad": 0}}
+
+
+def _run_all(out: Path, sessions, lake_path: Path, n_workers, dask_address, note_stream, api, say) -> dict:
+    """``fieldcal run`` of every demo session: from the lake when unchanged, else the flow."""
+    from fieldcal import progress
+    from fieldcal.lake.store import Lake
+    from flows.cli_common import is_tty, progress_sink
+
+    results, todo = {}, []
+    for name, _ in sessions:
+        t = time.perf_counter()
+        r = _unchanged(out / "sessions" / name, Lake(lake_path))
+        if r is None:
+            todo.append(name)
+        else:
+            results[name] = r
+            _say_result(say, name, r, time.perf_counter() - t)
+    if not todo:
+        return results
+    note = (lambda s: progress.emit("note", text=s)) if is_tty(note_stream) else None
+    with progress.listening(progress_sink(note_stream)), (api(note=note) if api else contextlib.nullcontext()):
+        from flows import cluster
+        from flows.calibrate import calibrate_session
+
+        for name in todo:
+            t = time.perf_counter()
+            runner = cluster.task_runner(dask_address, n_workers)
+            r = calibrate_session.with_options(task_runner=runner)(str(out / "sessions" / name), str(lake_path))
+            results[name] = r
+            _say_result(say, name, r, time.perf_counter() - t)
+    return results
+
+
+def _say_result(say, name: str, r: dict, seconds: float) -> None:
+    img = r["images"]
+    say(f"   {name}: {r['status']} {r['version']} in {seconds:.1f} s "
+        f"(images: {img['measured']} measured, {img['cached']} cached, {img['bad']} bad)")
+    for item in r["left_out"]:
+        say(f"      left out {item.get('image')}: {item.get('reason')}")
+
+
 def run_demo(out="demo-out", *, n_workers: int = 2, dask_address: str | None = None, with_images: str = "auto",
              stream=None, note_stream=None, api=None) -> int:
     """Run the demo (module docstring); prints to ``stream``, returns the exit status.
 
     ``api`` is a context manager factory that provides a Prefect API
-    (:func:`flows.cli.prefect_api`); ``with_images`` is ``"auto"``, ``"yes"`` or ``"no"``.
+    (:func:`flows.server.prefect_api`); ``with_images`` is ``"auto"``, ``"yes"`` or ``"no"``.
     """
     from fieldcal import progress
     from fieldcal.lake import history
     from fieldcal.lake.store import Lake
-    from flows.cli import _progress_sink, _tty, describe, write_synthetic
+    from flows.cli_common import describe, progress_sink
 
     stream = stream or sys.stdout
     note_stream = note_stream or sys.stderr
@@ -89,33 +156,12 @@ def run_demo(out="demo-out", *, n_workers: int = 2, dask_address: str | None = N
 
     say(f"== 1. synthetic sessions in {out / 'sessions'}")
     truths = {}
-    for name, spec in sessions:
-        folder = out / "sessions" / name
-        t = time.perf_counter()
-        if (folder / "truth.json").is_file():
-            truths[name] = json.loads((folder / "truth.json").read_text())
-            say(f"   {name}: reused ({folder})")
-        else:
-            truths[name] = write_synthetic(folder, **spec)
-            say(f"   {name}: written in {time.perf_counter() - t:.1f} s ({folder})")
+    with progress.listening(progress_sink(note_stream)):
+        for name, spec in sessions:
+            truths[name] = _synthetic(out / "sessions" / name, spec, say)
 
     say(f"== 2. fieldcal run (Prefect flow, Dask: {dask_address or f'local cluster of {n_workers} workers'})")
-    results = {}
-    note = (lambda s: progress.emit("note", text=s)) if _tty(note_stream) else None
-    with progress.listening(_progress_sink(note_stream)), (api(note=note) if api else contextlib.nullcontext()):
-        from flows.calibrate import calibrate_session
-
-        for name, _ in sessions:
-            t = time.perf_counter()
-            r = calibrate_session(str(out / "sessions" / name), str(lake_path), dask_address=dask_address,
-                                  n_workers=n_workers)
-            results[name] = r
-            img = r["images"]
-            say(f"   {name}: {r['status']} {r['version']} in {time.perf_counter() - t:.1f} s "
-                f"(images: {img['measured']} measured, {img['cached']} cached, {img['bad']} bad)")
-            for item in r["left_out"]:
-                say(f"      left out {item.get('image')}: {item.get('reason')}")
-
+    results = _run_all(out, sessions, lake_path, n_workers, dask_address, note_stream, api, say)
     lake = Lake(lake_path)
     say("== 3. fieldcal show")
     for name, _ in sessions:
@@ -124,11 +170,12 @@ def run_demo(out="demo-out", *, n_workers: int = 2, dask_address: str | None = N
         for line in describe(doc):
             say("   " + line)
         say("   calibration next to the truth it was made from:")
-        for line in _truth_table(doc, truths[name]):
-            say("   " + line)
         if truths[name].get("noise_free"):
             say("   (goniometer: the minimum-sum-of-squares principal point and distance are conventions of the")
-            say("    method; compare them with the method's own values on noise-free data of the same set-up)")
+            say("    method, far from the lens design's in sigmas; compare them with the method's own values on")
+            say("    noise-free data of the same set-up, the last two columns)")
+        for line in _truth_table(doc, truths[name]):
+            say("   " + line)
 
     say("== 4. fieldcal history (latest calibration of every camera)")
     table = history.fleet(lake).select(["camera_id", "session_id", "version", "method", "f_mm", "sigma_f_mm",

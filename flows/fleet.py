@@ -1,133 +1,125 @@
-"""Recalibrate a fleet: every session under a root that has no committed calibration yet.
+"""Recalibrate a fleet: every session under a root that has no committed calibration yet, in parallel.
 
 :func:`recalibrate_fleet` (Prefect flow ``recalibrate-fleet``) is what a schedule runs
-(``deploy/prefect.yaml``, or ``fieldcal serve``, which serves :func:`fleet_deployment`
-from one process):
+(``fieldcal serve``, which serves :func:`fleet_deployment` from one process, or
+``deploy/prefect.yaml`` with a work pool):
 
-1. **scan** the root of sessions: every folder with a ``session.json``, directly under the
-   root or one level deeper (``ROOT/<session>/`` or ``ROOT/<camera>/<session>/``). The
-   root is a local path or an fsspec URL; by default ``<lake>/sessions`` (raw sessions
-   kept in the lake's bucket). Each manifest is read for its ``camera_id`` and
-   ``session_id`` (default: the folder's name).
-2. **select** the sessions whose ``(camera_id, session_id)`` has no version in the lake's
-   catalog.
-3. **calibrate** each with :func:`flows.calibrate.calibrate_session` (a sub-flow run per
-   session). Sessions on an object store are copied to a temporary local folder first
-   (the measuring code reads local files). One Dask cluster serves all of them: the
-   scheduler at ``dask_address``, or a local cluster started when the first session with
-   images needs it. A failing session is recorded with its reason and the others go on.
-4. **summary**: returned (a dict) and logged, one line per session.
+1. **scan** the root (task): :func:`fieldcal.fleet.scan_sessions` finds every folder with
+   a ``session.json`` (``ROOT/<session>/`` or ``ROOT/<camera>/<session>/``; a local path
+   or an fsspec URL, by default ``<lake>/sessions``) and loads it with the session
+   loader. A folder that does not load is reported with its reason.
+2. **select**: :func:`fieldcal.fleet.select_sessions`: the sessions whose ``(camera_id,
+   session_id)`` has no version in the lake; the others keep their latest version.
+3. **calibrate** the selected sessions concurrently: one task :func:`calibrate_one` per
+   session on the flow's thread pool (at most ``max_sessions`` at once), each running
+   :func:`flows.calibrate.calibrate_session` as a sub-flow whose task runner is the
+   fleet's Dask cluster: the images of every session and the sessions' solves are tasks on
+   the same workers. The cluster is the scheduler at ``dask_address`` (or
+   ``$FIELDCAL_DASK_ADDRESS``), else a local cluster started for the run. Sessions on an
+   object store are copied to a temporary local folder first. A failing session is
+   recorded with its reason and never stops the others.
+4. **progress and summary**: "session 3 of 5: cam / session: committed VERSION (12.3 s)" in
+   the flow run's logs (and on a terminal), and a summary with every session found and
+   its version, new or existing.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
-import os
-import posixpath
-import tempfile
 import time
-from dataclasses import dataclass
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
+from prefect.futures import as_completed
+from prefect.task_runners import ThreadPoolTaskRunner
 
+from fieldcal import fleet as fleet_lib
+from fieldcal import progress
 from fieldcal.errors import one_line
 from fieldcal.lake.store import Lake
-from fieldcal.session.loader import default_session_id
 
 from . import cluster
 from .calibrate import calibrate_session
 
-__all__ = ["recalibrate_fleet", "scan_sessions", "FoundSession", "fleet_deployment", "serve_fleet",
-           "DEFAULT_CRON", "DEPLOYMENT_NAME"]
+__all__ = ["recalibrate_fleet", "calibrate_one", "scan_sessions", "fleet_deployment", "serve_fleet",
+           "DEFAULT_CRON", "DEPLOYMENT_NAME", "MAX_THREADS"]
 
 DEFAULT_CRON = "0 2 * * *"
 """Every night at 02:00 UTC."""
 DEPLOYMENT_NAME = "nightly"
-
-
-@dataclass
-class FoundSession:
-    """A session folder found under the root."""
-
-    folder: str                  # local path or URL of the folder
-    camera_id: str | None
-    session_id: str | None
-    has_images: bool = True      # False: a field session with observations.csv (nothing to measure)
-    error: str | None = None     # why its manifest could not be read
-
-
-def _filesystem(root: str, storage_options: dict | None):
-    """(fsspec filesystem or None for local, root path without protocol)."""
-    text = os.fspath(root)
-    if "://" in text and not text.startswith("file://"):
-        import fsspec
-
-        fs, path = fsspec.core.url_to_fs(text, **(storage_options or {}))
-        return fs, path.rstrip("/")
-    if text.startswith("file://"):
-        text = text[len("file://"):]
-    return None, os.path.abspath(text)
-
+MAX_THREADS = 32
+"""Threads of the fleet flow's task runner (each session's task mostly waits on the cluster)."""
 
 
 @task(name="scan-sessions", cache_policy=NO_CACHE, persist_result=False)
-def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundSession]:
-    """Session folders under ``root`` (see the module docstring), sorted by path."""
-    fs, base = _filesystem(root, storage_options)
-    patterns = ("*/session.json", "*/*/session.json")
-    if fs is None:
-        import glob
+def scan_sessions(root: str, storage_options: dict | None = None) -> list[fleet_lib.FoundSession]:
+    """Session folders under ``root`` loaded by the session loader (:func:`fieldcal.fleet.scan_sessions`)."""
+    return fleet_lib.scan_sessions(root, storage_options)
 
-        manifests = sorted({p for pat in patterns for p in glob.glob(os.path.join(base, pat))})
+
+def _label(index: int, total: int, s: fleet_lib.FoundSession) -> str:
+    return f"session {index} of {total}: {s.camera_id} / {s.session_id}"
+
+
+@task(name="calibrate-one", cache_policy=NO_CACHE, persist_result=False,
+      task_run_name="calibrate-{found.camera_id}-{found.session_id}")
+def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: str, storage_options: dict | None,
+                  root_options: dict | None, address: str, n_workers: int, settings: dict | None,
+                  batch_size: int | None) -> dict:
+    """Calibrate one session of the fleet on the shared cluster; never raises.
+
+    Returns the session's summary entry: ``folder``, ``camera_id``, ``session_id``,
+    ``status`` ("committed" | "unchanged" | "failed"), ``version``, ``new``, ``reason``,
+    ``seconds``.
+    """
+    logger = get_run_logger()
+    label = _label(index, total, found)
+    entry = fleet_lib.entry(found)
+    logger.info(f"{label}: started")
+    progress.emit("note", text=f"{label}: started")
+    t = time.perf_counter()
+    try:
+        with fleet_lib.local_copy(found.folder, root_options) as folder, progress.quiet():
+            runner = cluster.task_runner(address, n_workers)
+            state = calibrate_session.with_options(task_runner=runner)(
+                folder, lake, storage_options=storage_options, settings=settings, batch_size=batch_size,
+                return_state=True)
+            outcome = state.result(raise_on_failure=False)
+    except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
+        outcome = e
+    entry["seconds"] = round(time.perf_counter() - t, 3)
+    if isinstance(outcome, BaseException):
+        entry.update(status="failed", reason=one_line(outcome))
+        logger.error(f"{label}: failed: {entry['reason']}")
+        progress.emit("note", text=f"{label}: failed ({entry['seconds']:.1f} s): {entry['reason']}")
     else:
-        fs.invalidate_cache(base)
-        manifests = sorted({p for pat in patterns for p in fs.glob(f"{base}/{pat}")})
-    found = []
-    for m in manifests:
-        folder = posixpath.dirname(m) if fs is not None else os.path.dirname(m)
-        url = fs.unstrip_protocol(folder) if fs is not None else folder
-        try:
-            if fs is None:
-                with open(m, "rb") as f:
-                    raw = f.read()
-                has_obs = os.path.isfile(os.path.join(folder, "observations.csv"))
-            else:
-                raw = fs.cat_file(m)
-                has_obs = fs.exists(f"{folder}/observations.csv")
-            manifest = json.loads(raw)
-            if not isinstance(manifest, dict):
-                raise ValueError("session.json must be a JSON object")
-            camera_id = manifest.get("camera_id")
-            if not isinstance(camera_id, str) or not camera_id:
-                raise ValueError("session.json has no camera_id")
-            session_id = default_session_id(manifest, folder)
-            has_images = manifest.get("method") == "goniometer" or not has_obs
-            found.append(FoundSession(url, camera_id, str(session_id), has_images))
-        except (OSError, ValueError) as e:
-            found.append(FoundSession(url, None, None, error=f"{m}: {one_line(e)}"))
-    return found
+        entry.update(status=outcome["status"], version=outcome["version"], new=bool(outcome["new"]))
+        logger.info(f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
+        progress.emit("note", text=f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
+    return entry
 
 
 @contextlib.contextmanager
-def _local_copy(folder: str, storage_options: dict | None):
-    """The session folder itself when local, else a temporary local copy (removed afterwards)."""
-    fs, path = _filesystem(folder, storage_options)
-    if fs is None:
-        yield path
+def _cluster(address: str | None, n_workers: int, cluster_kwargs: dict | None, logger):
+    """The scheduler address to use: the given one, else a local cluster for the block."""
+    address = cluster.dask_address(address)
+    if address is not None:
+        yield address
         return
-    with tempfile.TemporaryDirectory(prefix="fieldcal-session-") as tmp:
-        local = os.path.join(tmp, path.rstrip("/").rsplit("/", 1)[-1])
-        fs.get(path.rstrip("/") + "/", local + "/", recursive=True)
-        yield local
+    import distributed
+
+    t = time.perf_counter()
+    with distributed.LocalCluster(**cluster.local_cluster_kwargs(n_workers, cluster_kwargs)) as local:
+        logger.info(f"started a local Dask cluster of {n_workers} worker(s) in {time.perf_counter() - t:.1f} s")
+        yield local.scheduler_address
 
 
-@flow(name="recalibrate-fleet", persist_result=False)
+@flow(name="recalibrate-fleet", persist_result=False, task_runner=ThreadPoolTaskRunner(max_workers=MAX_THREADS))
 def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict | None = None,
                       root_storage_options: dict | None = None, dask_address: str | None = None,
                       n_workers: int = cluster.DEFAULT_WORKERS, settings: dict | None = None,
-                      batch_size: int | None = None, cluster_kwargs: dict | None = None) -> dict:
+                      batch_size: int | None = None, cluster_kwargs: dict | None = None,
+                      max_sessions: int | None = None) -> dict:
     """Calibrate every session under ``root`` that has no committed calibration in ``lake``.
 
     Parameters
@@ -140,71 +132,72 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
         fsspec options of the lake (non-secret: they are stored with the flow run).
     root_storage_options : dict, optional
         fsspec options of the root (default: ``storage_options``).
-    dask_address, n_workers, settings, batch_size, cluster_kwargs
-        As for :func:`flows.calibrate.calibrate_session`; one cluster serves all sessions.
+    dask_address, n_workers, cluster_kwargs
+        The cluster all sessions share: a scheduler address (else
+        ``$FIELDCAL_DASK_ADDRESS``), or a local cluster of ``n_workers`` workers.
+    settings, batch_size
+        As for :func:`flows.calibrate.calibrate_session`.
+    max_sessions : int, optional
+        Sessions calibrated at once (default: twice the cluster's worker threads, so that
+        one session's validation and commit overlap with the others' work on the cluster).
 
     Returns
     -------
     dict
         ``lake``, ``root``, ``sessions`` (per session found: ``folder``, ``camera_id``,
         ``session_id``, ``status`` ("committed" | "unchanged" | "failed" | "calibrated
-        already"), ``version``, ``reason``, ``seconds``), and the counts ``n_found``,
-        ``n_committed``, ``n_failed``, ``n_skipped``.
+        already"), ``version`` (new or existing), ``new``, ``reason``, ``seconds``), and the
+        counts ``n_found``, ``n_committed``, ``n_failed``, ``n_skipped``.
     """
     logger = get_run_logger()
     root = root or (str(lake).rstrip("/") + "/sessions")
     root_options = root_storage_options if root_storage_options is not None else storage_options
     found = scan_sessions(root, root_options)
-    calibrated = set(Lake(lake, storage_options).sessions_with_calibration())
-    logger.info(f"{len(found)} session(s) under {root}, {len(calibrated)} calibrated in the lake")
-
-    results = []
-    address = cluster.dask_address(dask_address)
-    with contextlib.ExitStack() as stack:
-        for s in found:
-            entry = {"folder": s.folder, "camera_id": s.camera_id, "session_id": s.session_id,
-                     "status": None, "version": None, "reason": None, "seconds": 0.0}
-            results.append(entry)
-            if s.error:
-                entry.update(status="failed", reason=s.error)
-                logger.error(f"{s.folder}: {s.error}")
-                continue
-            if (s.camera_id, s.session_id) in calibrated:
-                entry["status"] = "calibrated already"
-                continue
-            if address is None and s.has_images:
-                import distributed
-
-                local = stack.enter_context(distributed.LocalCluster(
-                    **cluster.local_cluster_kwargs(n_workers, cluster_kwargs)))
-                address = local.scheduler_address
-                logger.info(f"started a local Dask cluster of {n_workers} worker(s) at {address}")
-            t = time.perf_counter()
-            try:
-                with _local_copy(s.folder, root_options) as folder:
-                    state = calibrate_session(folder, lake, storage_options=storage_options,
-                                              settings=settings, dask_address=address, n_workers=n_workers,
-                                              batch_size=batch_size, cluster_kwargs=cluster_kwargs,
-                                              return_state=True)
-                    outcome = state.result(raise_on_failure=False)
-            except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
-                outcome = e
-            entry["seconds"] = round(time.perf_counter() - t, 3)
-            if isinstance(outcome, BaseException):
-                entry.update(status="failed", reason=one_line(outcome))
-                logger.error(f"{s.camera_id} / {s.session_id}: failed: {entry['reason']}")
-            else:
-                entry.update(status=outcome["status"], version=outcome["version"])
-                logger.info(f"{s.camera_id} / {s.session_id}: {outcome['status']} {outcome['version']}")
-    summary = {
-        "lake": str(lake), "root": str(root), "sessions": results, "n_found": len(found),
-        "n_committed": sum(r["status"] == "committed" for r in results),
-        "n_failed": sum(r["status"] == "failed" for r in results),
-        "n_skipped": sum(r["status"] in ("calibrated already", "unchanged") for r in results),
-    }
+    todo = fleet_lib.select_sessions(found, Lake(lake, storage_options))
+    logger.info(f"{len(found)} session(s) under {root}: {len(todo)} to calibrate, "
+                f"{sum(1 for s in found if s.error)} that do not load")
+    results: dict = {}
+    for s in found:
+        if s.error:
+            logger.error(f"{s.folder}: {s.error}")
+    if todo:
+        with _cluster(dask_address, n_workers, cluster_kwargs, logger) as address:
+            threads = n_workers if cluster.dask_address(dask_address) is None else _threads(address)
+            at_once = max(1, int(max_sessions or 2 * threads))
+            logger.info(f"calibrating {len(todo)} session(s), at most {at_once} at once, on {address}")
+            args = (len(todo), lake, storage_options, root_options, address, n_workers, settings, batch_size)
+            results = {id(s): r for s, r in zip(todo, _calibrate_all(todo, at_once, args), strict=True)}
+    summary = fleet_lib.summarize(lake, root, found, results)
     logger.info(f"fleet: {summary['n_found']} found, {summary['n_committed']} committed, "
                 f"{summary['n_failed']} failed, {summary['n_skipped']} skipped")
     return summary
+
+
+def _calibrate_all(todo: list, at_once: int, args: tuple) -> list[dict]:
+    """Run :func:`calibrate_one` for every session, at most ``at_once`` at a time; entries in order."""
+    results: list = [None] * len(todo)
+    pending: dict = {}
+    queue = list(enumerate(todo))
+
+    def submit_next():
+        k, s = queue.pop(0)
+        pending[calibrate_one.submit(s, k + 1, *args)] = k
+
+    while queue and len(pending) < at_once:
+        submit_next()
+    while pending:
+        fut = next(iter(as_completed(list(pending))))
+        results[pending.pop(fut)] = fut.result()
+        if queue:
+            submit_next()
+    return results
+
+
+def _threads(address: str) -> int:
+    import distributed
+
+    with distributed.Client(address, timeout=60) as client:
+        return cluster.worker_count(client)
 
 
 def fleet_deployment(lake: str, root: str | None = None, *, name: str = DEPLOYMENT_NAME,
@@ -229,4 +222,4 @@ def serve_fleet(lake: str, root: str | None = None, **kwargs) -> None:
     """Serve :func:`fleet_deployment` from this process until interrupted (``fieldcal serve``)."""
     from prefect import serve
 
-    serve(fleet_deployment(lake, root, **kwargs), print_starting_message=True)
+    serve(fleet_deployment(lake, root, **kwargs), print_starting_message=False)

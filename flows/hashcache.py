@@ -29,7 +29,7 @@ from pathlib import Path
 
 from fieldcal.measure.imageio import stat_stamp
 
-__all__ = ["HashCache", "file_stamp", "default_path"]
+__all__ = ["HashCache", "file_stamp", "default_path", "known_hashes"]
 
 ENV = "FIELDCAL_HASH_CACHE"
 
@@ -146,3 +146,16 @@ class HashCache:
         except sqlite3.Error:
             return 0
         return len(rows)
+
+
+def known_hashes(prepared, path="default") -> dict[str, str]:
+    """``{image: sha256}`` of a prepared session's images whose stamp matches a remembered one.
+
+    ``prepared`` is a :class:`fieldcal.pipeline.Prepared`; no image is read.
+    """
+    paths = {n: os.fspath(prepared.session.image_path(n)) for n in prepared.to_measure}
+    if not paths:
+        return {}
+    with HashCache(path) as store:
+        remembered = store.lookup(paths.values())
+    return {n: remembered[p] for n, p in paths.items() if p in remembered}

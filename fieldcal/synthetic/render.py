@@ -87,6 +87,7 @@ import pyarrow as pa
 import tifffile
 from scipy import ndimage
 
+from fieldcal import progress
 from fieldcal.errors import InputError
 from fieldcal.field.data import FieldObservations
 from fieldcal.model.camera import Camera, Sensor
@@ -1015,6 +1016,7 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
             truth[name] = r.truth
             layouts[name] = dict(layout)
             del r
+            progress.emit("images", done=k + 1, total=len(idx), label="rendering images")
     return {"folder": str(folder), "session": session, "images": names, "truth": truth,
             "layouts": layouts, "marks": marks}
 

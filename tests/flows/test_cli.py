@@ -1,8 +1,10 @@
-"""The ``fieldcal`` command line: run (CONTRACT section 5), history, show, fleet, serve, synth, demo.
+"""The ``fieldcal`` command line: run (CONTRACT section 5), history, show, fleet, serve, synth.
 
 ``fieldcal run`` is exercised as a real subprocess (piped: stdout must be the version and
 nothing else) against the test session's Prefect server; the other commands run in this
-process through :func:`flows.cli.main`.
+process through :func:`flows.cli.main`. "Input first": the commands that must not reach a
+server are given an API address where nothing listens (``UNREACHABLE``), so any attempt to
+use Prefect would fail them.
 """
 
 import csv
@@ -19,10 +21,11 @@ from fieldcal.lake.store import Lake
 from fieldcal.progress import TerminalProgress, emit, listening
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.render import write_field_session
-from flows import cli
+from flows import cli, cli_common, server
 
 ROOT = Path(__file__).resolve().parents[2]
 FIELDCAL = str(Path(sys.executable).with_name("fieldcal"))
+UNREACHABLE = "http://127.0.0.1:9/api"          # the discard port: nothing listens there
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_server")]
 
 
@@ -34,6 +37,11 @@ def env_for(prefect_server, tmp_path, **extra):
     return env
 
 
+def fieldcal(*args, env, cwd, timeout=300):
+    return subprocess.run([FIELDCAL, *map(str, args)], capture_output=True, text=True, env=env, cwd=cwd,
+                          timeout=timeout)
+
+
 @pytest.fixture(scope="module")
 def cli_run(prefect_server, tmp_path_factory):
     """``fieldcal run`` in a subprocess, piped, the lake from FIELDCAL_LAKE: (lake, process, json path)."""
@@ -43,8 +51,8 @@ def cli_run(prefect_server, tmp_path_factory):
                         acquired="2026-04-01T10:00:00Z")
     lake = tmp / "lake"
     out_json = tmp / "doc.json"
-    proc = subprocess.run([FIELDCAL, "run", str(folder), "--json", str(out_json)], capture_output=True, text=True,
-                          env=env_for(prefect_server, tmp, FIELDCAL_LAKE=str(lake)), cwd=tmp, timeout=300)
+    proc = fieldcal("run", folder, "--json", out_json, env=env_for(prefect_server, tmp, FIELDCAL_LAKE=str(lake)),
+                    cwd=tmp)
     return lake, proc, out_json, folder
 
 
@@ -59,15 +67,15 @@ def test_run_prints_only_the_version_when_piped_and_writes_the_document(cli_run)
     assert doc["camera_id"] == "cam-cli" and doc["schema"] == "fieldcal.calibration/1"
 
 
-def test_bad_input_is_one_line_naming_the_file_exit_2_and_nothing_in_the_lake(prefect_server, tmp_path):
+def test_bad_input_is_one_line_naming_the_file_exit_2_and_nothing_in_the_lake(tmp_path):
     folder = tmp_path / "bad"
     write_field_session(folder, wide_field(seed=8), images=False, observations_csv=True)
     lines = (folder / "targets.csv").read_text().splitlines()
     lines[3] = lines[3].split(",")[0] + ",not-a-number,1,2,,"
     (folder / "targets.csv").write_text("\n".join(lines) + "\n")
     lake = tmp_path / "lake"
-    proc = subprocess.run([FIELDCAL, "run", str(folder), "--lake", str(lake)], capture_output=True, text=True,
-                          env=env_for(prefect_server, tmp_path), cwd=tmp_path, timeout=300)
+    # no Prefect server can be reached: the session is refused before one is looked for
+    proc = fieldcal("run", folder, "--lake", lake, env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stdout == ""
     (line,) = proc.stderr.splitlines()
@@ -75,10 +83,44 @@ def test_bad_input_is_one_line_naming_the_file_exit_2_and_nothing_in_the_lake(pr
     assert not lake.exists()
 
 
+@pytest.mark.parametrize("what", ["missing folder", "empty folder"])
+def test_a_session_that_is_not_there_is_refused_without_a_server(tmp_path, what):
+    folder = tmp_path / "nothing"
+    if what == "empty folder":
+        folder.mkdir()
+    proc = fieldcal("run", folder, "--lake", tmp_path / "lake", env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"fieldcal run: {folder}") and ("not found" in line or "session.json" in line)
+    assert not (tmp_path / "lake").exists()
+
+
+def test_an_output_path_that_cannot_be_written_is_refused_before_any_work(cli_run, tmp_path):
+    _, _, _, folder = cli_run
+    lake = tmp_path / "lake"
+    proc = fieldcal("run", folder, "--lake", lake, "--json", tmp_path / "missing" / "out.json",
+                    env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    missing = tmp_path / "missing"
+    assert proc.stderr == f"fieldcal run: --json {missing / 'out.json'}: no folder {missing}\n"
+    assert not lake.exists()                         # nothing committed
+
+
+def test_a_rerun_of_unchanged_inputs_is_answered_from_the_lake_without_a_server(cli_run, tmp_path):
+    lake, proc, _, folder = cli_run
+    out_json = tmp_path / "again.json"
+    again = fieldcal("run", folder, "--lake", lake, "--json", out_json, env=env_for(UNREACHABLE, tmp_path),
+                     cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert again.stdout == proc.stdout and again.stderr == ""
+    assert json.loads(out_json.read_text())["version"] == proc.stdout.strip()
+    assert len(Lake(lake).catalog()) == 1
+
+
 def test_run_without_a_lake_is_a_usage_error(monkeypatch, capsys, tmp_path):
     monkeypatch.delenv("FIELDCAL_LAKE", raising=False)
     assert cli.main(["run", str(tmp_path)]) == 2
-    assert capsys.readouterr().err.strip() == "fieldcal run: no lake: give --lake LAKE or set FIELDCAL_LAKE"
+    assert capsys.readouterr().err == "fieldcal run: no lake: give --lake LAKE or set FIELDCAL_LAKE\n"
 
 
 class Terminal(io.StringIO):
@@ -86,17 +128,16 @@ class Terminal(io.StringIO):
         return True
 
 
-def test_run_on_a_terminal_shows_the_extraction_progress(prefect_server, tmp_path, monkeypatch, capsys):
+def test_run_on_a_terminal_shows_the_extraction_progress(tmp_path, monkeypatch, capsys):
     from fieldcal.synthetic.goniometer import write_session
 
     write_session(tmp_path / "lab", "canon5d2", seed=9, raster_scale=0.25, frames_per_angle=1, camera_id="cam-t")
     monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
-    monkeypatch.setattr(cli, "_prefect_env", lambda verbose: None)     # keep this process's environment
+    monkeypatch.setattr(server, "quiet_prefect", lambda verbose: None)     # keep this process's environment
     term = Terminal()
     monkeypatch.setattr(sys, "stderr", term)
     # the default local cluster: in-process workers of this run's own, started in no time
-    status = cli.main(["run", str(tmp_path / "lab"), "--lake", str(tmp_path / "lake"),
-                       "--batch-size", "20"])
+    status = cli.main(["run", str(tmp_path / "lab"), "--lake", str(tmp_path / "lake"), "--batch-size", "20"])
     out = capsys.readouterr().out
     assert status == 0
     version = out.strip()
@@ -108,7 +149,7 @@ def test_run_on_a_terminal_shows_the_extraction_progress(prefect_server, tmp_pat
 
 
 # --------------------------------------------------------------------------------------
-# history and show
+# history and show; no silent empty answers
 # --------------------------------------------------------------------------------------
 def test_history_of_a_camera_as_table_csv_and_json(cli_run, capsys):
     lake, proc, _, _ = cli_run
@@ -125,7 +166,7 @@ def test_history_of_a_camera_as_table_csv_and_json(cli_run, capsys):
     (row,) = json.loads(capsys.readouterr().out)
     assert row["camera_id"] == "cam-cli" and row["acquired"] == "2026-04-01T10:00:00Z"
     assert cli.main(["history", "--lake", str(lake), "--from", "2026-05-01", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out) == []
+    assert json.loads(capsys.readouterr().out) == []                # a date range may be empty
 
 
 def test_history_sql_and_its_errors(cli_run, capsys, monkeypatch):
@@ -135,8 +176,27 @@ def test_history_sql_and_its_errors(cli_run, capsys, monkeypatch):
     assert capsys.readouterr().out == "camera_id,n_images\ncam-cli,24\n"
     assert cli.main(["history", "--sql", "SELECT nope FROM catalog"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("fieldcal history: sql: ") and "nope" in err and err.count("\n") == 1
-    assert cli.main(["history", "--sql", "SELECT 1", "--camera", "x"]) == 2
+    assert err.startswith("fieldcal history: ") and "nope" in err and err.count("\n") == 1
+    assert "sql:" not in err                                         # no internal context word
+    assert cli.main(["history", "--sql", "SELECT 1", "--camera", "cam-cli"]) == 2
+
+
+def test_unknown_camera_version_and_lake_are_errors_that_say_what_exists(cli_run, capsys, tmp_path):
+    lake, proc, _, _ = cli_run
+    version = proc.stdout.strip()
+    assert cli.main(["history", "--lake", str(lake), "--camera", "cam-clj"]) == 2
+    assert capsys.readouterr().err == (f"fieldcal history: camera 'cam-clj' has no calibration in {lake}; "
+                                       "closest: cam-cli\n")
+    assert cli.main(["show", "latest", "--camera", "nobody", "--lake", str(lake)]) == 2
+    assert capsys.readouterr().err == (f"fieldcal show: camera 'nobody' has no calibration in {lake}; "
+                                       "1 camera(s): cam-cli\n")
+    typo = version[:-1] + ("0" if version[-1] != "0" else "1")
+    assert cli.main(["show", typo, "--lake", str(lake)]) == 2
+    assert capsys.readouterr().err == f"fieldcal show: no version '{typo}' in {lake}; closest: {version}\n"
+    for argv in (["history", "--camera", "cam-cli"], ["show", "latest", "--camera", "cam-cli"],
+                 ["history", "--sql", "SELECT 1"]):
+        assert cli.main([*argv, "--lake", str(tmp_path / "nolake")]) == 2
+        assert capsys.readouterr().err == f"fieldcal {argv[0]}: no lake at {tmp_path / 'nolake'}\n"
 
 
 def test_show_a_version_and_the_latest_of_a_camera(cli_run, capsys):
@@ -147,28 +207,70 @@ def test_show_a_version_and_the_latest_of_a_camera(cli_run, capsys):
     assert f"version   {version}" in text and "f_mm" in text and "rmse_px" in text
     assert cli.main(["show", "latest", "--camera", "cam-cli", "--lake", str(lake), "--format", "json"]) == 0
     assert json.loads(capsys.readouterr().out) == Lake(lake).load_document(version)
-    assert cli.main(["show", "latest", "--camera", "nobody", "--lake", str(lake)]) == 1
-    assert "no calibration of camera 'nobody'" in capsys.readouterr().err
     assert cli.main(["show", "latest", "--lake", str(lake)]) == 2
 
 
-# --------------------------------------------------------------------------------------
-# fleet, serve, synth, demo
-# --------------------------------------------------------------------------------------
-def test_fleet_command_reports_each_session(cli_run, capsys, monkeypatch):
-    lake, _, _, folder = cli_run
-    monkeypatch.setattr(cli, "_prefect_env", lambda verbose: None)
-    assert cli.main(["fleet", str(folder.parent), "--lake", str(lake), "--format", "json"]) == 0
-    summary = json.loads(capsys.readouterr().out)
-    assert [(s["camera_id"], s["status"]) for s in summary["sessions"]] == [("cam-cli", "calibrated already")]
+def test_a_closed_pipe_ends_a_command_quietly(cli_run, tmp_path):
+    lake, _, _, _ = cli_run
+    # the reader is gone before the command writes (`fieldcal history ... | head -1` once head has exited)
+    proc = subprocess.Popen([FIELDCAL, "history", "--lake", lake, "--sql", "SELECT range AS n FROM range(1000)",
+                             "--format", "csv"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
+    proc.stdout.close()
+    with proc.stderr:
+        err = proc.stderr.read()
+    assert proc.wait(timeout=300) == 141                          # as a command killed by SIGPIPE
+    assert err == b""                                             # no BrokenPipeError, no traceback
 
 
-def test_serve_builds_the_scheduled_deployment(monkeypatch, tmp_path):
+def test_one_line_messages_name_the_command_once_and_no_internal_function():
+    from fieldcal.errors import InputError, LakeError
+
+    assert cli_common.error_line("compare", InputError("'latest' needs --camera ID", "fieldcal")) == \
+        ("fieldcal compare: 'latest' needs --camera ID", 2)
+    assert cli_common.error_line("history", InputError("end '1' is before start '2'", "fleet")) == \
+        ("fieldcal history: end '1' is before start '2'", 2)
+    assert cli_common.error_line("run", InputError("empty value in column 'X'", "/s/targets.csv:4")) == \
+        ("fieldcal run: /s/targets.csv:4: empty value in column 'X'", 2)
+    assert cli_common.error_line("show", LakeError("cannot read /l/catalog: Permission denied")) == \
+        ("fieldcal show: cannot read /l/catalog: Permission denied", 1)
+    assert cli_common.error_line("run", ValueError("boom\nsecond line")) == \
+        ("fieldcal run: ValueError: boom second line (--verbose for details)", 1)
+
+
+# --------------------------------------------------------------------------------------
+# fleet, serve, synth
+# --------------------------------------------------------------------------------------
+def test_fleet_of_calibrated_sessions_answers_from_the_lake_with_their_versions(cli_run, tmp_path):
+    lake, proc, _, folder = cli_run
+    out = fieldcal("fleet", folder.parent, "--lake", lake, "--format", "json", env=env_for(UNREACHABLE, tmp_path),
+                   cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    (entry,) = json.loads(out.stdout)["sessions"]
+    assert (entry["camera_id"], entry["status"], entry["version"]) == ("cam-cli", "calibrated already",
+                                                                       proc.stdout.strip())
+
+
+def test_fleet_root_that_does_not_exist_or_holds_no_session_is_an_error(cli_run, capsys, tmp_path):
+    lake, _, _, _ = cli_run
+    assert cli.main(["fleet", str(tmp_path / "nowhere"), "--lake", str(lake)]) == 2
+    assert capsys.readouterr().err == f"fieldcal fleet: {tmp_path / 'nowhere'}: no folder of sessions there\n"
+    (tmp_path / "empty").mkdir()
+    assert cli.main(["fleet", str(tmp_path / "empty"), "--lake", str(lake)]) == 2
+    assert "no session under" in capsys.readouterr().err
+
+
+def test_serve_checks_its_input_and_builds_the_scheduled_deployment(monkeypatch, tmp_path, capsys):
     import flows.fleet
 
     seen = {}
-    monkeypatch.setattr(cli, "_prefect_env", lambda verbose: None)
+    monkeypatch.setattr(server, "quiet_prefect", lambda verbose: None)
     monkeypatch.setattr(flows.fleet, "serve_fleet", lambda lake, root, **kw: seen.update(lake=lake, root=root, **kw))
+    assert cli.main(["serve", "--lake", str(tmp_path), "--cron", "61 1 * * *"]) == 2
+    assert "is not a cron schedule" in capsys.readouterr().err and not seen
+    assert cli.main(["serve", "--lake", str(tmp_path), "--cron", "30 1 * * *"]) == 2     # no tmp_path/sessions
+    assert "no folder of sessions there" in capsys.readouterr().err and not seen
+    (tmp_path / "sessions").mkdir()
     assert cli.main(["serve", "--lake", str(tmp_path), "--cron", "30 1 * * *", "--workers", "3"]) == 0
     assert seen == {"lake": str(tmp_path), "root": None, "name": "nightly", "cron": "30 1 * * *",
                     "parameters": {"n_workers": 3}}
@@ -186,26 +288,17 @@ def test_synth_writes_a_valid_session_and_its_truth(tmp_path, capsys):
     truth = json.loads((tmp_path / "g" / "truth.json").read_text())
     assert truth["parameters"]["f_mm"] == 24.31 and abs(truth["noise_free"]["f_mm"] - 24.31) < 0.5
     assert cli.main(["synth", str(tmp_path / "x"), "--method", "field", "--scenario", "canon5d2"]) == 2
+    assert capsys.readouterr().err == ("fieldcal synth: field scenario must be 'paper' or 'wide', "
+                                       "got 'canon5d2'\n")
+    assert not (tmp_path / "x").exists()
 
 
-def test_demo_shows_versions_history_and_the_truth_and_its_rerun_is_recognised(dask_cluster, tmp_path,
-                                                                               monkeypatch):
-    from flows.demo import run_demo
-
-    monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
-    out = io.StringIO()
-    assert run_demo(tmp_path / "demo", dask_address=dask_cluster, with_images="no", stream=out,
-                    note_stream=io.StringIO()) == 0
-    text = out.getvalue()
-    for part in ("== 1. synthetic sessions", "== 2. fieldcal run", "== 3. fieldcal show", "== 4. fieldcal history",
-                 "calibration next to the truth", "canon5d2-demo", "ixu150-demo"):
-        assert part in text, part
-    assert text.count(": committed ") == 2
-    again = io.StringIO()
-    assert run_demo(tmp_path / "demo", dask_address=dask_cluster, with_images="no", stream=again,
-                    note_stream=io.StringIO()) == 0
-    assert again.getvalue().count(": unchanged ") == 2 and "reused" in again.getvalue()
-    assert len(Lake(tmp_path / "demo" / "lake").catalog()) == 2
+def test_synth_of_images_shows_the_rendering_progress_on_a_terminal(tmp_path, monkeypatch, capsys):
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert cli.main(["synth", str(tmp_path / "img"), "--method", "field", "--scenario", "wide", "--images",
+                     "--n-images", "2", "--scale", "0.1"]) == 0
+    assert "rendering images [" in term.getvalue() and "2/2" in term.getvalue()
 
 
 # --------------------------------------------------------------------------------------
@@ -222,5 +315,5 @@ def test_progress_goes_to_a_terminal_and_nowhere_else():
     assert "measuring 4 image(s) ..." in text
     assert "[###############...............] 2/4 (1 cached)" in text
     assert "4/4 (1 cached, 1 bad)" in text and text.endswith("\n")
-    assert cli._progress_sink(io.StringIO()) is None
-    assert isinstance(cli._progress_sink(Terminal()), TerminalProgress)
+    assert cli_common.progress_sink(io.StringIO()) is None
+    assert isinstance(cli_common.progress_sink(Terminal()), TerminalProgress)

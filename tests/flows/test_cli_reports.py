@@ -124,14 +124,34 @@ def test_history_plot_and_fleet(lake_env, tmp_path, capsys):
     assert len(json.loads(capsys.readouterr().out)) == 2
 
 
-def test_errors_are_one_line_with_a_status(lake_env, monkeypatch, tmp_path, capsys):
+def test_errors_are_one_line_naming_the_command_once(lake_env, monkeypatch, tmp_path, capsys):
     assert main(["report", "latest"]) == 2
-    assert "'latest' needs --camera ID" in capsys.readouterr().err
+    assert capsys.readouterr().err == "fieldcal report: 'latest' needs --camera ID\n"
     assert main(["export", "latest", "--camera", "nobody", "--format", "json"]) == 2
-    assert "camera 'nobody' has no calibration" in capsys.readouterr().err
-    assert main(["compare", "20990101T000000Z-00000000-0000", "latest", "--camera", "cam-f"]) == 1
-    assert "is not committed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("fieldcal export: camera 'nobody' has no calibration in ") and "camera(s): cam-" in err
+    assert main(["compare", "20990101T000000Z-00000000-0000", "latest", "--camera", "cam-f"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fieldcal compare: no version '20990101T000000Z-00000000-0000' in ")
+    assert "fieldcal compare: fieldcal" not in err and err.count("\n") == 1
+    no = tmp_path / "no"
+    assert main(["export", "latest", "--camera", "cam-f", "--format", "json", "--out", str(no / "x.json")]) == 2
+    assert capsys.readouterr().err == f"fieldcal export: --out {no / 'x.json'}: no folder {no}\n"
     monkeypatch.delenv("FIELDCAL_LAKE")
     assert main(["report", "x"]) == 2
-    err = capsys.readouterr().err
-    assert "no lake given" in err and len(err.strip().splitlines()) == 1
+    assert capsys.readouterr().err == "fieldcal report: no lake: give --lake LAKE or set FIELDCAL_LAKE\n"
+
+
+def test_undistort_refuses_to_write_over_its_input(lake_env, tmp_path, capsys):
+    img = np.random.default_rng(1).integers(0, 4000, (1353, 1804), dtype=np.uint16)
+    raw = tmp_path / "raw.tif"
+    tifffile.imwrite(raw, img)
+    before = raw.read_bytes()
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "link.tif").hardlink_to(raw)
+    for out in (raw, tmp_path / "sub" / ".." / "raw.tif", tmp_path / "link.tif"):
+        assert main(["undistort", "latest", "--camera", "cam-g", str(raw), str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"fieldcal undistort: OUT {out} is the input image {raw} (the same file): refusing to "
+                       "overwrite the photograph\n")
+    assert raw.read_bytes() == before

@@ -19,6 +19,7 @@ import tifffile
 import yaml
 import zarr
 
+from fieldcal import batch
 from fieldcal.errors import InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.lake import history
@@ -28,8 +29,7 @@ from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.render import write_field_session
-from flows import calibrate as flow_mod
-from flows.calibrate import calibrate_session, plan_batches
+from flows.calibrate import calibrate_session
 from flows.fleet import fleet_deployment, recalibrate_fleet
 from flows.hashcache import HashCache, file_stamp
 
@@ -113,7 +113,7 @@ def test_observations_are_cached_per_image_and_the_version_has_one_catalog_row(f
     # keyed by the image's content hash (with the measuring settings); the hash is in the row
     assert rows["image_sha256"] == sha256_file(gonio[0].folder / rows["image"])
     assert json.loads(rows["measure_settings"])["method"] == "goniometer"
-    assert rows["key"] == flow_mod.measurement_key(rows["image_sha256"], json.loads(rows["measure_settings"]))
+    assert rows["key"] == batch.measurement_key(rows["image_sha256"], json.loads(rows["measure_settings"]))
     assert lake.catalog()["version"].to_pylist() == [r["version"]]
 
 
@@ -124,8 +124,8 @@ def test_rerun_of_the_same_session_is_a_no_op_that_reads_no_image(first_run, gon
     def must_not_run(*a, **k):
         raise AssertionError("an image was read")
 
-    monkeypatch.setattr(flow_mod, "read_file", must_not_run)     # reads (and hashes) an image
-    monkeypatch.setattr(flow_mod.pipeline, "measure", must_not_run)
+    monkeypatch.setattr(batch, "read_file", must_not_run)     # reads (and hashes) an image
+    monkeypatch.setattr(batch.pipeline, "measure", must_not_run)
     again = calibrate_session(str(gonio[0].folder), str(lake_dir))
     assert again["status"] == "unchanged" and again["new"] is False
     assert again["version"] == r["version"] and again["fingerprint"] == r["fingerprint"]
@@ -332,21 +332,6 @@ def test_served_deployment_is_registered_with_its_schedule(prefect_server):
 # --------------------------------------------------------------------------------------
 # plain parts: batch sizes and the hash store
 # --------------------------------------------------------------------------------------
-def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
-    # full-size images: 1 s of work, 0.3 s overhead per task; 70 images on 2 workers
-    sizes = plan_batches(70, 2, 1.0, 0.3)
-    assert sum(sizes) == 70 and sizes[:4] == [18, 13, 10, 8] and sizes[-1] == 1
-    assert sizes == sorted(sizes, reverse=True)
-    # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames)
-    assert plan_batches(178, 2, 0.005, 0.5) == [100, 78]
-    # slow images and cheap tasks: the guided sizes alone
-    assert plan_batches(8, 2, 30.0, 0.1) == [2, 2, 1, 1, 1, 1]
-    # at most 60 s of work per task beyond the floor
-    assert max(plan_batches(1000, 2, 1.0, 0.1)) == 60
-    assert plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
-    assert plan_batches(0, 2, 1.0, 0.3) == []
-
-
 def test_hash_store_recognises_unchanged_files_and_forgets_rewritten_ones(tmp_path):
     f = tmp_path / "a.tif"
     f.write_bytes(b"abc")

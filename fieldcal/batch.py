@@ -1,0 +1,302 @@
+"""One session as a batch job: what is known already, what is left to measure, in which batches.
+
+The plain decisions of a calibration run, without any workflow engine, so that a notebook,
+the Prefect flows (``flows/``) and the command line make them the same way:
+
+- :func:`measure_settings` and :func:`measurement_key`: the key of an image's cached
+  observations in the lake, the SHA-256 of the image's content hash combined with what in
+  the session decides how it is measured (method, sensor, target polarity, coded-target
+  dictionary). An image is measured again when its bytes change or when the session
+  changes how it is measured, never otherwise.
+- :func:`plan_session`: from the image hashes known without reading an image (a
+  caller's hash store), which images are missing, which have cached observations, which
+  must be measured, and whether the whole run is a no-op (:attr:`SessionPlan.unchanged`:
+  a version with the same fingerprint of inputs and settings is committed already).
+- :func:`measure_into_lake`: hash (when unknown), look up and measure one image, and write
+  its observations into the lake; a bad image is a row with status ``"bad"``, not an
+  exception.
+- :func:`read_observations`: the cached observations of the measured images, for the solve.
+- :func:`plan_batches`: how many images each measuring task takes (guided
+  self-scheduling, from the measured cost per image and per task).
+
+The lake is used through its public methods only (``find_committed``, ``cached_keys``,
+``has_observations``, ``write_observations``, ``read_observations``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+from fieldcal import pipeline
+from fieldcal.errors import ImageError, InputError, LakeError, one_line
+from fieldcal.measure.imageio import read_file
+from fieldcal.session.fingerprint import canonical_json, sha256_bytes
+
+__all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
+           "unchanged_version", "cached_observations", "measure_into_lake", "read_observations",
+           "plan_batches", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
+
+TASKS_PER_WORKER = 2
+"""Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left."""
+MAX_TASK_S = 60.0
+"""Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
+MISSING = "missing"
+"""The stand-in hash of a listed image whose file is absent (part of the fingerprint)."""
+UNREADABLE = "unreadable"
+"""The stand-in hash of an image that could not be read or measured."""
+META_KEYS = (b"fieldcal.image", b"fieldcal.content_sha256", b"fieldcal.image_sha256", b"fieldcal.measure")
+"""Schema metadata the lake and :func:`measure_into_lake` add to an observations file."""
+
+
+# --------------------------------------------------------------------------------------
+# keys
+# --------------------------------------------------------------------------------------
+def measure_settings(prepared: pipeline.Prepared) -> dict:
+    """What in a session decides how its images are measured (part of the observations' key)."""
+    sess = prepared.session
+    out = {"method": sess.method, "sensor": sess.sensor.to_dict()}
+    if sess.method == "field":
+        out["target_polarity"] = sess.target_polarity
+        out["coded"] = sess.coded
+    return out
+
+
+def measurement_key(image_sha256: str, settings: dict) -> str:
+    """The observations' cache key: SHA-256 of the image's hash and the measuring settings.
+
+    Parameters
+    ----------
+    image_sha256 : str
+        64 hex digits of the image file's content.
+    settings : dict
+        :func:`measure_settings` of the session.
+
+    Returns
+    -------
+    str
+        64 lower-case hex digits.
+    """
+    return sha256_bytes(canonical_json({"image_sha256": image_sha256, "measure": settings}))
+
+
+# --------------------------------------------------------------------------------------
+# what is known before anything is read
+# --------------------------------------------------------------------------------------
+@dataclass
+class SessionPlan:
+    """What a run of one session has to do, decided before any image is read.
+
+    Attributes
+    ----------
+    hashes : dict
+        ``{image: sha256}`` known so far (from the caller's hash store); a missing file has
+        the stand-in :data:`MISSING`.
+    missing : dict
+        ``{image: reason}`` of listed images whose file is absent (left out).
+    cached : dict
+        ``{image: key}`` of images whose observations are in the lake already.
+    todo : list of str
+        Images to hash and/or measure, in the session's order.
+    fingerprint : str or None
+        The inputs' fingerprint when every image's hash is known, else None.
+    unchanged : str or None
+        The committed version made from this fingerprint (the run is a no-op), else None.
+    """
+
+    hashes: dict[str, str]
+    missing: dict[str, str]
+    cached: dict[str, str] = field(default_factory=dict)
+    todo: list[str] = field(default_factory=list)
+    fingerprint: str | None = None
+    unchanged: str | None = None
+
+
+def missing_images(prepared: pipeline.Prepared, known: dict[str, str] | None = None) -> dict[str, str]:
+    """``{image: reason}`` of the images to measure whose file is absent or not a regular file.
+
+    Images whose hash is ``known`` (their file was seen unchanged) are not checked again.
+    """
+    out = {}
+    for name in prepared.to_measure:
+        if known and name in known:
+            continue
+        path = prepared.session.image_path(name)
+        if not os.path.isfile(path):
+            out[name] = "file not found" if not os.path.lexists(path) else "not a regular file"
+    return out
+
+
+def unchanged_version(prepared: pipeline.Prepared, lake, hashes: dict[str, str]) -> tuple[str, str | None]:
+    """The no-op check: ``(fingerprint, committed version or None)`` for these image hashes.
+
+    ``hashes`` must name every image of ``prepared.to_measure`` (stand-ins for missing or
+    unreadable ones); the fingerprint covers the tables, the image contents and the settings
+    (:func:`fieldcal.pipeline.input_fingerprint`).
+    """
+    fp = pipeline.input_fingerprint(prepared, hashes)
+    return fp, lake.find_committed(fp)
+
+
+def cached_observations(prepared: pipeline.Prepared, lake, hashes: dict[str, str],
+                        names=None) -> dict[str, str]:
+    """``{image: key}`` of the images (default: all with a known hash) cached in the lake.
+
+    One read of the session's cached observation keys (:meth:`Lake.cached_keys`), whatever
+    the number of images.
+    """
+    sess = prepared.session
+    msettings = measure_settings(prepared)
+    keys = {n: measurement_key(hashes[n], msettings) for n in (names if names is not None else hashes)
+            if hashes.get(n) not in (None, MISSING, UNREADABLE)}
+    if not keys:
+        return {}
+    present = lake.cached_keys(sess.camera_id, sess.session_id)
+    return {name: key for name, key in keys.items() if (name, key) in present}
+
+
+def plan_session(prepared: pipeline.Prepared, lake, known: dict[str, str] | None = None, *,
+                 force: bool = False, find_cached: bool = True) -> SessionPlan:
+    """Decide what a run of ``prepared`` into ``lake`` has to do (see :class:`SessionPlan`).
+
+    Parameters
+    ----------
+    prepared : fieldcal.pipeline.Prepared
+        The validated session.
+    lake : fieldcal.lake.store.Lake
+    known : dict, optional
+        ``{image: sha256}`` known without reading the images (e.g. remembered by file stamp).
+    force : bool
+        A new version is wanted: no no-op check.
+    find_cached : bool
+        Also look up the cached observations (False: only the no-op check, e.g. to answer a
+        rerun before anything else starts).
+    """
+    hashes = {n: known[n] for n in prepared.to_measure if known and n in known}
+    missing = missing_images(prepared, hashes)
+    hashes.update({n: MISSING for n in missing})
+    plan = SessionPlan(hashes=hashes, missing=missing)
+    if len(hashes) == len(prepared.to_measure):
+        plan.fingerprint, found = unchanged_version(prepared, lake, hashes)
+        if not force:
+            plan.unchanged = found
+    if plan.unchanged is not None or not find_cached:
+        return plan
+    plan.cached = cached_observations(prepared, lake, hashes)
+    plan.todo = [n for n in prepared.to_measure if n not in missing and n not in plan.cached]
+    return plan
+
+
+# --------------------------------------------------------------------------------------
+# measuring
+# --------------------------------------------------------------------------------------
+def measure_into_lake(prepared: pipeline.Prepared, name: str, lake, sha256: str | None = None) -> dict:
+    """Hash (unless ``sha256`` is given), look up and, when not cached, measure one image.
+
+    The observations go into the lake's observation tables (keyed by
+    :func:`measurement_key`), with the image's own SHA-256 and the measuring settings in
+    the file's metadata.
+
+    Returns
+    -------
+    dict
+        ``image, sha256, key, status ("measured" | "cached" | "bad"), reason, n_rows,
+        hash_s, measure_s, write_s`` (times [s]).
+    """
+    row = {"image": name, "sha256": sha256, "key": None, "status": None, "reason": None, "n_rows": 0,
+           "hash_s": 0.0, "measure_s": 0.0, "write_s": 0.0}
+    sess = prepared.session
+    t = time.perf_counter()
+    source = None
+    if sha256 is None:
+        try:     # one read: the bytes hashed here are the ones decoded below
+            source = read_file(sess.image_path(name))
+        except (InputError, OSError) as e:
+            row.update(status="bad", reason=getattr(e, "reason", None) or one_line(e))
+            return row
+        row["sha256"] = source.sha256
+        row["hash_s"] = time.perf_counter() - t
+    msettings = measure_settings(prepared)
+    row["key"] = key = measurement_key(row["sha256"], msettings)
+    if lake.has_observations(sess.camera_id, sess.session_id, name, key):
+        row["status"] = "cached"
+        return row
+    t = time.perf_counter()
+    try:
+        table = pipeline.measure(prepared, name, source)
+    except ImageError as e:
+        row.update(status="bad", reason=e.reason, measure_s=time.perf_counter() - t)
+        return row
+    row["measure_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    meta = dict(table.schema.metadata or {})
+    meta.update({b"fieldcal.image_sha256": row["sha256"].encode(), b"fieldcal.measure": canonical_json(msettings)})
+    lake.write_observations(sess.camera_id, sess.session_id, name, key, table.replace_schema_metadata(meta))
+    row.update(status="measured", n_rows=int(table.num_rows), write_s=time.perf_counter() - t)
+    return row
+
+
+def read_observations(prepared: pipeline.Prepared, lake, keys: dict[str, str]) -> dict:
+    """``{image: table}``: the cached observations of the images in ``keys`` (metadata removed).
+
+    Raises
+    ------
+    LakeError
+        An observation file named in ``keys`` is not in the lake (removed during the run?).
+    """
+    sess = prepared.session
+    out = {}
+    for name, key in keys.items():
+        table = lake.read_observations(sess.camera_id, sess.session_id, name, key)
+        if table is None:
+            raise LakeError(f"the observations of {name} are missing from {lake.url} (removed during the run?)")
+        meta = {k: v for k, v in (table.schema.metadata or {}).items() if k not in META_KEYS}
+        out[name] = table.replace_schema_metadata(meta or None)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# batch sizes
+# --------------------------------------------------------------------------------------
+def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
+                 tasks_per_worker: int = TASKS_PER_WORKER, max_task_s: float = MAX_TASK_S) -> list[int]:
+    """Batch sizes (images per task) for ``n`` images, from the measured costs.
+
+    Guided self-scheduling: each batch takes ``ceil(left / (tasks_per_worker * n_workers))``
+    of the images still left, so batches are large first and shrink towards the end and
+    the workers finish together; but no batch is smaller than ``ceil(overhead_s /
+    image_s)`` (a task at least as long as its own overhead) or, beyond that, larger than
+    ``max_task_s`` of work (progress and retries stay fine-grained).
+
+    Parameters
+    ----------
+    n : int
+        Images to distribute.
+    n_workers : int
+        Worker threads of the cluster.
+    image_s : float
+        Measured work per image [s] (hashing, reading, extraction, writing).
+    overhead_s : float
+        Measured overhead per task [s] (from submission to result, minus the work).
+
+    Returns
+    -------
+    list of int
+        Sizes summing to ``n``, in submission order (non-increasing).
+    """
+    if n <= 0:
+        return []
+    w = max(1, int(n_workers))
+    if image_s > 0:
+        floor_ = max(1, math.ceil(max(overhead_s, 0.0) / image_s))
+        cap = max(floor_, int(max_task_s // image_s))
+    else:                       # no work to speak of (cached images): one task
+        floor_ = cap = n
+    sizes, left = [], n
+    while left > 0:
+        b = min(left, cap, max(floor_, math.ceil(left / (tasks_per_worker * w))))
+        sizes.append(b)
+        left -= b
+    return sizes

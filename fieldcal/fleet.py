@@ -1,0 +1,202 @@
+"""A fleet of session folders: find them under a root, load them, and pick those to calibrate.
+
+A *root* holds session folders (CONTRACT section 3) directly (``ROOT/<session>/``) or one
+level deeper (``ROOT/<camera>/<session>/``); it is a local path or an fsspec URL
+(``s3://bucket/incoming``). Plain functions, no workflow engine:
+
+- :func:`scan_sessions` lists every folder with a ``session.json`` and loads each with
+  the session loader (:func:`fieldcal.session.loader.load_session`): the same validation
+  as a run, so ``camera_id`` and ``session_id`` (default: the folder's name) are exactly
+  what the run will use. A folder that does not load is returned with its one-line error.
+  On an object store only the small files (``*.json``, ``*.csv``) are fetched for this.
+- :func:`select_sessions` pairs them with the lake's calibrations: which have one
+  already (with the latest version) and which are to be calibrated.
+- :func:`local_copy`: a session folder on local disk (a temporary copy of a remote one).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import posixpath
+import tempfile
+from dataclasses import dataclass
+
+from fieldcal.errors import InputError, one_line
+from fieldcal.session.loader import load_session
+
+__all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions", "local_copy",
+           "entry", "summarize", "SMALL_FILES"]
+
+SMALL_FILES = (".json", ".csv")
+"""Files fetched from an object store to load a session without its images."""
+PATTERNS = ("*/session.json", "*/*/session.json")
+
+
+@dataclass
+class FoundSession:
+    """A session folder found under the root.
+
+    ``has_images`` is False for a field session with ``observations.csv`` (nothing to
+    measure); ``error`` is the one-line reason it does not load (then the ids are None);
+    ``version`` is its latest committed version once :func:`select_sessions` has looked.
+    """
+
+    folder: str                  # local path or URL of the folder
+    camera_id: str | None
+    session_id: str | None
+    has_images: bool = True
+    error: str | None = None
+    version: str | None = None
+
+
+def root_filesystem(root: str, storage_options: dict | None = None):
+    """``(fsspec filesystem or None for a local root, the root's path without protocol)``."""
+    text = os.fspath(root)
+    if "://" in text and not text.startswith("file://"):
+        import fsspec
+
+        fs, path = fsspec.core.url_to_fs(text, **(storage_options or {}))
+        return fs, path.rstrip("/")
+    return None, os.path.abspath(text.removeprefix("file://"))
+
+
+def check_root(root: str, storage_options: dict | None = None) -> None:
+    """Raise :class:`InputError` when the root of sessions does not exist (or is not a folder)."""
+    fs, base = root_filesystem(root, storage_options)
+    if fs is None:
+        if not os.path.isdir(base):
+            raise InputError("no folder of sessions there" if not os.path.exists(base) else "not a folder", root)
+        return
+    try:
+        fs.invalidate_cache(base)
+        ok = fs.isdir(base)
+    except OSError as e:
+        raise InputError(f"cannot list it: {one_line(e)}", root) from None
+    if not ok:
+        raise InputError("no folder of sessions there", root)
+
+
+def _manifests(fs, base: str) -> list[str]:
+    if fs is None:
+        import glob
+
+        escaped = glob.escape(base)
+        return sorted({p for pat in PATTERNS for p in glob.glob(os.path.join(escaped, pat))})
+    fs.invalidate_cache(base)
+    return sorted({p for pat in PATTERNS for p in fs.glob(f"{_escape_fs(base)}/{pat}")})
+
+
+def _escape_fs(path: str) -> str:
+    """A path with fsspec's glob metacharacters escaped (``[`` as ``[[]``, ...)."""
+    import glob
+
+    return glob.escape(path)
+
+
+def _fetch_small_files(fs, folder: str, dest: str) -> None:
+    """Copy the session folder's ``*.json`` / ``*.csv`` files (no images) into ``dest``."""
+    for path in fs.find(folder):
+        rel = path[len(folder):].lstrip("/")
+        if rel.lower().endswith(SMALL_FILES):
+            target = os.path.join(dest, *rel.split("/"))
+            os.makedirs(os.path.dirname(target), exist_ok=True)
+            fs.get_file(path, target)
+
+
+def _load(fs, folder: str) -> FoundSession:
+    url = fs.unstrip_protocol(folder) if fs is not None else folder
+    try:
+        with contextlib.ExitStack() as stack:
+            local = folder
+            if fs is not None:
+                tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="fieldcal-scan-"))
+                local = os.path.join(tmp, posixpath.basename(folder.rstrip("/")))
+                _fetch_small_files(fs, folder, local)
+            sess = load_session(local)
+        has_images = sess.method == "goniometer" or sess.observations_path is None
+        return FoundSession(url, sess.camera_id, sess.session_id, has_images)
+    except (InputError, OSError) as e:
+        text = one_line(e)
+        if fs is not None and local != folder:
+            text = text.replace(local, url)
+        return FoundSession(url, None, None, error=text)
+
+
+def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundSession]:
+    """Every session folder under ``root`` (module docstring), loaded, sorted by path.
+
+    Raises
+    ------
+    InputError
+        The root does not exist.
+    """
+    check_root(root, storage_options)
+    fs, base = root_filesystem(root, storage_options)
+    folders = [posixpath.dirname(m) if fs is not None else os.path.dirname(m) for m in _manifests(fs, base)]
+    return [_load(fs, f) for f in folders]
+
+
+def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
+    """The sessions without a committed calibration; sets ``version`` of the others (latest).
+
+    ``lake`` is a :class:`fieldcal.lake.store.Lake`; sessions that did not load are neither
+    selected nor given a version.
+    """
+    calibrated = set(lake.sessions_with_calibration())
+    todo = []
+    for s in found:
+        if s.error:
+            continue
+        if (s.camera_id, s.session_id) in calibrated:
+            s.version = lake.latest(s.camera_id, s.session_id)
+        else:
+            todo.append(s)
+    return todo
+
+
+def entry(s: FoundSession, status: str | None = None, reason: str | None = None) -> dict:
+    """A session's line of the fleet's summary (before or without a run: ``status`` given)."""
+    return {"folder": s.folder, "camera_id": s.camera_id, "session_id": s.session_id, "status": status,
+            "version": s.version, "new": False, "reason": reason, "seconds": 0.0}
+
+
+def summarize(lake: str, root: str, found: list[FoundSession], results: dict | None = None) -> dict:
+    """The fleet's summary: every session found, in order, with its version (new or existing).
+
+    ``results`` maps ``id(session)`` to the entry of a session that was run; the others are
+    "calibrated already" (with their latest version, once :func:`select_sessions` has
+    looked), "failed" (did not load) or "to calibrate".
+
+    Returns
+    -------
+    dict
+        ``lake``, ``root``, ``sessions`` (entries: ``folder``, ``camera_id``, ``session_id``,
+        ``status``, ``version``, ``new``, ``reason``, ``seconds``), ``n_found``,
+        ``n_committed``, ``n_failed``, ``n_skipped``.
+    """
+    results = results or {}
+
+    def status(s):
+        return "failed" if s.error else "calibrated already" if s.version else "to calibrate"
+
+    entries = [results.get(id(s)) or entry(s, status(s), s.error) for s in found]
+    return {
+        "lake": str(lake), "root": str(root), "sessions": entries, "n_found": len(entries),
+        "n_committed": sum(r["status"] == "committed" for r in entries),
+        "n_failed": sum(r["status"] == "failed" for r in entries),
+        "n_skipped": sum(r["status"] in ("calibrated already", "unchanged") for r in entries),
+    }
+
+
+@contextlib.contextmanager
+def local_copy(folder: str, storage_options: dict | None = None):
+    """The session folder itself when local, else a temporary local copy (removed afterwards)."""
+    fs, path = root_filesystem(folder, storage_options)
+    if fs is None:
+        yield path
+        return
+    with tempfile.TemporaryDirectory(prefix="fieldcal-session-") as tmp:
+        local = os.path.join(tmp, path.rstrip("/").rsplit("/", 1)[-1])
+        fs.get(_escape_fs(path.rstrip("/")) + "/", local + "/", recursive=True)
+        yield local

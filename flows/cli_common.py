@@ -1,0 +1,248 @@
+"""What every ``fieldcal`` command shares: the lake and version arguments, checks, the console.
+
+Used by :mod:`flows.cli`, :mod:`flows.cli_products`, :mod:`flows.demo` (and any module that
+registers more commands), so that they answer the same way:
+
+- :func:`add_lake_arguments`, :func:`lake_arguments`, :func:`open_lake`: ``--lake`` /
+  ``FIELDCAL_LAKE`` and ``--storage-options`` / ``FIELDCAL_STORAGE_OPTIONS``; a lake that a
+  command reads must exist ("no lake at PATH").
+- :func:`require_camera`, :func:`resolve_version`: a camera id or version that the lake
+  does not have is an error that says what exists (the closest ids).
+- :func:`check_output_file`: an output path is checked before any work starts.
+- :func:`is_tty`, :func:`progress_sink`: progress on a terminal, nothing on a pipe.
+- :func:`describe`: a calibration document as lines of text (``fieldcal show``).
+- :func:`error_line`: the one line (and exit status) of a failed command: the command
+  named once, never an internal function.
+
+Imports are deferred, so that a command that fails on its arguments answers at once.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import os
+import re
+
+from fieldcal.errors import FieldcalError, InputError, one_line
+
+__all__ = ["UsageError", "LAKE_ENV", "OPTIONS_ENV", "EXIT_ERROR", "EXIT_USAGE", "add_lake_arguments",
+           "lake_arguments", "open_lake", "require_lake", "known_cameras", "require_camera", "resolve_version",
+           "check_output_file", "check_input_file", "is_tty", "progress_sink", "describe", "error_line"]
+
+LAKE_ENV = "FIELDCAL_LAKE"
+OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+_CONTEXT_WORD = re.compile(r"[a-z_]+")
+
+
+class UsageError(InputError):
+    """A command-line argument that is missing, malformed or names nothing (exit status 2)."""
+
+
+# --------------------------------------------------------------------------------------
+# the lake
+# --------------------------------------------------------------------------------------
+def add_lake_arguments(p) -> None:
+    """``--lake`` and ``--storage-options`` of a sub-command's parser."""
+    p.add_argument("--lake", default=None, help=f"the lake: a local path or an fsspec URL (default: ${LAKE_ENV})")
+    p.add_argument("--storage-options", metavar="JSON", default=None,
+                   help=f"fsspec options of the lake as a JSON object (default: ${OPTIONS_ENV})")
+
+
+def lake_arguments(args) -> tuple[str, dict | None]:
+    """``(lake URL or path, storage options)`` from the arguments or the environment."""
+    lake = getattr(args, "lake", None) or os.environ.get(LAKE_ENV)
+    if not lake:
+        raise UsageError(f"no lake: give --lake LAKE or set {LAKE_ENV}")
+    text = getattr(args, "storage_options", None) or os.environ.get(OPTIONS_ENV)
+    options = None
+    if text:
+        try:
+            options = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise UsageError(f"--storage-options is not JSON: {e.msg}") from None
+        if not isinstance(options, dict):
+            raise UsageError("--storage-options must be a JSON object")
+    return lake, options
+
+
+def require_lake(lake) -> None:
+    """Raise :class:`UsageError` ("no lake at PATH") when the lake's root does not exist."""
+    root = lake.uri("")
+    if lake.is_local:
+        if not os.path.isdir(root):
+            raise UsageError(f"no lake at {root}" + (" (not a folder)" if os.path.exists(root) else ""))
+        return
+    try:
+        lake.fs.invalidate_cache(root)
+        ok = lake.fs.exists(root)
+    except OSError as e:
+        raise UsageError(f"cannot reach the lake at {root}: {one_line(e)}") from None
+    if not ok:
+        raise UsageError(f"no lake at {root}")
+
+
+def open_lake(args, *, must_exist: bool = True):
+    """The :class:`fieldcal.lake.store.Lake` of the arguments; by default it must exist."""
+    from fieldcal.lake.store import Lake
+
+    url, options = lake_arguments(args)
+    lake = Lake(url, options)
+    if must_exist:
+        require_lake(lake)
+    return lake
+
+
+def _closest(name: str, candidates, what: str) -> str:
+    candidates = sorted(set(candidates))
+    if not candidates:
+        return f"there is no {what} in it"
+    near = difflib.get_close_matches(name, candidates, n=3, cutoff=0.5)
+    if near:
+        return "closest: " + ", ".join(near)
+    shown = ", ".join(candidates[:5]) + (", ..." if len(candidates) > 5 else "")
+    return f"{len(candidates)} {what}(s): {shown}"
+
+
+def known_cameras(lake) -> list[str]:
+    """Camera ids with at least one committed version, sorted."""
+    return sorted(set(lake.catalog()["camera_id"].to_pylist()))
+
+
+def require_camera(lake, camera: str) -> None:
+    """Raise :class:`UsageError` naming the closest known ids when ``camera`` has no version."""
+    cameras = known_cameras(lake)
+    if camera not in cameras:
+        raise UsageError(f"camera {camera!r} has no calibration in {lake.url}; "
+                         + _closest(camera, cameras, "camera"))
+
+
+def resolve_version(lake, name: str, camera: str | None = None, session: str | None = None) -> str:
+    """A committed version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``).
+
+    ``latest``: the camera's (or the camera's session's) most recent version; ``previous``:
+    the version before the latest among the camera's sessions. Raises :class:`UsageError`
+    saying what exists when there is no such version.
+    """
+    if name not in ("latest", "previous"):
+        versions = lake.catalog()["version"].to_pylist()
+        if name not in versions:
+            raise UsageError(f"no version {name!r} in {lake.url}; " + _closest(name, versions, "version"))
+        return name
+    if not camera:
+        raise UsageError(f"{name!r} needs --camera ID")
+    require_camera(lake, camera)
+    if name == "latest":
+        v = lake.latest(camera, session)
+        if v is None:
+            raise UsageError(f"camera {camera!r} has no calibration of session {session!r} in {lake.url}")
+        return v
+    from fieldcal.lake import history
+
+    versions = history.camera_history(lake, camera)["version"].to_pylist()
+    latest = lake.latest(camera)
+    if latest in versions:
+        i = versions.index(latest)
+        if i > 0:
+            return versions[i - 1]
+    elif len(versions) >= 2:
+        return versions[-2]
+    raise UsageError(f"camera {camera!r} has no calibration before its latest in {lake.url}")
+
+
+# --------------------------------------------------------------------------------------
+# files
+# --------------------------------------------------------------------------------------
+def check_output_file(path, what: str = "output") -> None:
+    """Refuse an output path that cannot be written, before any work starts.
+
+    Its folder must exist and be writable, and the path must not be a folder.
+    """
+    p = os.path.abspath(os.fspath(path))
+    folder = os.path.dirname(p)
+    if os.path.isdir(p):
+        raise UsageError(f"{what} {path}: is a folder")
+    if not os.path.isdir(folder):
+        raise UsageError(f"{what} {path}: no folder {folder}")
+    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(p) and not os.access(p, os.W_OK)):
+        raise UsageError(f"{what} {path}: not writable")
+
+
+def check_input_file(path, what: str = "input") -> None:
+    """Refuse an input path that is not a readable file."""
+    if not os.path.isfile(path):
+        raise UsageError(f"{what} {path}: " + ("not a file" if os.path.exists(path) else "no such file"))
+
+
+# --------------------------------------------------------------------------------------
+# the console
+# --------------------------------------------------------------------------------------
+def is_tty(stream) -> bool:
+    """Whether ``stream`` is a terminal (progress is shown only there)."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def progress_sink(stream):
+    """A :class:`fieldcal.progress.TerminalProgress` on ``stream`` when it is a terminal, else None."""
+    from fieldcal.progress import TerminalProgress
+
+    return TerminalProgress(stream) if is_tty(stream) else None
+
+
+def describe(doc: dict) -> list[str]:
+    """Human-readable lines of a calibration document (``fieldcal show``)."""
+    from fieldcal.model.camera import PARAM_NAMES
+
+    st = doc.get("stats") or {}
+    lines = [f"version   {doc.get('version')}",
+             f"camera    {doc.get('camera_id')}   session {doc.get('session_id')}   method {doc.get('method')}",
+             f"created   {doc.get('created')}   acquired {doc.get('acquired', '-')}",
+             f"sensor    {doc['sensor']['width_px']} x {doc['sensor']['height_px']} px, "
+             f"{doc['sensor']['pixel_size_um']} um   model {doc.get('model')}",
+             "", f"{'parameter':10s} {'value':>16s} {'sigma':>12s}"]
+    fixed = st.get("fixed_parameters") or {}
+    for n in PARAM_NAMES:
+        s = doc["sigma"].get(n)
+        why = f"  fixed ({fixed[n]})" if n in fixed else ("" if s is not None else "  fixed")
+        lines.append(f"{n:10s} {doc['parameters'][n]:16.9g} {'' if s is None else format(s, '12.3g'):>12s}{why}")
+    lines.append("")
+    keys = ("n_images", "n_frames", "n_angles", "n_targets", "n_observations", "n_rejected", "rmse_px",
+            "max_px", "sigma0", "sigma_fit_px", "iterations", "solver", "targets_adjusted")
+    stats = [f"{k} {st[k]:.4g}" if isinstance(st.get(k), float) else f"{k} {st[k]}" for k in keys if k in st]
+    for i in range(0, len(stats), 4):
+        lines.append("   ".join(stats[i:i + 4]))
+    left = st.get("left_out_images") or []
+    if left:
+        lines.append(f"left out: {', '.join(str(x) for x in left)}")
+    lines.append(f"inputs    {doc.get('inputs', {}).get('fingerprint')}   code {doc.get('code_version', '-')}")
+    return lines
+
+
+def error_line(command: str, error: BaseException, *, verbose: bool = False) -> tuple[str, int]:
+    """``(one line, exit status)`` of a command that failed with ``error``.
+
+    The line starts with ``fieldcal COMMAND:`` once; the error's own context is kept when it
+    names a file or a place (``targets.csv:4``), and dropped when it is only a word of the
+    code (the name of the function that raised it, or ``fieldcal`` again). Exit status 2 for
+    bad input or usage, 1 otherwise.
+    """
+    name = f"fieldcal {command}".strip()
+    if isinstance(error, FieldcalError):
+        where = getattr(error, "where", None)
+        if where is not None and (_CONTEXT_WORD.fullmatch(where) or where.startswith("fieldcal")):
+            text = one_line(getattr(error, "reason", error))
+        else:
+            text = one_line(error)
+    elif isinstance(error, OSError) and error.strerror:
+        text = f"{error.filename}: {error.strerror}" if error.filename else error.strerror
+    else:
+        text = f"{type(error).__name__}: {one_line(error)}" + ("" if verbose else " (--verbose for details)")
+    for prefix in (f"{name}: ", "fieldcal: "):
+        while text.startswith(prefix):
+            text = text[len(prefix):]
+    return f"{name}: {text}", EXIT_USAGE if isinstance(error, InputError) else EXIT_ERROR

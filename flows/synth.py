@@ -1,0 +1,95 @@
+"""Synthetic sessions with their truth, for ``fieldcal synth`` and ``fieldcal demo``.
+
+:func:`write_synthetic` writes a session folder (CONTRACT section 3) made by
+:mod:`fieldcal.synthetic` and, beside it, ``truth.json``: the camera it was made with and,
+for the goniometer, what the method gives on the exact spot positions of the same set-up.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from fieldcal.errors import InputError
+
+__all__ = ["write_synthetic", "check_synthetic", "METHODS", "SCENARIOS"]
+
+METHODS = ("goniometer", "field")
+SCENARIOS = {"goniometer": ("canon5d2", "h3d"), "field": ("paper", "wide")}
+
+
+def check_synthetic(method: str, scenario: str | None) -> str:
+    """The scenario to use (the method's first by default); :class:`InputError` when unknown."""
+    if method not in METHODS:
+        raise InputError(f"method must be 'goniometer' or 'field', got {method!r}")
+    scenario = scenario or SCENARIOS[method][0]
+    if scenario not in SCENARIOS[method]:
+        raise InputError(f"{method} scenario must be " + " or ".join(f"'{s}'" for s in SCENARIOS[method])
+                         + f", got {scenario!r}")
+    return scenario
+
+
+def _goniometer(out: Path, scenario: str, seed: int, raster_scale: float, camera_id, session_id):
+    from fieldcal.goniometer import method as goniometer
+    from fieldcal.model.camera import PARAM_NAMES
+    from fieldcal.synthetic.goniometer import write_session
+
+    gt = write_session(out, scenario, seed=seed, raster_scale=raster_scale, camera_id=camera_id,
+                       session_id=session_id)
+    frames = goniometer.read_frames_csv(out / "frames.csv")
+    ref = goniometer.calibrate(gt.sensor, frames, gt.exact_measurements(),
+                               nominal_focal_mm=gt.scenario.nominal_focal_mm)
+    return gt.camera, {n: float(v) for n, v in zip(PARAM_NAMES, ref.parameters, strict=True)}
+
+
+def _field(out: Path, scenario: str, seed: int, images: bool, scale: float, n_images, marks: bool,
+           camera_id, session_id):
+    import numpy as np
+
+    from fieldcal.synthetic.field import paper_field, wide_field
+    from fieldcal.synthetic.render import scaled_field, write_field_session
+
+    sf = {"paper": paper_field, "wide": wide_field}[scenario](seed=seed)
+    if images:
+        sf = scaled_field(sf, scale)
+        n_all = len(sf.data.images)
+        idx = None if n_images is None else sorted({int(round(i)) for i in
+                                                    np.linspace(0, n_all - 1, min(int(n_images), n_all))})
+        write_field_session(out, sf, images=True, marks_csv=marks, coded=not marks, seed=seed,
+                            image_indices=idx, camera_id=camera_id, session_id=session_id)
+    else:
+        write_field_session(out, sf, images=False, observations_csv=True, seed=seed,
+                            camera_id=camera_id, session_id=session_id)
+    return sf.camera
+
+
+def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = None, seed: int = 0,
+                    raster_scale: float = 0.25, images: bool = False, scale: float = 0.25,
+                    n_images: int | None = None, marks: bool = False, camera_id: str | None = None,
+                    session_id: str | None = None) -> dict:
+    """Write a synthetic session into ``out`` and its ``truth.json``; returns the truth.
+
+    Goniometer sessions (``canon5d2`` or ``h3d``) are rendered frames at ``raster_scale``;
+    field sessions (``paper`` or ``wide``) are observation-only (``observations.csv``) or,
+    with ``images``, rendered images at ``scale`` (``n_images`` of them spread evenly over the
+    scenario's images, so that every station is represented; identified from coded targets,
+    or from ``marks.csv`` with ``marks``). ``truth.json`` holds the true camera (sensor and
+    the 13 parameters) and, for the goniometer, what the method gives on the exact spot
+    positions of the same set-up (``noise_free``). Rendering reports its progress through
+    :mod:`fieldcal.progress`.
+    """
+    from fieldcal.model.camera import PARAM_NAMES
+
+    scenario = check_synthetic(method, scenario)
+    if n_images is not None and int(n_images) < 1:
+        raise InputError(f"--n-images must be at least 1, got {n_images}")
+    out = Path(out)
+    truth: dict = {"method": method, "seed": int(seed), "scenario": scenario}
+    if method == "goniometer":
+        camera, truth["noise_free"] = _goniometer(out, scenario, seed, raster_scale, camera_id, session_id)
+    else:
+        camera = _field(out, scenario, seed, images, scale, n_images, marks, camera_id, session_id)
+    truth.update(sensor=camera.sensor.to_dict(),
+                 parameters={n: float(v) for n, v in zip(PARAM_NAMES, camera.params, strict=True)})
+    (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+    return truth

@@ -1,0 +1,137 @@
+"""The fleet flow: sessions at once on one Dask cluster, a failing one never stops the others.
+
+The sessions are small observation-only field sessions (a wide-angle camera, 24 images)
+and one goniometer session of rendered frames, so that sessions and images share the
+cluster's workers. Concurrency is shown, not timed: the solver is wrapped so that the first
+two solves must meet (each waits, up to two minutes, for the other to start), which they
+can only do when two sessions are solved at the same time on two of the cluster's workers.
+"""
+
+import io
+import json
+import sys
+import threading
+import time
+
+import pytest
+
+from fieldcal import pipeline
+from fieldcal.lake.store import Lake
+from fieldcal.synthetic.field import wide_field
+from fieldcal.synthetic.goniometer import write_session
+from fieldcal.synthetic.render import write_field_session
+from flows import cli, server
+from flows.fleet import recalibrate_fleet
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_server")]
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+class Rendezvous:
+    """The first ``n`` callers wait for each other (up to ``timeout_s``); later ones pass."""
+
+    def __init__(self, n: int, timeout_s: float):
+        self.n, self.timeout_s = n, timeout_s
+        self.cond = threading.Condition()
+        self.arrived: list[str] = []
+
+    def __call__(self, where: str) -> bool:
+        with self.cond:
+            self.arrived.append(where)
+            if len(self.arrived) > self.n:
+                return True
+            self.cond.notify_all()
+            return self.cond.wait_for(lambda: len(self.arrived) >= self.n, self.timeout_s)
+
+
+@pytest.fixture
+def root(tmp_path):
+    """4 observation-only sessions of two cameras, a goniometer session, one that cannot calibrate, one broken."""
+    root = tmp_path / "sessions"
+    for k in range(4):
+        write_field_session(root / f"cam-w{k % 2}" / f"2026-05-0{k + 1}", wide_field(seed=20 + k), images=False,
+                            observations_csv=True, camera_id=f"cam-w{k % 2}", acquired=f"2026-05-0{k + 1}")
+    write_session(root / "cam-lab" / "2026-05-09", "canon5d2", seed=29, raster_scale=0.25, frames_per_angle=1,
+                  camera_id="cam-lab")
+    few = root / "cam-few" / "2026-05-10"              # two images: the field method needs three
+    write_field_session(few, wide_field(seed=30), images=False, observations_csv=True, camera_id="cam-few")
+    lines = (few / "observations.csv").read_text().splitlines()
+    two = sorted({ln.split(",")[0] for ln in lines[1:]})[:2]
+    (few / "observations.csv").write_text("\n".join([lines[0]] + [ln for ln in lines[1:]
+                                                                   if ln.split(",")[0] in two]) + "\n")
+    (root / "broken").mkdir()
+    (root / "broken" / "session.json").write_text("{not json")
+    return root
+
+
+def fleet_logs(root) -> str | None:
+    """The log lines of the latest fleet flow run over ``root`` on the test's Prefect server."""
+    from prefect import get_client
+    from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
+    from prefect.client.schemas.sorting import FlowRunSort
+
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(sort=FlowRunSort.EXPECTED_START_TIME_DESC, limit=50)
+        runs = [r for r in runs if r.parameters.get("root") == str(root)]
+        if not runs:
+            return None
+        logs = client.read_logs(LogFilter(flow_run_id=LogFilterFlowRunId(any_=[runs[0].id])), limit=200)
+    return "\n".join(log.message for log in logs)
+
+
+def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_others(root, tmp_path, monkeypatch,
+                                                                                       capsys):
+    meet = Rendezvous(2, timeout_s=120.0)
+    solve = pipeline.solve
+
+    def solve_together(*args, **kwargs):
+        from distributed import get_worker
+
+        if not meet(get_worker().address):
+            raise RuntimeError("no other session was being solved at the same time")
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "solve", solve_together)
+    monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
+    monkeypatch.setattr(server, "quiet_prefect", lambda verbose: None)
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    lake = str(tmp_path / "lake")
+    assert cli.main(["fleet", str(root), "--lake", lake, "--format", "json"]) == 1          # 2 failed
+    first = json.loads(capsys.readouterr().out)
+    status = {(s["camera_id"], s["session_id"]): s["status"] for s in first["sessions"]}
+    assert status == {("cam-w0", "2026-05-01"): "committed", ("cam-w1", "2026-05-02"): "committed",
+                      ("cam-w0", "2026-05-03"): "committed", ("cam-w1", "2026-05-04"): "committed",
+                      ("cam-lab", "2026-05-09"): "committed", ("cam-few", "2026-05-10"): "failed",
+                      (None, None): "failed"}
+    assert (first["n_found"], first["n_committed"], first["n_failed"]) == (7, 5, 2)
+    # the first two solves met: two sessions at once, on two different workers of the cluster
+    assert len(set(meet.arrived[:2])) == 2 and len(meet.arrived) == 6
+    few = next(s for s in first["sessions"] if s["camera_id"] == "cam-few")
+    assert "at least 3" in few["reason"] and few["version"] is None
+    # every session's version, and the lake agrees
+    committed = {s["version"] for s in first["sessions"] if s["status"] == "committed"}
+    assert committed == set(Lake(lake).catalog()["version"].to_pylist()) and len(committed) == 5
+
+    # progress per session on the terminal (not the sessions' own image counts) and in the logs
+    text = term.getvalue()
+    for k in range(1, 7):
+        assert f"session {k} of 6: " in text
+    assert ": committed " in text and ": failed " in text and "measuring images [" not in text
+    deadline = time.monotonic() + 60
+    while (logs := fleet_logs(root) or "").count(" of 6: ") < 12 and time.monotonic() < deadline:
+        time.sleep(0.5)                                         # logs reach the server in batches
+    assert logs.count(" of 6: ") >= 12 and "session 6 of 6: " in logs   # started and finished, each
+
+    # the next night: the calibrated sessions keep their versions, the failing one is tried again
+    second = recalibrate_fleet(lake, str(root), n_workers=2)
+    again = {(s["camera_id"], s["session_id"]): (s["status"], s["version"]) for s in second["sessions"]}
+    for s in first["sessions"]:
+        if s["status"] == "committed":
+            assert again[(s["camera_id"], s["session_id"])] == ("calibrated already", s["version"])
+    assert again[("cam-few", "2026-05-10")] == ("failed", None)
+    assert (second["n_committed"], second["n_skipped"], second["n_failed"]) == (0, 5, 2)

@@ -1,0 +1,149 @@
+"""The local Prefect server that commands share, with real processes (issue 13 goal 2, issue 17).
+
+Every command here runs as ``fieldcal`` in a process of its own, in the default mode (no
+``PREFECT_API_URL``), with an unusable ``HOME`` (its parent is a regular file, so nothing
+can be created under it, even by root): Prefect's home moves to a private temporary
+folder, the hash cache is off, and everything works. The server they share is started by
+the first command that needs one and stops by itself ``FIELDCAL_SERVER_LINGER_S`` seconds
+after its last command ended, also when that command was killed with SIGKILL.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fieldcal.lake.store import Lake
+from fieldcal.synthetic.field import wide_field
+from fieldcal.synthetic.goniometer import write_session
+from fieldcal.synthetic.render import write_field_session
+
+ROOT = Path(__file__).resolve().parents[2]
+FIELDCAL = str(Path(sys.executable).with_name("fieldcal"))
+LINGER_S = 5
+pytestmark = pytest.mark.slow
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.2):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
+
+
+def alive(pid: int) -> bool:
+    """A live process (not a zombie waiting to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except OSError:
+        return False
+
+
+def server_pids(home: Path) -> list[int]:
+    """Live ``flows.server`` processes whose Prefect home is ``home``."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes()
+            env = (d / "environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"flows.server" in cmd and f"PREFECT_HOME={home}".encode() in env and alive(int(d.name)):
+            out.append(int(d.name))
+    return out
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """Sessions, a lake, and the environment of a user whose HOME cannot be written."""
+    tmp = tmp_path_factory.mktemp("server")
+    (tmp / "file").write_text("a regular file where HOME's parent should be\n")
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("PREFECT_", "FIELDCAL_", "MPLCONFIGDIR", "XDG_"))}
+    env.update(HOME=str(tmp / "file" / "home"), TMPDIR=str(tmp / "tmp"), PYTHONPATH=str(ROOT),
+               FIELDCAL_SERVER_LINGER_S=str(LINGER_S))
+    (tmp / "tmp").mkdir()
+    for k, seed in (("wall-a", 1), ("wall-b", 2)):
+        write_field_session(tmp / k, wide_field(seed=seed), images=False, observations_csv=True, camera_id="cam-srv")
+    write_session(tmp / "lab", "canon5d2", seed=3, raster_scale=0.25, frames_per_angle=1, camera_id="cam-lab")
+    home = tmp / "tmp" / f"fieldcal-{os.getuid()}" / "prefect"   # where Prefect's home moves
+    yield tmp, env, home
+    subprocess.run([FIELDCAL, "server", "stop"], env=env, capture_output=True, timeout=120)
+
+
+def test_two_commands_at_once_share_one_server_in_a_temporary_prefect_home(world):
+    tmp, env, home = world
+    procs = [subprocess.Popen([FIELDCAL, "run", tmp / k, "--lake", tmp / "lake"], env=env, cwd=tmp,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for k in ("wall-a", "wall-b")]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0 and err == "", err
+    versions = {out.strip() for out, _ in outs}
+    assert versions == set(Lake(tmp / "lake").catalog()["version"].to_pylist()) and len(versions) == 2
+    # one server started, in the temporary Prefect home; the hash cache was off (no image anyway)
+    log = (home / "fieldcal-server.log").read_text()
+    assert log.count("flows.server: pid") == 1, log
+    assert (home / "prefect.db").is_file()
+    assert not (tmp / "file").is_dir()
+    status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
+    assert status.returncode == 0
+    if status.stdout.startswith("http"):  # still lingering: it is the one of the log
+        pid = json.loads((home / "fieldcal-server.json").read_text())["pid"]
+        assert f"pid {pid}" in status.stdout and f"pid {pid}," in log
+    else:                                # lingered out already (a slow machine): it is stopping or gone
+        wait_for(lambda: server_pids(home) == [], 60, "the lingered-out server to exit")
+
+
+def test_kill_9_of_a_run_leaves_no_process_behind(world):
+    tmp, env, home = world
+    lake = tmp / "lake-killed"
+    run = subprocess.Popen([FIELDCAL, "run", tmp / "lab", "--lake", lake, "--batch-size", "2"], env=env, cwd=tmp,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    # the run is measuring: its server is up and frames' observations are being written
+    wait_for(lambda: any(lake.glob("observations/*/*/*.parquet")), 300, "the run to measure frames")
+    state = json.loads((home / "fieldcal-server.json").read_text())
+    assert alive(state["pid"]) and run.poll() is None
+    os.killpg(run.pid, signal.SIGKILL)
+    run.wait(timeout=60)
+    # nothing of the run's process group is left, and the server stops LINGER_S after its last command
+    wait_for(lambda: not [p for p in Path("/proc").iterdir() if p.name.isdigit() and _pgid(int(p.name)) == run.pid],
+             60, "the run's process group to be gone")
+    wait_for(lambda: not alive(state["pid"]), LINGER_S + 60, "the server to stop after its last command")
+    assert server_pids(home) == [] and not (home / "fieldcal-server.json").exists()
+    assert Lake(lake).catalog().num_rows == 0                     # killed before its commit
+
+
+def _pgid(pid: int) -> int | None:
+    try:
+        return os.getpgid(pid) if alive(pid) else None
+    except OSError:
+        return None
+
+
+def test_server_start_status_stop(world):
+    tmp, env, home = world
+    start = subprocess.run([FIELDCAL, "server", "start", "--linger", "0"], env=env, capture_output=True, text=True,
+                           timeout=300)
+    assert start.returncode == 0, start.stderr
+    url = start.stdout.strip()
+    assert url.startswith("http://127.0.0.1:") and url.endswith("/api")
+    status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
+    assert status.returncode == 0 and status.stdout.startswith(url) and "linger 0 s" in status.stdout
+    pid = json.loads((home / "fieldcal-server.json").read_text())["pid"]
+    stop = subprocess.run([FIELDCAL, "server", "stop"], env=env, capture_output=True, text=True, timeout=120)
+    assert stop.returncode == 0 and stop.stdout == f"stopped the local Prefect server at {url} (pid {pid})\n"
+    assert not alive(pid) and server_pids(home) == []
+    status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
+    assert status.returncode == 0 and status.stdout == f"no local Prefect server under {home}\n"

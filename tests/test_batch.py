@@ -1,0 +1,88 @@
+"""One session as a batch job, without any workflow engine (fieldcal/batch.py).
+
+What the flows decide is decided here, on a real lake in a temporary folder: which images
+are missing, which are cached (by the key of content hash and measuring settings), whether
+a run is a no-op, and the batch sizes.
+"""
+
+import shutil
+
+import pytest
+
+from fieldcal import batch, pipeline
+from fieldcal.lake.store import Lake
+from fieldcal.session.fingerprint import sha256_file
+from fieldcal.synthetic.field import wide_field
+from fieldcal.synthetic.goniometer import write_session
+from fieldcal.synthetic.render import write_field_session
+
+
+@pytest.fixture(scope="module")
+def gonio(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("batch") / "lab"
+    write_session(folder, "canon5d2", seed=4, raster_scale=0.25, frames_per_angle=1, camera_id="cam-batch")
+    return folder
+
+
+def test_a_plan_finds_missing_images_and_measures_the_rest_once(gonio, tmp_path):
+    folder = tmp_path / "lab"
+    shutil.copytree(gonio, folder)
+    prepared = pipeline.prepare(folder)
+    gone = prepared.to_measure[3]
+    (folder / gone).unlink()
+    lake = Lake(tmp_path / "lake")
+    plan = batch.plan_session(prepared, lake)
+    assert plan.missing == {gone: "file not found"} and plan.hashes == {gone: batch.MISSING}
+    assert plan.cached == {} and plan.todo == [n for n in prepared.to_measure if n != gone]
+    assert plan.fingerprint is None and plan.unchanged is None         # hashes unknown: no no-op check
+
+    name = plan.todo[0]
+    row = batch.measure_into_lake(prepared, name, lake)
+    assert row["status"] == "measured" and row["sha256"] == sha256_file(folder / name) and row["n_rows"] == 1
+    assert row["key"] == batch.measurement_key(row["sha256"], batch.measure_settings(prepared))
+    again = batch.measure_into_lake(prepared, name, lake, row["sha256"])
+    assert again["status"] == "cached" and again["key"] == row["key"] and again["hash_s"] == 0.0
+    # a known hash finds the cached observations without reading the image
+    plan = batch.plan_session(prepared, lake, {name: row["sha256"]})
+    assert plan.cached == {name: row["key"]} and name not in plan.todo
+    (table,) = batch.read_observations(prepared, lake, plan.cached).values()
+    assert not set(batch.META_KEYS) & set(table.schema.metadata or {})
+
+
+def test_the_key_changes_with_the_measuring_settings_not_with_the_solver_settings(gonio):
+    a = pipeline.prepare(gonio)
+    b = pipeline.prepare(gonio, pipeline.Settings(rigorous_goniometer=True))
+    assert batch.measure_settings(a) == batch.measure_settings(b)
+    key = batch.measurement_key("0" * 64, batch.measure_settings(a))
+    other = dict(batch.measure_settings(a), sensor={**batch.measure_settings(a)["sensor"], "pixel_size_um": 6.0})
+    assert batch.measurement_key("0" * 64, other) != key and batch.measurement_key("1" * 64, other) != key
+
+
+def test_the_no_op_check_finds_the_committed_version_of_the_same_inputs(tmp_path):
+    folder = tmp_path / "wall"
+    write_field_session(folder, wide_field(seed=5), images=False, observations_csv=True, camera_id="cam-noop")
+    prepared = pipeline.prepare(folder)
+    lake = Lake(tmp_path / "lake")
+    plan = batch.plan_session(prepared, lake)
+    assert plan.todo == [] and plan.unchanged is None and plan.fingerprint is not None   # nothing to measure
+    outcome = pipeline.solve(prepared, {}, fingerprint_=plan.fingerprint)
+    version = lake.commit(outcome.document, outcome.arrays, outcome.residuals, array_attrs=outcome.array_attrs)
+    assert batch.plan_session(prepared, lake, find_cached=False).unchanged == version
+    assert batch.plan_session(prepared, lake, force=True).unchanged is None
+    other = pipeline.prepare(folder, pipeline.Settings(targets_adjusted=False))
+    assert batch.plan_session(other, lake).unchanged is None             # other settings, other fingerprint
+
+
+def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
+    # full-size images: 1 s of work, 0.3 s overhead per task; 70 images on 2 workers
+    sizes = batch.plan_batches(70, 2, 1.0, 0.3)
+    assert sum(sizes) == 70 and sizes[:4] == [18, 13, 10, 8] and sizes[-1] == 1
+    assert sizes == sorted(sizes, reverse=True)
+    # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames)
+    assert batch.plan_batches(178, 2, 0.005, 0.5) == [100, 78]
+    # slow images and cheap tasks: the guided sizes alone
+    assert batch.plan_batches(8, 2, 30.0, 0.1) == [2, 2, 1, 1, 1, 1]
+    # at most 60 s of work per task beyond the floor
+    assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 60
+    assert batch.plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
+    assert batch.plan_batches(0, 2, 1.0, 0.3) == []
