@@ -412,7 +412,8 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
         truth["noise_free"] = {n: float(v) for n, v in zip(PARAM_NAMES, ref.parameters, strict=True)}
     elif method == "field":
         from fieldcal.synthetic.field import paper_field, wide_field
-        from fieldcal.synthetic.render import scaled_field, write_field_session
+        from fieldcal.synthetic.render import scaled_field
+        from fieldcal.synthetic.session_writer import write_field_session
 
         scenario = scenario or "paper"
         makers = {"paper": paper_field, "wide": wide_field}

@@ -57,11 +57,13 @@ from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, F
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
-from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
+from fieldcal.field.identify import IdentifyOptions, ImageIdentification, identify_image, measured_points
+from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv
 
-__all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of"]
+__all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
+           "reason_category"]
 
 MIN_IMAGES = 3
 MIN_POINTS = MIN_POINTS_PER_IMAGE
@@ -107,20 +109,20 @@ def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
     return np.where(np.isfinite(s) & (s > 0), s, default)
 
 
-def _identify_all(targets, sigma_m, camera, measurements, marks, coded, poses, kw, names):
+def _identify_all(run, targets, sigma_m, camera, poses):
     """Identify every measured image; ``poses`` maps image index -> (R, C) or is empty."""
     out: dict[int, ImageIdentification] = {}
-    for i, name in enumerate(names):
-        table = measurements.get(name)
+    for i, name in enumerate(run.names):
+        table = run.measurements.get(name)
         if table is None:
             continue
-        out[i] = identify_image(table, targets, camera, marks=marks.get(i), init_pose=poses.get(i),
-                                target_sigma_m=sigma_m, codes_are_markers=coded, where=name, seed=i, **kw)
+        out[i] = identify_image(table, targets, camera, marks=run.marks.get(i), init_pose=poses.get(i),
+                                target_sigma_m=sigma_m, codes_are_markers=run.coded, options=run.identify,
+                                where=name, seed=i)
     return out
 
 
-def _build(session, targets, images, keep, idents, measurements, names, *, uv_override=None,
-           marker_factor=1.0, single_view=True):
+def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_view=True):
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
@@ -140,8 +142,8 @@ def _build(session, targets, images, keep, idents, measurements, names, *, uv_ov
     keep = list(keep)
     dropped: dict[int, str] = {}
     while True:
-        data, marker = _assemble(session, targets, images, keep, idents, measurements, names, uv_override,
-                                 marker_factor, single_view)
+        data, marker = _assemble(run.session, run.targets, run.images, keep, idents, run.measurements,
+                                 run.names, uv_override, marker_factor, single_view)
         counts = np.bincount(data.obs.image, minlength=len(keep))
         weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
         if not weak:
@@ -226,8 +228,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                                 options: AdjustmentOptions | None = None, *,
                                 progress: Callable[[str], None] | None = None,
                                 target_normals=None, eccentricity: bool = True,
-                                min_identified: int = DEFAULT_MIN_IDENTIFIED,
-                                **identify_kw) -> tuple[FieldData, FieldResult, list[dict]]:
+                                identify: IdentifyOptions | None = None,
+                                priors: PriorOptions | None = None) -> tuple[FieldData, FieldResult, list[dict]]:
     """Identify the measured targets of every image and calibrate (module docstring).
 
     Parameters
@@ -247,10 +249,10 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     eccentricity : bool
         Apply the perspective-eccentricity correction to disc centres when it can be computed
         (normals known and ``field.target_diameter_mm`` in the session).
-    min_identified : int
-        An image with fewer identified targets is left out.
-    **identify_kw
-        Further settings of :func:`fieldcal.field.identify.identify_image` (gates).
+    identify : IdentifyOptions, optional
+        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
+    priors : PriorOptions, optional
+        Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
 
     Returns
     -------
@@ -266,106 +268,143 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     InputError
         Not a field session, no nominal focal length, unreadable targets.csv / marks.csv.
     GeometryError
-        Fewer than 3 images could be identified (the message lists why), or the adjustment
-        cannot calibrate.
+        Fewer than 3 images could be identified from their seeds (the message lists why), or
+        the adjustment cannot calibrate.
     """
     if session.method != "field":
         raise InputError("not a field-method session", str(session.folder / "session.json"))
-    say = progress or (lambda _line: None)
-    options = options or AdjustmentOptions()
-    nominal = nominal_camera(session)
-    targets = read_targets_csv(session.targets_path)
-    images = list(session.images)
-    names = [im.file for im in images]
-    marks = read_marks_csv(session.marks_path, targets, images) if session.marks_path is not None else {}
-    coded = session.coded is not None
-    kw = dict(identify_kw, min_identified=min_identified)
-
-    # 1-2: nominal camera, first adjustment
-    first = _identify_all(targets, targets.sigma_mm / 1000.0, nominal, measurements, marks, coded, {}, kw,
-                          names)
-    keep1 = _usable(first, names, measurements)
-    _check_enough(keep1, names, first, measurements, "nominal camera")
-    single_view = not options.targets_adjusted
-    data1, marker1, keep1, dropped1 = _build(session, targets, images, keep1, first, measurements, names,
-                                             single_view=single_view)
-    for i, why in dropped1.items():
-        first[i].reason = why
-    _check_enough(keep1, names, first, measurements, "nominal camera")
-    say(f"identification with the nominal camera (f {nominal.f_mm:g} mm): {len(keep1)} of {len(names)} "
-        f"images, {len(data1.obs)} points")
-    res1 = adjust_field(data1, options, progress=progress)
-    say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
-
-    # 4: calibrated camera, adjusted poses and targets
-    cam = res1.camera
-    adjusted = replace(targets, xyz_m=np.asarray(res1.targets_m, float))
-    poses = {i: (res1.R_world_to_camera[n], res1.center_m[n]) for n, i in enumerate(keep1)}
-    if res1.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
-        sigma2 = np.sqrt(np.mean(np.asarray(res1.sigma_targets_m, float) ** 2, axis=1))
-        sigma2 = np.where(np.isfinite(sigma2), sigma2, targets.sigma_mm / 1000.0)
-    else:
-        sigma2 = targets.sigma_mm / 1000.0
-    second = _identify_all(adjusted, sigma2, cam, measurements, marks, coded, poses, kw, names)
-    keep2 = _usable(second, names, measurements)
-    _check_enough(keep2, names, second, measurements, "calibrated camera")
-
-    # 3: perspective eccentricity of the discs, with the calibrated camera and the new poses
-    normals = target_normals_of(targets, target_normals)
-    diameter_mm = session.target_diameter_mm
-    ecc_max = {}
-    uv_override = None
-    if eccentricity and normals is not None and diameter_mm:
-        uv_override = {}
-        all_e = []
-        for i in keep2:
-            table = measurements[names[i]]
-            kind, _, uv_all, _ = measured_points(table)
-            rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
-            t = second[i].target[rows]
-            e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
-                              normals[t], diameter_mm / 2000.0)
-            e = np.where(np.isfinite(e), e, 0.0)
-            uv = uv_all.copy()
-            uv[rows] = uv_all[rows] - e
-            uv_override[i] = uv
-            norm = np.hypot(e[:, 0], e[:, 1])
-            ecc_max[i] = float(norm.max()) if len(norm) else 0.0
-            all_e.append(norm)
-        all_e = np.concatenate(all_e) if all_e else np.zeros(0)
-        if len(all_e):
-            say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
-                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-
+    run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
+               identify or IdentifyOptions(), priors or PriorOptions())
+    first, keep1, marker1, res1 = _first_pass(run)
+    cam, adjusted, sigma2, poses, starts, prior_reasons = _with_priors(run, first, keep1, res1)
+    second = _identify_all(run, adjusted, sigma2, cam, poses)
+    keep2 = _usable(second, run.names, measurements)
+    _check_enough(keep2, run.names, second, measurements, "calibrated camera")
+    uv_override, ecc_max = _eccentricity(run, second, keep2, cam, adjusted, target_normals, eccentricity)
     # 5: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
-        say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
-            "to the discs: their sigmas are scaled by that")
-    data, _, keep2, dropped2 = _build(session, targets, images, keep2, second, measurements, names,
-                                      uv_override=uv_override, marker_factor=factor, single_view=single_view)
+        run.say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
+                "to the discs: their sigmas are scaled by that")
+    data, _, keep2, dropped2 = _build(run, keep2, second, uv_override=uv_override, marker_factor=factor,
+                                      single_view=not run.options.targets_adjusted)
     for i, why in dropped2.items():
         second[i].reason = why
-    _check_enough(keep2, names, second, measurements, "calibrated camera")
+    _check_enough(keep2, run.names, second, measurements, "calibrated camera")
     n_first = int(sum(first[i].n_identified for i in keep1))
-    say(f"identification with the calibrated camera: {len(keep2)} of {len(names)} images, "
-        f"{len(data.obs)} points (first pass {n_first})")
-    result = adjust_field(data, options, progress=progress)
+    run.say(f"identification with the calibrated camera: {len(keep2)} of {len(run.names)} images, "
+            f"{len(data.obs)} points (first pass {n_first})")
+    result = adjust_field(data, run.options, progress=run.progress)
     data.meta["marker_sigma_factor"] = factor
-    data.meta["identifications"] = {names[i]: second[i] for i in second}
+    data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
         data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
+    report = _report(run, data, first, second, keep2, starts, prior_reasons, ecc_max)
+    data.meta["identification"] = summary = identification_summary(report)
+    run.say("images used: " + f"{summary['used']} of {summary['images']}" +
+            "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
+            " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
+    return data, result, report
 
+
+class _Run:
+    """What every stage of :func:`calibrate_from_measurements` shares."""
+
+    def __init__(self, session, measurements, options, say, identify, priors):
+        self.session = session
+        self.measurements = measurements
+        self.options = options
+        self.say = say
+        self.progress = None if say is None else say
+        self.identify = identify
+        self.priors = priors
+        self.nominal = nominal_camera(session)
+        self.targets = read_targets_csv(session.targets_path)
+        self.images = list(session.images)
+        self.names = [im.file for im in self.images]
+        self.stations = [im.station for im in self.images]
+        self.marks = (read_marks_csv(session.marks_path, self.targets, self.images)
+                      if session.marks_path is not None else {})
+        self.coded = session.coded is not None
+
+
+def _first_pass(run: _Run):
+    """1-2: the images with seeds, nominal camera; the first adjustment."""
+    first = _identify_all(run, run.targets, run.targets.sigma_mm / 1000.0, run.nominal, {})
+    keep1 = _usable(first, run.names, run.measurements)
+    _check_enough(keep1, run.names, first, run.measurements, "nominal camera")
+    data1, marker1, keep1, dropped1 = _build(run, keep1, first, single_view=not run.options.targets_adjusted)
+    for i, why in dropped1.items():
+        first[i].reason = why
+    _check_enough(keep1, run.names, first, run.measurements, "nominal camera")
+    run.say(f"identification with the nominal camera (f {run.nominal.f_mm:g} mm): {len(keep1)} of "
+            f"{len(run.names)} images, {len(data1.obs)} points")
+    res1 = adjust_field(data1, run.options, progress=run.progress)
+    run.say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
+    return first, keep1, marker1, res1
+
+
+def _with_priors(run: _Run, first, keep1, res1):
+    """3: the calibrated camera and the oriented images start the images left out so far."""
+    cam = res1.camera
+    adjusted = replace(run.targets, xyz_m=np.asarray(res1.targets_m, float))
+    poses = {i: (res1.R_world_to_camera[n], res1.center_m[n]) for n, i in enumerate(keep1)}
+    if res1.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
+        sigma2 = np.sqrt(np.mean(np.asarray(res1.sigma_targets_m, float) ** 2, axis=1))
+        sigma2 = np.where(np.isfinite(sigma2), sigma2, run.targets.sigma_mm / 1000.0)
+    else:
+        sigma2 = run.targets.sigma_mm / 1000.0
+    starts = {i: "seeds" for i in keep1}
+    found, reasons = identify_remaining(cam, adjusted, run.measurements, run.names, run.stations, poses,
+                                        marks=run.marks, target_sigma_m=sigma2, codes_are_markers=run.coded,
+                                        options=run.identify, prior=run.priors)
+    starts.update({i: start for i, (_, start) in found.items()})
+    if found:
+        run.say(f"identification with pose priors (calibrated camera): {len(found)} more image(s) ("
+                + ", ".join(f"{k} {v}" for k, v in _count(s for _, s in found.values()).items()) + ")")
+    return cam, adjusted, sigma2, poses, starts, reasons
+
+
+def _eccentricity(run: _Run, second, keep2, cam, adjusted, target_normals, eccentricity):
+    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses."""
+    normals = target_normals_of(run.targets, target_normals)
+    diameter_mm = run.session.target_diameter_mm
+    ecc_max: dict[int, float] = {}
+    if not (eccentricity and normals is not None and diameter_mm):
+        return None, ecc_max
+    uv_override, all_e = {}, []
+    for i in keep2:
+        kind, _, uv_all, _ = measured_points(run.measurements[run.names[i]])
+        rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
+        t = second[i].target[rows]
+        e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
+                          normals[t], diameter_mm / 2000.0)
+        e = np.where(np.isfinite(e), e, 0.0)
+        uv = uv_all.copy()
+        uv[rows] = uv_all[rows] - e
+        uv_override[i] = uv
+        norm = np.hypot(e[:, 0], e[:, 1])
+        ecc_max[i] = float(norm.max()) if len(norm) else 0.0
+        all_e.append(norm)
+    all_e = np.concatenate(all_e) if all_e else np.zeros(0)
+    if len(all_e):
+        run.say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
+                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
+    return uv_override, ecc_max
+
+
+def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:
+    """One entry per image of the session (module docstring)."""
     used = np.bincount(data.obs.image, minlength=len(keep2))
     n_used = {i: int(used[n]) for n, i in enumerate(keep2)}
     report = []
-    for i, name in enumerate(names):
-        table = measurements.get(name)
+    for i, name in enumerate(run.names):
+        table = run.measurements.get(name)
         entry = {"image": name, "n_measured": 0 if table is None else int(table.num_rows),
                  "n_coded": 0, "n_identified": 0, "n_identified_first": 0,
-                 "n_marks": int(len(marks[i][0])) if i in marks else 0,
+                 "n_marks": int(len(run.marks[i][0])) if i in run.marks else 0,
                  "n_used": n_used.get(i, 0), "wrong_marks": [], "wrong_codes": [], "rms_px": None,
-                 "eccentricity_max_px": None}
+                 "eccentricity_max_px": None, "start": None}
         if table is None:
             entry.update(status="left out", reason="not measured (the image could not be read or measured)")
             report.append(entry)
@@ -374,7 +413,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         entry["n_identified_first"] = int(a.n_identified) if a is not None and a.ok else 0
         ident = b if b is not None else a
         entry.update(n_coded=int(ident.n_coded), n_identified=int(ident.n_identified) if i in keep2 else 0,
-                     wrong_marks=[str(targets.ids[t]) for t in ident.wrong_marks],
+                     wrong_marks=[str(run.targets.ids[t]) for t in ident.wrong_marks],
                      wrong_codes=[int(c) for c in ident.wrong_codes],
                      rms_px=None if not np.isfinite(ident.rms_px) else float(ident.rms_px),
                      eccentricity_max_px=ecc_max.get(i))
@@ -386,8 +425,34 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             if entry["wrong_codes"]:
                 notes.append(f"marker code(s) {', '.join(map(str, entry['wrong_codes']))} disagree with "
                              "the identification (not used)")
-            entry.update(status="ok", reason="; ".join(notes))
+            entry.update(status="ok", reason="; ".join(notes), start=starts.get(i))
         else:
-            entry.update(status="left out", reason=ident.reason)
+            reason = ident.reason if b is not None and i in starts else prior_reasons.get(i) or ident.reason
+            entry.update(status="left out", reason=reason)
         report.append(entry)
-    return data, result, report
+    return report
+
+
+def _count(items) -> dict:
+    out: dict = {}
+    for x in items:
+        out[x] = out.get(x, 0) + 1
+    return out
+
+
+def reason_category(reason: str) -> str:
+    """A short category of a left-out image's reason (for the run's summary)."""
+    for prefix, cat in (("not measured", "not measured"), (REASON_AMBIGUOUS, "ambiguous"),
+                        (REASON_NO_START, "no pose fits"), ("only", "too few targets"),
+                        ("no coded targets", "no seeds"), ("the identified points do not fit", "does not fit")):
+        if reason.startswith(prefix):
+            return cat
+    return "other"
+
+
+def identification_summary(report: list[dict]) -> dict:
+    """Images used, left out by reason category, and how the used ones were started."""
+    used = [r for r in report if r["status"] == "ok"]
+    return {"images": len(report), "used": len(used),
+            "left_out": _count(reason_category(r["reason"]) for r in report if r["status"] != "ok"),
+            "started_from": _count(r.get("start") or "seeds" for r in used)}

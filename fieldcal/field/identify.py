@@ -71,7 +71,7 @@ from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
 from fieldcal.robust import robust_sigma
 
-__all__ = ["ImageIdentification", "identify_image", "mutual_nearest", "local_correction",
+__all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "mutual_nearest", "local_correction",
            "measured_points", "DEFAULT_MIN_IDENTIFIED"]
 
 DEFAULT_MIN_IDENTIFIED = 8
@@ -322,25 +322,35 @@ def _p3p_poses(X, uv, camera):
 class _Matcher:
     """Projection, matching and local correction for one image (shared by all candidates)."""
 
-    def __init__(self, X, match_target, meas_uv, camera, gate_px, factor, min_gate, first_fraction,
-                 neighbours, target_sigma_m=None):
+    def __init__(self, X, match_target, meas_uv, camera, opt: IdentifyOptions, target_sigma_m=None):
         self.X = X
         self.target_sigma_m = target_sigma_m  # (n_t,) or None
         self.prior_px = np.zeros(len(X))
         self.match_target = match_target      # (n_t,) bool: targets matched to discs
         self.meas = meas_uv                   # (n_m, 2) usable discs
         self.camera = camera
-        self.gate_px = gate_px
-        self.factor = factor
-        self.min_gate = min_gate
-        self.first_fraction = first_fraction
-        self.neighbours = neighbours
+        self.gate_px = opt.gate_px
+        self.factor = opt.gate_factor
+        self.min_gate = opt.min_gate_px
+        self.first_fraction = opt.first_gate_fraction
+        self.neighbours = opt.neighbours
         s = camera.sensor
+        self.reach_mm = 1.5 * 0.5 * np.array([s.width_px, s.height_px]) * s.pixel_mm
         self.lo = np.array([-0.5, -0.5])
         self.hi = np.array([s.width_px - 0.5, s.height_px - 0.5])
 
     def project(self, R, C):
-        uv = self.camera.project(self.X, R, C)
+        """Predicted pixels (n, 2) of every target (NaN where not imaged) and which are in the frame.
+
+        Only the targets within 1.5 times the frame's half-size (ideal image) are carried through
+        the distortion: a hundredth of a large field is in view."""
+        R, C = np.asarray(R, float), np.asarray(C, float)
+        Xc = (self.X - C) @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = -self.camera.f_mm * Xc[:, :2] / Xc[:, 2:3]
+        near = (Xc[:, 2] < 0) & (np.abs(q) <= self.reach_mm).all(axis=1)
+        uv = np.full((len(self.X), 2), np.nan)
+        uv[near] = self.camera.project(self.X[near], R, C)
         if self.target_sigma_m is not None:     # the survey's uncertainty seen from this pose [px]
             depth = np.abs((self.X - np.asarray(C)) @ np.asarray(R)[2])
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -442,13 +452,84 @@ def _subset_poses(seed_X, seed_uv, camera, where, rng):
     return cands
 
 
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """Settings of :func:`identify_image` (module docstring, steps 1-5).
+
+    Attributes
+    ----------
+    gate_px : float, optional
+        Upper bound of the gate [px]; default ``first_gate_fraction`` of the local spacing of
+        the predictions only.
+    min_identified : int
+        Fewer identified targets and the image is not usable (``reason`` says so); >= 4.
+    gate_factor, min_gate_px, first_gate_fraction, neighbours, max_iterations
+        The matcher's settings (module docstring, steps 2-4).
+    min_fraction : float
+        The image is not usable when fewer than this fraction of the plain targets the final
+        pose puts well inside the frame (at most the number of measured discs) are
+        identified: a pose from wrong seeds matches only a few by chance.
+    max_rms_fraction : float
+        The image is not usable when the RMS of the identified points' residuals, after the
+        local correction, exceeds this fraction of the targets' spacing in the image (a right
+        identification fits to the measurement noise, a wrong one to a good part of the spacing).
+    max_starts : int
+        When the best-scored start is not convincing (step 1), up to this many of the best
+        candidate poses are refined, and the first that fits is kept.
+    """
+
+    gate_px: float | None = None
+    min_identified: int = DEFAULT_MIN_IDENTIFIED
+    gate_factor: float = 5.0
+    min_gate_px: float = 1.0
+    first_gate_fraction: float = 0.3
+    neighbours: int = 8
+    max_iterations: int = 12
+    min_fraction: float = 0.3
+    max_rms_fraction: float = 0.05
+    max_starts: int = 3
+
+    def __post_init__(self):
+        if self.min_identified < 4:
+            raise InputError(f"min_identified must be at least 4, got {self.min_identified}")
+
+
+@dataclass
+class _Seeds:
+    """The seeds of one image: coded targets (marker rows whose code names a target) and marks."""
+
+    coded_rows: np.ndarray     # (c,) rows of the measurement table
+    coded_t: np.ndarray        # (c,) their targets
+    t: np.ndarray              # (s,) targets of all seeds, markers first
+    uv: np.ndarray             # (s, 2) [px]
+    is_mark: np.ndarray        # (s,) bool
+    n_marks: int
+
+
+def _seeds_of(kind, code, uv_all, usable, tcodes, n_targets, marks, where) -> _Seeds:
+    code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
+    marker_rows = np.flatnonzero((kind == "aruco") & usable)
+    marker_t = np.array([code_to_target.get(int(c), -1) for c in code[marker_rows]], np.int64)
+    coded_rows, coded_t = marker_rows[marker_t >= 0], marker_t[marker_t >= 0]
+    seed_t, seed_uv, n_marks = [coded_t], [uv_all[coded_rows]], 0
+    if marks is not None:
+        mt, muv = np.asarray(marks[0], np.int64).reshape(-1), np.asarray(marks[1], float).reshape(-1, 2)
+        if len(mt) != len(muv):
+            raise InputError(f"marks: {len(mt)} target indices but {len(muv)} points", where or None)
+        if len(mt) and (mt.min() < 0 or mt.max() >= n_targets):
+            raise InputError("marks: target index out of range", where or None)
+        new = ~np.isin(mt, coded_t)               # a marked coded target: the marker is better
+        seed_t.append(mt[new])
+        seed_uv.append(muv[new])
+        n_marks = int(new.sum())
+    t = np.concatenate(seed_t).astype(np.int64)
+    return _Seeds(coded_rows, coded_t, t, np.concatenate(seed_uv).reshape(-1, 2),
+                  np.arange(len(t)) >= len(coded_t), n_marks)
+
+
 def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera, *,
-                   marks=None, init_pose=None, gate_px: float | None = None, target_sigma_m=None,
-                   min_identified: int = DEFAULT_MIN_IDENTIFIED, codes_are_markers: bool = True,
-                   gate_factor: float = 5.0, min_gate_px: float = 1.0,
-                   first_gate_fraction: float = 0.3, neighbours: int = 8,
-                   max_iterations: int = 12, min_fraction: float = 0.3,
-                   max_rms_fraction: float = 0.05, max_starts: int = 3, where: str = "",
+                   marks=None, init_pose=None, target_sigma_m=None, codes_are_markers: bool = True,
+                   options: IdentifyOptions | None = None, where: str = "",
                    seed: int = 0) -> ImageIdentification:
     """Identify the measured targets of one image (see the module docstring).
 
@@ -466,32 +547,17 @@ def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera,
         Hand-identified targets of this image (``marks.csv``, as
         :func:`fieldcal.session.loader.read_marks_csv` returns them per image).
     init_pose : (R_world_to_camera (3, 3), center_m (3,)), optional
-        An approximate pose (e.g. from an adjustment); tried as a candidate.
-    gate_px : float, optional
-        Upper bound of the gate [px]; default ``first_gate_fraction`` of the local spacing of
-        the predictions only.
+        An approximate pose (e.g. from an adjustment, or a pose prior); tried as a candidate.
+        Without it at least 3 seeds are needed.
     target_sigma_m : float or (n,) array_like, optional
         One-sigma uncertainty of each target's coordinates [m] (survey, or adjustment). Seen
         from the pose it widens the target's gate (in quadrature with the residual scale),
         so that a target known worse than its neighbours is not missed.
-    min_identified : int
-        Fewer identified targets and the image is not usable (``reason`` says so).
     codes_are_markers : bool
         Coded targets are seen as ArUco markers and identified by their codes only (the
         session has ``field.coded``); ``False`` matches every target to discs.
-    gate_factor, min_gate_px, first_gate_fraction, neighbours, max_iterations
-        The matcher's settings (module docstring, steps 2-4).
-    min_fraction : float
-        The image is not usable when fewer than this fraction of the plain targets the final
-        pose puts well inside the frame (at most the number of measured discs) are
-        identified: a pose from wrong seeds matches only a few by chance.
-    max_rms_fraction : float
-        The image is not usable when the RMS of the identified points' residuals, after the
-        local correction, exceeds this fraction of the targets' spacing in the image (a right
-        identification fits to the measurement noise, a wrong one to a good part of the spacing).
-    max_starts : int
-        When the best-scored start is not convincing (step 1), up to this many of the best
-        candidate poses are refined, and the first that fits is kept.
+    options : IdentifyOptions, optional
+        The matcher's settings and the checks' limits.
     where : str
         The image's name, for messages.
     seed : int
@@ -501,42 +567,17 @@ def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera,
     -------
     ImageIdentification
     """
-    if min_identified < 4:
-        raise InputError(f"min_identified must be at least 4, got {min_identified}")
+    opt = options or IdentifyOptions()
     kind, code, uv_all, usable = measured_points(measurements)
     n_rows = len(kind)
     X = np.asarray(targets.xyz_m, float)
     tcodes = np.asarray(targets.codes, np.int64)
-    is_disc = (kind == "disc") & usable
-    is_marker = (kind == "aruco") & usable
+    sd = _seeds_of(kind, code, uv_all, usable, tcodes, len(X), marks, where)
+    n_seeds = len(sd.t)
 
-    # coded seeds: marker rows whose code names a target
-    code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
-    marker_rows = np.flatnonzero(is_marker)
-    marker_t = np.array([code_to_target.get(int(c), -1) for c in code[marker_rows]], np.int64)
-    coded_rows, coded_t = marker_rows[marker_t >= 0], marker_t[marker_t >= 0]
-    seed_t = list(coded_t)
-    seed_uv = [uv_all[coded_rows]]
-    n_marks = 0
-    if marks is not None:
-        mt, muv = np.asarray(marks[0], np.int64).reshape(-1), np.asarray(marks[1], float).reshape(-1, 2)
-        if len(mt) != len(muv):
-            raise InputError(f"marks: {len(mt)} target indices but {len(muv)} points", where or None)
-        if len(mt) and (mt.min() < 0 or mt.max() >= len(X)):
-            raise InputError("marks: target index out of range", where or None)
-        new = ~np.isin(mt, coded_t)               # a marked coded target: the marker is better
-        seed_t += list(mt[new])
-        seed_uv.append(muv[new])
-        n_marks = int(new.sum())
-    seed_t = np.asarray(seed_t, np.int64)
-    seed_uv = np.concatenate(seed_uv) if seed_uv else np.zeros((0, 2))
-    seed_is_mark = np.arange(len(seed_t)) >= len(coded_t)
-    n_seeds = len(seed_t)
-
-    def failed(reason, R=None, C=None, iterations=0):
-        return ImageIdentification(np.full(n_rows, -1, np.int64), R, C, 0, len(coded_t), n_seeds,
-                                   np.nan, np.nan, np.full((n_rows, 2), np.nan), iterations=iterations,
-                                   reason=reason)
+    def failed(reason):
+        return ImageIdentification(np.full(n_rows, -1, np.int64), None, None, 0, len(sd.coded_t), n_seeds,
+                                   np.nan, np.nan, np.full((n_rows, 2), np.nan), reason=reason)
 
     if init_pose is None and n_seeds < 3:
         if n_seeds == 0:
@@ -544,156 +585,178 @@ def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera,
         return failed(f"only {n_seeds} seed(s) (coded targets and marks); at least 3 (better 4) are needed")
 
     match_target = tcodes < 0 if codes_are_markers else np.ones(len(X), bool)
-    disc_rows = np.flatnonzero(is_disc)
+    disc_rows = np.flatnonzero((kind == "disc") & usable)
     if target_sigma_m is not None:
         target_sigma_m = np.broadcast_to(np.asarray(target_sigma_m, float), (len(X),))
-    matcher = _Matcher(X, match_target, uv_all[disc_rows], camera, gate_px, gate_factor, min_gate_px,
-                       first_gate_fraction, neighbours, target_sigma_m)
-    # a generous threshold for the seeds' RANSAC: the nominal camera's distortion is in them
-    disc_spacing = np.median(_prediction_spacing(uv_all[disc_rows])) if len(disc_rows) >= 2 else np.inf
-    seed_thr = float(np.clip(0.3 * disc_spacing, 4.0, 1e4)) if np.isfinite(disc_spacing) else 50.0
+    matcher = _Matcher(X, match_target, uv_all[disc_rows], camera, opt, target_sigma_m)
+    cands, scores, convincing = _starting_poses(matcher, sd, X, init_pose, opt, where, seed)
+    if not cands:
+        return failed("no pose could be computed from the seeds (collinear or inconsistent)")
+    best = _best_refined(matcher, cands, scores, convincing, sd, X, uv_all, opt, where)
+    return _finish(matcher, best, sd, n_rows, disc_rows, kind, code, uv_all, init_pose, opt)
 
-    # ---- step 1: the starting pose
-    sX, suv = X[seed_t], seed_uv
-    cands = _candidate_poses(sX, suv, camera, init_pose, seed_thr, where)
+
+def _starting_poses(matcher, sd: _Seeds, X, init_pose, opt: IdentifyOptions, where, seed):
+    """Step 1: candidate poses, their scores, and whether the best is convincing."""
+    meas = matcher.meas
+    # a generous threshold for the seeds' RANSAC: the nominal camera's distortion is in them
+    disc_spacing = np.median(_prediction_spacing(meas)) if len(meas) >= 2 else np.inf
+    seed_thr = float(np.clip(0.3 * disc_spacing, 4.0, 1e4)) if np.isfinite(disc_spacing) else 50.0
+    sX, suv = X[sd.t], sd.uv
+    if init_pose is not None:   # a convincing approximate pose needs no seeds' candidates
+        pose = (np.asarray(init_pose[0], float), np.asarray(init_pose[1], float))
+        score = _score(matcher, *pose)
+        _, inside0 = matcher.project(*pose)
+        if score >= max(opt.min_identified, 0.5 * int(np.sum(inside0 & matcher.match_target))) and \
+                (len(sd.t) == 0 or _seeds_agree(matcher, pose, sX, suv)):
+            return [pose], [score], True
+    cands = _candidate_poses(sX, suv, matcher.camera, init_pose, seed_thr, where)
     scores = [_score(matcher, R, C) for R, C in cands]
     convincing = False
     if cands:
         best = cands[int(np.argmax(scores))]
-        uv0, inside0 = matcher.project(*best)
-        expected0 = int(np.sum(inside0 & match_target))
-        convincing = max(scores) >= max(min_identified, 0.5 * expected0) and _seeds_agree(matcher, best, sX, suv)
-    if not convincing and n_seeds >= 3:
-        rng = np.random.default_rng(seed)
-        more = _subset_poses(sX, suv, camera, where, rng)
+        _, inside0 = matcher.project(*best)
+        expected0 = int(np.sum(inside0 & matcher.match_target))
+        convincing = (max(scores) >= max(opt.min_identified, 0.5 * expected0)
+                      and _seeds_agree(matcher, best, sX, suv))
+    if not convincing and len(sd.t) >= 3:
+        more = _subset_poses(sX, suv, matcher.camera, where, np.random.default_rng(seed))
         cands += more
         scores += [_score(matcher, R, C) for R, C in more]
-    if not cands:
-        return failed("no pose could be computed from the seeds (collinear or inconsistent)")
+    return cands, scores, convincing
 
-    # ---- steps 2-4: match, correct, re-resect until stable
-    def refine(R, C):
-        uv, inside = matcher.project(R, C)
-        corr = np.zeros_like(uv)
-        gate = matcher.first_gates(uv, inside)
-        pairs = None
-        iterations = 0
-        for _ in range(max_iterations):
-            iterations += 1
-            tm, jm = matcher.match(uv, inside, gate, corr)
-            key = (tuple(tm), tuple(jm))
-            if key == pairs:
-                break
-            pairs = key
-            # the markers join the pose where they agree with it (a wrong code must not pull it)
-            c_ok = np.zeros(len(coded_t), bool)
-            if len(coded_t):
-                c_corr, _ = _correction_at(matcher, uv, tm, jm, coded_t)
-                c_err = np.hypot(*(uv_all[coded_rows] - uv[coded_t] - c_corr).T)
-                c_ok = np.isfinite(c_err) & (c_err <= _seed_tolerance(matcher, uv, coded_t, gate))
-            if len(tm) + c_ok.sum() < 4:
-                break
-            Xp = np.concatenate([X[tm], X[coded_t[c_ok]]])
-            uvp = np.concatenate([matcher.meas[jm], uv_all[coded_rows[c_ok]]])
-            if is_collinear(Xp):
-                break
-            try:
-                r = resect(Xp, uvp, camera, init=(R, C), where=where)
-            except GeometryError:
-                break
-            R, C = r.R_world_to_camera, r.center_m
-            uv, inside = matcher.project(R, C)
-            corr, _, gate, _, _ = matcher.corrected(uv, inside, tm, jm)
-        # final pairs with the last pose and gates
+
+def _refine(matcher, R, C, sd: _Seeds, X, uv_all, opt: IdentifyOptions, where) -> dict:
+    """Steps 2-4 from one starting pose: match, correct, re-resect until the pairs are stable."""
+    uv, inside = matcher.project(R, C)
+    corr = np.zeros_like(uv)
+    gate = matcher.first_gates(uv, inside)
+    pairs = None
+    iterations = 0
+    for _ in range(opt.max_iterations):
+        iterations += 1
         tm, jm = matcher.match(uv, inside, gate, corr)
-        corr, _, gate, s, e = matcher.corrected(uv, inside, tm, jm)
-        good = e <= gate[tm]
-        spacing = float(np.median(_prediction_spacing(uv[inside]))) if inside.sum() > 1 else np.inf
-        rms = float(np.sqrt(np.mean(e[good] ** 2))) if good.any() else np.inf
-        return dict(R=R, C=C, uv=uv, inside=inside, corr=corr, gate=gate, s=s, tm=tm[good], jm=jm[good],
-                    e=e[good], iterations=iterations, spacing=spacing, fits=rms <= max_rms_fraction * spacing)
+        key = (tuple(tm), tuple(jm))
+        if key == pairs:
+            break
+        pairs = key
+        # the markers join the pose where they agree with it (a wrong code must not pull it)
+        c_ok = np.zeros(len(sd.coded_t), bool)
+        if len(sd.coded_t):
+            c_corr, _ = _correction_at(matcher, uv, tm, jm, sd.coded_t)
+            c_err = np.hypot(*(uv_all[sd.coded_rows] - uv[sd.coded_t] - c_corr).T)
+            c_ok = np.isfinite(c_err) & (c_err <= _seed_tolerance(matcher, uv, sd.coded_t, gate))
+        if len(tm) + c_ok.sum() < 4:
+            break
+        Xp = np.concatenate([X[tm], X[sd.coded_t[c_ok]]])
+        uvp = np.concatenate([matcher.meas[jm], uv_all[sd.coded_rows[c_ok]]])
+        if is_collinear(Xp):
+            break
+        try:
+            r = resect(Xp, uvp, matcher.camera, init=(R, C), where=where)
+        except GeometryError:
+            break
+        R, C = r.R_world_to_camera, r.center_m
+        uv, inside = matcher.project(R, C)
+        corr, _, gate, _, _ = matcher.corrected(uv, inside, tm, jm)
+    # final pairs with the last pose and gates
+    tm, jm = matcher.match(uv, inside, gate, corr)
+    corr, _, gate, s, e = matcher.corrected(uv, inside, tm, jm)
+    good = e <= gate[tm]
+    spacing = float(np.median(_prediction_spacing(uv[inside]))) if inside.sum() > 1 else np.inf
+    rms = float(np.sqrt(np.mean(e[good] ** 2))) if good.any() else np.inf
+    return dict(R=R, C=C, uv=uv, inside=inside, corr=corr, gate=gate, s=s, tm=tm[good], jm=jm[good],
+                e=e[good], iterations=iterations, spacing=spacing, fits=rms <= opt.max_rms_fraction * spacing)
 
+
+def _best_refined(matcher, cands, scores, convincing, sd, X, uv_all, opt: IdentifyOptions, where) -> dict:
+    """Step 4's choice: refine the best-scored start, or up to ``max_starts`` until one fits."""
     order = np.argsort(scores, kind="stable")[::-1]
     tried, best = [], None
-    for k in order[: 1 if convincing else max_starts]:
+    for k in order[: 1 if convincing else opt.max_starts]:
         R, C = cands[k]
         if any(np.linalg.norm(C - C2) < 1e-6 * (1 + np.linalg.norm(C)) for C2 in tried):
             continue
         tried.append(C)
-        st = refine(R, C)
+        st = _refine(matcher, R, C, sd, X, uv_all, opt, where)
         if best is None or (st["fits"], len(st["tm"])) > (best["fits"], len(best["tm"])):
             best = st
-        if st["fits"] and len(st["tm"]) >= max(min_identified, 0.5 * scores[k]):
+        if st["fits"] and len(st["tm"]) >= max(opt.min_identified, 0.5 * scores[k]):
             break
-    R, C, uv, inside, gate, s = best["R"], best["C"], best["uv"], best["inside"], best["gate"], best["s"]
-    tm, jm, e, iterations = best["tm"], best["jm"], best["e"], best["iterations"]
+    return best
+
+
+def _finish(matcher, best, sd: _Seeds, n_rows, disc_rows, kind, code, uv_all, init_pose,
+            opt: IdentifyOptions) -> ImageIdentification:
+    """The identities of the rows, the markers and marks checked against the pose (step 5)."""
+    R, C, uv, gate, s = best["R"], best["C"], best["uv"], best["gate"], best["s"]
+    tm, jm, e = best["tm"], best["jm"], best["e"]
     target = np.full(n_rows, -1, np.int64)
     target[disc_rows[jm]] = tm
     residual = np.full((n_rows, 2), np.nan)
     residual[disc_rows[jm]] = matcher.meas[jm] - uv[tm]
-
-    # markers: identified by code, kept when they agree with the pose
-    if len(coded_t):
+    wrong_codes, e_codes = np.zeros(0, np.int64), np.zeros(0)
+    if len(sd.coded_t):     # markers: identified by code, kept when they agree with the pose
         # a coded target's correction comes from the discs around it
-        c_corr, c_spread = _correction_at(matcher, uv, tm, jm, coded_t)
-        cres = uv_all[coded_rows] - uv[coded_t]
+        c_corr, c_spread = _correction_at(matcher, uv, tm, jm, sd.coded_t)
+        cres = uv_all[sd.coded_rows] - uv[sd.coded_t]
         ce = np.hypot(*(cres - c_corr).T)
-        cgate = np.clip(gate_factor * np.hypot(s if np.isfinite(s) else 0.0, c_spread), min_gate_px,
+        cgate = np.clip(opt.gate_factor * np.hypot(s if np.isfinite(s) else 0.0, c_spread), opt.min_gate_px,
                         np.inf)
-        cgate = np.maximum(cgate, _seed_tolerance(matcher, uv, coded_t, gate))
+        cgate = np.maximum(cgate, _seed_tolerance(matcher, uv, sd.coded_t, gate))
         agree = np.isfinite(ce) & (ce <= cgate)
         # a coded target matched as a disc too (codes_are_markers=False): the marker wins
-        twice = np.isin(target, coded_t[agree]) & (kind == "disc")
+        twice = np.isin(target, sd.coded_t[agree]) & (kind == "disc")
         target[twice] = -1
         residual[twice] = np.nan
-        target[coded_rows[agree]] = coded_t[agree]
-        residual[coded_rows[agree]] = cres[agree]
-        wrong_codes = code[coded_rows[~agree]]
-    else:
-        wrong_codes = np.zeros(0, np.int64)
-
-    # marks: compared with the prediction of their target
+        target[sd.coded_rows[agree]] = sd.coded_t[agree]
+        residual[sd.coded_rows[agree]] = cres[agree]
+        wrong_codes, e_codes = code[sd.coded_rows[~agree]], ce[agree]
     wrong_marks = np.zeros(0, np.int64)
-    if n_marks:
-        mt, muv = seed_t[seed_is_mark], seed_uv[seed_is_mark]
+    if sd.n_marks:          # marks: compared with the prediction of their target
+        mt, muv = sd.t[sd.is_mark], sd.uv[sd.is_mark]
         m_corr, _ = _correction_at(matcher, uv, tm, jm, mt)
         d = np.hypot(*(muv - uv[mt] - m_corr).T)
-        tol = _seed_tolerance(matcher, uv, mt, gate)
-        wrong_marks = mt[~(np.isfinite(d) & (d <= tol))]
-
+        wrong_marks = mt[~(np.isfinite(d) & (d <= _seed_tolerance(matcher, uv, mt, gate)))]
     n_id = int(np.sum(target >= 0))
-    e_all = np.concatenate([e, ce[agree]]) if len(coded_t) else e
+    e_all = np.concatenate([e, e_codes])
     rms = float(np.sqrt(np.mean(e_all**2))) if len(e_all) else np.nan
     gate_med = float(np.median(gate[tm])) if len(tm) else np.nan
-    reason = ""
     n_wrong = len(wrong_marks) + len(wrong_codes)
+    reason = _verdict(matcher, best, n_id, rms, len(disc_rows), n_wrong, len(sd.t), init_pose, opt)
+    if reason and n_id >= opt.min_identified:      # a wrong start: none of its identities is trusted
+        target[:] = -1
+        residual[:] = np.nan
+        n_id = 0
+    return ImageIdentification(target, R, C, n_id, len(sd.coded_t), len(sd.t), gate_med, rms, residual,
+                               wrong_marks=np.asarray(wrong_marks, np.int64),
+                               wrong_codes=np.asarray(wrong_codes, np.int64), iterations=best["iterations"],
+                               reason=reason)
+
+
+def _verdict(matcher, best, n_id, rms, n_discs, n_wrong, n_seeds, init_pose, opt: IdentifyOptions) -> str:
+    """Why the image is not usable ("" when it is): step 5's checks."""
+    uv, inside, tm = best["uv"], best["inside"], best["tm"]
     # targets the pose puts in the frame, away from the border, that could have been matched
-    s_ = camera.sensor
+    s_ = matcher.camera.sensor
     margin = 0.5 * float(np.median(_prediction_spacing(uv[inside]))) if inside.sum() > 1 else 0.0
     margin = min(margin, 0.1 * min(s_.width_px, s_.height_px))
     well_inside = inside & (uv[:, 0] > margin) & (uv[:, 1] > margin) & \
         (uv[:, 0] < s_.width_px - 1 - margin) & (uv[:, 1] < s_.height_px - 1 - margin)
-    expected = min(int(np.sum(well_inside & match_target)), len(disc_rows))
-    if n_id < min_identified:
-        reason = f"only {n_id} target(s) identified, at least {min_identified} needed"
-    elif not best["fits"]:
-        reason = (f"the identified points do not fit one pose (RMS {rms:.3g} px after the local "
-                  f"correction, spacing of the targets {best['spacing']:.3g} px): the start (marks, "
-                  "codes or nominal focal length) is probably wrong")
-    elif len(tm) < min_fraction * expected:
-        reason = (f"only {len(tm)} of about {expected} targets expected in the frame identified: the "
-                  "start (marks, codes or nominal focal length) is probably wrong")
-    elif n_seeds and init_pose is None and n_wrong > 0.5 * n_seeds:
-        reason = (f"{n_wrong} of the {n_seeds} seeds (marks and coded targets) disagree with the "
-                  "identification: the marks or codes are unreliable")
-    if reason and n_id >= min_identified:      # a wrong start: none of its identities is trusted
-        target[:] = -1
-        residual[:] = np.nan
-        n_id = 0
-    return ImageIdentification(target, R, C, n_id, len(coded_t), n_seeds, gate_med, rms, residual,
-                               wrong_marks=np.asarray(wrong_marks, np.int64),
-                               wrong_codes=np.asarray(wrong_codes, np.int64), iterations=iterations,
-                               reason=reason)
+    expected = min(int(np.sum(well_inside & matcher.match_target)), n_discs)
+    if n_id < opt.min_identified:
+        return f"only {n_id} target(s) identified, at least {opt.min_identified} needed"
+    if not best["fits"]:
+        return (f"the identified points do not fit one pose (RMS {rms:.3g} px after the local "
+                f"correction, spacing of the targets {best['spacing']:.3g} px): the start (marks, "
+                "codes or nominal focal length) is probably wrong")
+    if len(tm) < opt.min_fraction * expected:
+        return (f"only {len(tm)} of about {expected} targets expected in the frame identified: the "
+                "start (marks, codes or nominal focal length) is probably wrong")
+    if n_seeds and init_pose is None and n_wrong > 0.5 * n_seeds:
+        return (f"{n_wrong} of the {n_seeds} seeds (marks and coded targets) disagree with the "
+                "identification: the marks or codes are unreliable")
+    return ""
 
 
 def _correction_at(matcher, uv, tm, jm, t):

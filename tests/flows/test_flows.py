@@ -27,7 +27,7 @@ from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 from flows import calibrate as flow_mod
 from flows.calibrate import calibrate_session, plan_batches
 from flows.fleet import fleet_deployment, recalibrate_fleet

@@ -1,0 +1,305 @@
+"""Pose hypotheses for an image with fewer than three seeds: priors and a pose-free search.
+
+Method
+------
+:func:`fieldcal.field.identify.identify_image` needs a starting pose: three or more seeds
+(coded targets, hand marks) or an approximate pose. This module makes approximate poses for
+the other images from what the session knows once some images are oriented (a calibrated
+camera, their poses); every hypothesis is only a start, verified afterwards by
+:func:`fieldcal.field.identify.identify_image` and by the session's uniqueness test
+(:mod:`fieldcal.field.identify_session`).
+
+Anchored correspondences. A *pivot* is a measured point with a known or hypothesised target
+(a seed, or a disc near the image centre tried against every target); its measured
+neighbours, in order of distance, get targets among the pivot target's nearest neighbours in
+the field. Each anchored set gives poses:
+
+- **centre known** (:func:`poses_from_centre`; the station's position, or the centre of an
+  oriented image): the rotation alone is unknown. The world directions ``w = (X - C) / |X - C|``
+  and the rays of the measured points (:meth:`Camera.unproject`) are related by one
+  rotation, which keeps the angle between any two of them. Two seeds give it directly
+  (Kabsch's rotation of the direction pairs, :func:`rotations_from_directions`); with one
+  seed or none, the pivot and its nearest measured neighbour (angle ``theta``) are paired
+  with every target pair seen at ``theta`` (the star tracker's pair catalogue: a KD-tree
+  of the unit directions), each pair giving one rotation;
+- **nothing known** (:func:`poses_pose_free`): the pivot and two measured neighbours paired
+  with the pivot target and two of its field neighbours give up to four poses each by
+  Grunert's P3P (:func:`p3p_batch`, every real part of the quartic's roots, vectorised
+  over all triples).
+
+Local support. Every pose projects the pivot target's ``n_world`` nearest field neighbours
+(:func:`local_support`); it scores the number of the pivot's ``n_image`` nearest measured
+neighbours that have a projected target within a quarter of the pivot's neighbour spacing.
+Only the best-supported poses go on to the full matching; on a field whose pattern repeats,
+many poses have full local support and the session's uniqueness test decides.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fieldcal.field.geometry import plane_frame
+from fieldcal.model.camera import Camera
+
+__all__ = ["rotations_from_directions", "p3p_batch", "local_support", "poses_from_centre",
+           "poses_pose_free", "Anchor", "field_neighbours"]
+
+_CHUNK = 20000
+
+
+def field_neighbours(X, m: int):
+    """Each target's ``m`` nearest targets (itself first), (n, m) int.
+
+    Measured in the field's best-fit plane: the depth of a facade's relief (a pilaster 0.5 m
+    in front of a 0.35 m grid) would otherwise make the targets on it each other's nearest
+    neighbours, while the image shows the neighbours beside them."""
+    X = np.asarray(X, float)
+    if len(X) >= 3:
+        _, B = plane_frame(X)
+        P = (X - X.mean(axis=0)) @ B[:, :2]
+    else:
+        P = X
+    return cKDTree(P).query(P, k=m)[1].reshape(len(X), m)
+
+
+def rotations_from_directions(a_cam, b_world, weights=None):
+    """Rotations ``R`` (H, 3, 3) with ``a ~ R b`` in the least-squares sense (Kabsch).
+
+    Parameters
+    ----------
+    a_cam, b_world : (H, k, 3) ndarrays
+        Unit vectors in the camera frame and the world (k >= 2, not all parallel).
+    weights : (k,) ndarray, optional
+
+    Returns
+    -------
+    (H, 3, 3) ndarray
+        Proper rotations (det +1), world to camera.
+    """
+    a = np.asarray(a_cam, float)
+    b = np.asarray(b_world, float)
+    if weights is not None:
+        a = a * np.asarray(weights, float)[None, :, None]
+    M = np.einsum("hki,hkj->hij", a, b)
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    U[:, :, 2] *= d[:, None]
+    return U @ Vt
+
+
+def p3p_batch(X, rays):
+    """Poses of many point triples by Grunert's P3P (every real part of the quartic's roots).
+
+    Parameters
+    ----------
+    X : (H, 3, 3) ndarray
+        World points [m] of each triple.
+    rays : (H, 3, 3) ndarray
+        Unit rays of their images in the camera frame (:meth:`Camera.unproject`).
+
+    Returns
+    -------
+    R : (N, 3, 3) ndarray
+        World-to-camera rotations.
+    C : (N, 3) ndarray
+        Camera centres [m].
+    source : (N,) int ndarray
+        The triple each pose comes from (up to four per triple).
+    """
+    X = np.asarray(X, float)
+    rays = np.asarray(rays, float)
+    H = len(X)
+    if H == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    a2 = np.sum((X[:, 1] - X[:, 2]) ** 2, axis=1)
+    b2 = np.sum((X[:, 0] - X[:, 2]) ** 2, axis=1)
+    c2 = np.sum((X[:, 0] - X[:, 1]) ** 2, axis=1)
+    ca = np.sum(rays[:, 1] * rays[:, 2], axis=1)
+    cb = np.sum(rays[:, 0] * rays[:, 2], axis=1)
+    cg = np.sum(rays[:, 0] * rays[:, 1], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p, q = (a2 - c2) / b2, (a2 + c2) / b2
+        A4 = (p - 1) ** 2 - 4 * c2 / b2 * ca**2
+        A3 = 4 * (p * (1 - p) * cb - (1 - q) * ca * cg + 2 * c2 / b2 * ca**2 * cb)
+        A2 = 2 * (p**2 - 1 + 2 * p**2 * cb**2 + 2 * (b2 - c2) / b2 * ca**2 - 4 * q * ca * cb * cg
+                  + 2 * (b2 - a2) / b2 * cg**2)
+        A1 = 4 * (-p * (1 + p) * cb + 2 * a2 / b2 * cg**2 * cb - (1 - q) * ca * cg)
+        A0 = (1 + p) ** 2 - 4 * a2 / b2 * cg**2
+        coef = np.stack([A3, A2, A1, A0], axis=1) / A4[:, None]
+    ok = np.isfinite(coef).all(axis=1) & (np.abs(A4) > 1e-12)
+    comp = np.zeros((H, 4, 4))
+    comp[:, 0, :] = -np.where(ok[:, None], coef, 0.0)
+    comp[:, 1, 0] = comp[:, 2, 1] = comp[:, 3, 2] = 1.0
+    v = np.linalg.eigvals(comp).real                                   # (H, 4)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = ((p - 1)[:, None] * v**2 - 2 * (p * cb)[:, None] * v + (1 + p)[:, None]) / \
+            (2 * (cg[:, None] - v * ca[:, None]))
+        s1 = np.sqrt(b2[:, None] / (1 + v**2 - 2 * v * cb[:, None]))
+    s = np.stack([s1, u * s1, v * s1], axis=2)                         # (H, 4, 3)
+    good = ok[:, None] & np.isfinite(s).all(axis=2) & (s > 0).all(axis=2)
+    h, r = np.nonzero(good)
+    Pc = rays[h] * s[h, r][:, :, None]                                 # (N, 3, 3) camera frame
+    Xw = X[h]
+    Xm, Pm = Xw.mean(axis=1), Pc.mean(axis=1)
+    R = rotations_from_directions(Pc - Pm[:, None], Xw - Xm[:, None])  # Pc - Pm = R (X - Xm)
+    C = Xm - np.einsum("nji,nj->ni", R, Pm)
+    return R, C, h
+
+
+def local_support(camera: Camera, R, C, anchor, X, world_nbrs, nbr_uv, gate_px):
+    """How many of a pivot's measured neighbours each pose explains.
+
+    Compared in the ideal image plane (the measured neighbours corrected once, the targets
+    projected by the pinhole alone), so no distortion is inverted per pose.
+
+    Parameters
+    ----------
+    R, C : (H, 3, 3), (H, 3) ndarrays
+        The poses.
+    anchor : (H,) int ndarray
+        The target each pose gives the pivot.
+    X : (n, 3) ndarray
+        Targets [m].
+    world_nbrs : (n, m) int ndarray
+        Each target's nearest targets (itself first).
+    nbr_uv : (k, 2) ndarray
+        The pivot's nearest measured neighbours [px].
+    gate_px : float
+
+    Returns
+    -------
+    (H,) int ndarray
+        Neighbours with a projected target within ``gate_px``.
+    """
+    q_meas = camera.correct(camera.sensor.pixel_to_mm(np.asarray(nbr_uv, float)))       # (k, 2) [mm]
+    gate2 = (gate_px * camera.sensor.pixel_mm) ** 2
+    f = camera.f_mm
+    out = np.zeros(len(R), np.int64)
+    for a in range(0, len(R), _CHUNK):
+        sl = slice(a, a + _CHUNK)
+        P = X[world_nbrs[anchor[sl]]] - C[sl][:, None]                  # (h, m, 3)
+        Pc = np.einsum("hij,hmj->hmi", R[sl], P)
+        z = Pc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = -f * Pc[..., :2] / np.where(z < 0, z, np.nan)[..., None]  # (h, m, 2)
+        d2 = ((q[:, None, :, :] - q_meas[None, :, None, :]) ** 2).sum(axis=3)   # (h, k, m)
+        d2 = np.where(np.isfinite(d2), d2, np.inf)
+        out[sl] = np.sum(d2.min(axis=2) <= gate2, axis=1)
+    return out
+
+
+class Anchor:
+    """A pivot measured point, its nearest measured neighbours and the targets it may be."""
+
+    def __init__(self, uv, nbr_uv, targets):
+        self.uv = np.asarray(uv, float)               # (2,)
+        self.nbr_uv = np.asarray(nbr_uv, float)       # (k, 2), nearest first
+        self.targets = np.asarray(targets, np.int64)  # (t,) candidates for the pivot
+
+    @property
+    def spacing_px(self) -> float:
+        return float(np.linalg.norm(self.nbr_uv[0] - self.uv))
+
+
+def _top(scores, R, C, anchor, keep):
+    """The ``keep`` best-supported poses, and every pose tied with the last of them."""
+    order = np.argsort(-scores, kind="stable")
+    if len(order) > keep:
+        order = order[scores[order] >= scores[order[keep - 1]]][:20 * keep]
+    return [(R[k], C[k], int(scores[k]), int(anchor[k])) for k in order]
+
+
+def poses_from_centre(camera: Camera, center_m, X, world_nbrs, anchor: Anchor, *, seeds=None,
+                      angle_tol: float = 0.08, keep: int = 20):
+    """Rotations for a known camera centre (module docstring), best local support first.
+
+    Parameters
+    ----------
+    camera : Camera
+        The calibrated camera.
+    center_m : (3,) array_like
+        The prior centre [m].
+    X : (n, 3) ndarray
+        Targets [m] (the pivot's candidates and their neighbours index it).
+    world_nbrs : (n, m) int ndarray
+        Each target's nearest targets, itself first.
+    anchor : Anchor
+    seeds : (targets (k,), uv (k, 2)), optional
+        With two or more seeds the rotation comes from them alone.
+    angle_tol : float
+        Relative tolerance of the pivot-neighbour angle (relief, the centre's error).
+    keep : int
+        Hypotheses returned.
+
+    Returns
+    -------
+    list of (R (3, 3), C (3,), support, pivot target)
+    """
+    C = np.asarray(center_m, float)
+    w = X - C
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    if seeds is not None and len(seeds[0]) >= 2:
+        rays = camera.unproject(np.asarray(seeds[1], float))
+        R = rotations_from_directions(rays[None], w[np.asarray(seeds[0])][None])
+        return [(R[0], C, len(seeds[0]), int(seeds[0][0]))]
+    r_p, r_q = camera.unproject(np.stack([anchor.uv, anchor.nbr_uv[0]]))
+    theta = float(np.arccos(np.clip(r_p @ r_q, -1, 1)))
+    lo, hi = 2 * np.sin(theta * (1 - angle_tol) / 2), 2 * np.sin(theta * (1 + angle_tol) / 2)
+    tree = cKDTree(w)
+    k_list, k2_list = [], []
+    for k, ball in zip(anchor.targets, tree.query_ball_point(w[anchor.targets], hi), strict=True):
+        ball = np.asarray(ball, np.int64)
+        ball = ball[np.linalg.norm(w[ball] - w[k], axis=1) >= lo]
+        k_list.append(np.full(len(ball), k))
+        k2_list.append(ball)
+    if not k_list:
+        return []
+    k1, k2 = np.concatenate(k_list), np.concatenate(k2_list)
+    if len(k1) == 0:
+        return []
+    a = np.broadcast_to(np.stack([r_p, r_q]), (len(k1), 2, 3))
+    R = rotations_from_directions(a, np.stack([w[k1], w[k2]], axis=1))
+    Cs = np.broadcast_to(C, (len(k1), 3))
+    support = local_support(camera, R, Cs, k1, X, world_nbrs, anchor.nbr_uv, 0.25 * anchor.spacing_px)
+    return _top(support, R, Cs, k1, keep)
+
+
+def poses_pose_free(camera: Camera, X, world_nbrs, anchor: Anchor, *, second=None, n_first: int = 5,
+                    n_second: int = 7, keep: int = 20):
+    """Poses from the pivot and two measured neighbours by P3P (module docstring).
+
+    ``second`` (a target index) fixes the first neighbour's target (two seeds); otherwise it
+    is one of the pivot target's ``n_first`` nearest field neighbours, and the second
+    neighbour's one of its ``n_second`` nearest. Returns the best-supported poses as
+    :func:`poses_from_centre` does.
+    """
+    nb = anchor.nbr_uv
+    if len(nb) < 3:
+        return []
+    # the second neighbour: the nearest one well off the pivot-first-neighbour line
+    d1 = nb[0] - anchor.uv
+    cross = np.abs(d1[0] * (nb[1:, 1] - anchor.uv[1]) - d1[1] * (nb[1:, 0] - anchor.uv[0]))
+    sin = cross / (np.linalg.norm(d1) * np.linalg.norm(nb[1:] - anchor.uv, axis=1))
+    off = np.flatnonzero(sin > 0.5)
+    if len(off) == 0:
+        return []
+    j2 = 1 + int(off[0])
+    rays = camera.unproject(np.stack([anchor.uv, nb[0], nb[j2]]))
+    k = anchor.targets
+    m = world_nbrs.shape[1]
+    c1 = (np.full((len(k), 1), second) if second is not None else world_nbrs[k, 1:1 + min(n_first, m - 1)])
+    c2 = world_nbrs[k, 1:1 + min(n_second, m - 1)]
+    K0 = np.repeat(k, c1.shape[1] * c2.shape[1])
+    K1 = np.repeat(c1.reshape(-1), c2.shape[1])
+    K2 = np.repeat(c2, c1.shape[1], axis=0).reshape(-1)
+    ok = (K1 != K2) & (K0 != K2) & (K0 != K1)
+    K0, K1, K2 = K0[ok], K1[ok], K2[ok]
+    if len(K0) == 0:
+        return []
+    R, C, src = p3p_batch(np.stack([X[K0], X[K1], X[K2]], axis=1), np.broadcast_to(rays, (len(K0), 3, 3)))
+    if len(R) == 0:
+        return []
+    support = local_support(camera, R, C, K0[src], X, world_nbrs, nb, 0.25 * anchor.spacing_px)
+    return _top(support, R, C, K0[src], keep)
