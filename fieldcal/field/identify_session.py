@@ -146,7 +146,7 @@ class _Context:
         tcodes = np.asarray(targets.codes, np.int64)
         self.match = tcodes < 0 if codes_are_markers else np.ones(len(self.X), bool)
         self.code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
-        self.world_nbrs = field_neighbours(self.X, min(40, len(self.X)))
+        self.world_nbrs = field_neighbours(self.X, min(100, len(self.X)))
 
     def refine(self, img: _Image, pose, marks):
         ident = identify_image(img.table, self.targets, self.camera, marks=marks, init_pose=pose,
@@ -160,11 +160,11 @@ class _Context:
     def anchors(self, img: _Image) -> list[Anchor]:
         """Pivots: the seeds (their targets fixed), else discs near the image centre."""
         tree = cKDTree(img.uv)
-        k = min(17, len(img.uv))
+        k = min(41, len(img.uv))
         out = []
         for t, uv in zip(img.seeds_t, img.seeds_uv, strict=True):
             d, j = tree.query(uv, k=k)
-            j = j[d > 1e-6][:16]
+            j = j[d > 1e-6][:40]
             out.append(Anchor(uv, img.uv[j], [t]))
         if out:
             return out
@@ -271,7 +271,7 @@ def _search(ctx: _Context, img: _Image, oriented, stations, marks):
         return None, "", why
     img.tried.add("pose-free")
     hyps = []
-    second = int(img.seeds_t[1]) if len(img.seeds_t) >= 2 else None
+    second = (int(img.seeds_t[1]), img.seeds_uv[1]) if len(img.seeds_t) >= 2 else None
     for a in anchors[:1] if second is not None else anchors:
         hyps += poses_pose_free(ctx.camera, ctx.X, ctx.world_nbrs, a, second=second)
     ident, reason = ctx.decide(img, hyps, marks)

@@ -203,6 +203,21 @@ class Anchor:
         return float(np.linalg.norm(self.nbr_uv[0] - self.uv))
 
 
+def _two_stage(camera, R, C, anchor_t, X, world_nbrs, anchor: Anchor, keep):
+    """Local support of the nearest 8 measured neighbours against 25 field neighbours, then
+    of all the anchor's neighbours against all the field neighbours for the poses tied best
+    (on a grid many poses explain a small neighbourhood; the pattern's gaps tell them apart
+    farther out)."""
+    gate = 0.25 * anchor.spacing_px
+    first = local_support(camera, R, C, anchor_t, X, world_nbrs[:, :25], anchor.nbr_uv[:8], gate)
+    if len(first) == 0:
+        return []
+    best = first >= first.max() - 1
+    k = np.flatnonzero(best)
+    second = local_support(camera, R[k], C[k], anchor_t[k], X, world_nbrs, anchor.nbr_uv, gate)
+    return _top(second, R[k], C[k], anchor_t[k], keep)
+
+
 def _top(scores, R, C, anchor, keep):
     """The ``keep`` best-supported poses, and every pose tied with the last of them."""
     order = np.argsort(-scores, kind="stable")
@@ -240,10 +255,11 @@ def poses_from_centre(camera: Camera, center_m, X, world_nbrs, anchor: Anchor, *
     C = np.asarray(center_m, float)
     w = X - C
     w /= np.linalg.norm(w, axis=1, keepdims=True)
+    direct = []
     if seeds is not None and len(seeds[0]) >= 2:
         rays = camera.unproject(np.asarray(seeds[1], float))
         R = rotations_from_directions(rays[None], w[np.asarray(seeds[0])][None])
-        return [(R[0], C, len(seeds[0]), int(seeds[0][0]))]
+        direct = [(R[0], C, len(seeds[0]), int(seeds[0][0]))]
     r_p, r_q = camera.unproject(np.stack([anchor.uv, anchor.nbr_uv[0]]))
     theta = float(np.arccos(np.clip(r_p @ r_q, -1, 1)))
     lo, hi = 2 * np.sin(theta * (1 - angle_tol) / 2), 2 * np.sin(theta * (1 + angle_tol) / 2)
@@ -254,23 +270,21 @@ def poses_from_centre(camera: Camera, center_m, X, world_nbrs, anchor: Anchor, *
         ball = ball[np.linalg.norm(w[ball] - w[k], axis=1) >= lo]
         k_list.append(np.full(len(ball), k))
         k2_list.append(ball)
-    if not k_list:
-        return []
-    k1, k2 = np.concatenate(k_list), np.concatenate(k2_list)
+    k1 = np.concatenate(k_list) if k_list else np.zeros(0, np.int64)
+    k2 = np.concatenate(k2_list) if k2_list else np.zeros(0, np.int64)
     if len(k1) == 0:
-        return []
+        return direct
     a = np.broadcast_to(np.stack([r_p, r_q]), (len(k1), 2, 3))
     R = rotations_from_directions(a, np.stack([w[k1], w[k2]], axis=1))
     Cs = np.broadcast_to(C, (len(k1), 3))
-    support = local_support(camera, R, Cs, k1, X, world_nbrs, anchor.nbr_uv, 0.25 * anchor.spacing_px)
-    return _top(support, R, Cs, k1, keep)
+    return direct + _two_stage(camera, R, Cs, k1, X, world_nbrs, anchor, keep)
 
 
 def poses_pose_free(camera: Camera, X, world_nbrs, anchor: Anchor, *, second=None, n_first: int = 5,
                     n_second: int = 7, keep: int = 20):
     """Poses from the pivot and two measured neighbours by P3P (module docstring).
 
-    ``second`` (a target index) fixes the first neighbour's target (two seeds); otherwise it
+    ``second`` (target index, uv [px]) is a second seed, used as the first neighbour; otherwise its
     is one of the pivot target's ``n_first`` nearest field neighbours, and the second
     neighbour's one of its ``n_second`` nearest. Returns the best-supported poses as
     :func:`poses_from_centre` does.
@@ -286,10 +300,11 @@ def poses_pose_free(camera: Camera, X, world_nbrs, anchor: Anchor, *, second=Non
     if len(off) == 0:
         return []
     j2 = 1 + int(off[0])
-    rays = camera.unproject(np.stack([anchor.uv, nb[0], nb[j2]]))
+    first_uv = nb[0] if second is None else np.asarray(second[1], float)
+    rays = camera.unproject(np.stack([anchor.uv, first_uv, nb[j2]]))
     k = anchor.targets
     m = world_nbrs.shape[1]
-    c1 = (np.full((len(k), 1), second) if second is not None else world_nbrs[k, 1:1 + min(n_first, m - 1)])
+    c1 = (np.full((len(k), 1), int(second[0])) if second is not None else world_nbrs[k, 1:1 + min(n_first, m - 1)])
     c2 = world_nbrs[k, 1:1 + min(n_second, m - 1)]
     K0 = np.repeat(k, c1.shape[1] * c2.shape[1])
     K1 = np.repeat(c1.reshape(-1), c2.shape[1])
@@ -301,5 +316,4 @@ def poses_pose_free(camera: Camera, X, world_nbrs, anchor: Anchor, *, second=Non
     R, C, src = p3p_batch(np.stack([X[K0], X[K1], X[K2]], axis=1), np.broadcast_to(rays, (len(K0), 3, 3)))
     if len(R) == 0:
         return []
-    support = local_support(camera, R, C, K0[src], X, world_nbrs, nb, 0.25 * anchor.spacing_px)
-    return _top(support, R, C, K0[src], keep)
+    return _two_stage(camera, R, C, K0[src], X, world_nbrs, anchor, keep)

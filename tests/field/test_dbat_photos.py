@@ -38,8 +38,21 @@ def _rows(path):
     return [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
 
 
+MARKED_IMAGES_FEW = (1, 8, 15)
+"""The images that keep their marks in the run with marks in only 3 of the 21 photos."""
+
+
 @pytest.fixture(scope="module")
 def dbat(tmp_path_factory):
+    return _dbat_run(tmp_path_factory, None)
+
+
+@pytest.fixture(scope="module")
+def dbat_few_marks(tmp_path_factory):
+    return _dbat_run(tmp_path_factory, MARKED_IMAGES_FEW)
+
+
+def _dbat_run(tmp_path_factory, marked):
     folder = tmp_path_factory.mktemp("dbat")
     (folder / "images").mkdir()
     names = {}
@@ -60,6 +73,8 @@ def dbat(tmp_path_factory):
     pm = np.array([[float(v) for v in line.split(",")] for line in _rows(DBAT / "markpts.txt")])
     marks = ["image,target_id,u,v"]
     for i, name in names.items():
+        if marked is not None and i not in marked:
+            continue
         m = pm[(pm[:, 0] == i) & (pm[:, 1] < 1000)]
         for k in _spread(m[:, 2:4], MARKS_PER_IMAGE):
             marks.append(f"{name},{int(m[k, 1])},{m[k, 2] - 0.5:.4f},{m[k, 3] - 0.5:.4f}")
@@ -169,3 +184,23 @@ def test_calibration_agrees_with_the_one_from_photomodelers_marks(dbat):
         assert diff <= 3.0 * np.hypot(ours.sigma[n], ref.sigma[n])
     assert abs(ours.params[0] / ref.params[0] - 1.0) < 1e-3       # f to 0.1 %
     assert so["rmse_px"] < 0.2                                    # the JPEGs' centroid noise
+
+
+@pytest.mark.xfail(strict=True, raises=Exception, reason=(
+    "issue 11 goal 4 not met yet: with marks in 3 photos, 10 more are identified from the "
+    "neighbours' centres, 6 are left out as ambiguous (the sheet is a regular grid) and 2 fit "
+    "no pose; f from the 13 photos differs from the full-marks run by 0.18 % (band 0.1 %)"))
+def test_marks_in_three_photos_give_the_same_calibration(dbat, dbat_few_marks):
+    """Hand marks in only 3 of the 21 photos: the others are identified from the calibrated
+    camera and the pose-free search, and the calibration stays within the full-marks run's bands."""
+    few, full = dbat_few_marks["result"], dbat["result"]
+    summary = dbat_few_marks["data"].meta["identification"]
+    print(f"\nmarks in 3 photos: {summary}")
+    for j, n in enumerate(("f_mm", "xp_mm", "yp_mm")):
+        print(f"{n}: {few.params[j]:.6g} +- {few.sigma[n]:.2g} "
+              f"(full marks {full.params[j]:.6g} +- {full.sigma[n]:.2g})")
+        # the same bands as the full-marks run against PhotoModeler: 3 combined sigmas
+        assert abs(few.params[j] - full.params[j]) <= 3.0 * np.hypot(few.sigma[n], full.sigma[n])
+    assert abs(few.params[0] / full.params[0] - 1.0) < 1e-3
+    assert few.stats()["rmse_px"] < 0.2
+    assert summary["used"] >= 20                         # of the 21 photos
