@@ -725,7 +725,8 @@ def _check_core_determined(model, result, corr, sigma, o):
 
 
 def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
-                 progress: Callable[[str], None] | None = None) -> FieldResult:
+                 progress: Callable[[str], None] | None = None, initial: InitialValues | None = None,
+                 initial_targets_m=None) -> FieldResult:
     """Calibrate a camera from identified field observations (module docstring).
 
     Parameters
@@ -734,6 +735,11 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     options : AdjustmentOptions, optional
     progress : callable, optional
         Called with one line per stage.
+    initial : InitialValues, optional
+        A warm start (e.g. a previous adjustment of most of the same points) instead of step 1;
+        its ``outliers`` start as suspects that are readmitted when they fit.
+    initial_targets_m : (n, 3) array_like, optional
+        Starting target coordinates [m] (adjusted targets only); the survey stays the observation.
 
     Returns
     -------
@@ -755,7 +761,7 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
                              "adjustment options")
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
-    init = initial_values(data, full)
+    init = initial if initial is not None else initial_values(data, full)
     if progress:
         progress(f"initial values: {init.how}; f {init.params[0]:.4f} mm; "
                  f"{init.outliers.sum()} points flagged by the robust initialisers")
@@ -765,6 +771,8 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     test = np.full(m, np.nan)
     survey_active = np.ones(len(data.targets), bool)
     solver = _Solver(data, o, init, progress)
+    if initial_targets_m is not None and o.targets_adjusted:
+        solver.X = np.array(initial_targets_m, float).reshape(-1, 3)
     estimate = list(full)
 
     def solve_clean(label):

@@ -53,13 +53,20 @@ import numpy as np
 import pyarrow as pa
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, adjust_field
+from fieldcal.field.adjustment import (
+    MIN_POINTS_PER_IMAGE,
+    AdjustmentOptions,
+    FieldResult,
+    InitialValues,
+    adjust_field,
+)
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
-from fieldcal.field.identify import IdentifyOptions, ImageIdentification, identify_image, measured_points
+from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.model.camera import INDEX, Camera
+from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session, read_marks_csv, read_targets_csv
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
@@ -109,17 +116,15 @@ def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
     return np.where(np.isfinite(s) & (s > 0), s, default)
 
 
-def _identify_all(run, targets, sigma_m, camera, poses):
-    """Identify every measured image; ``poses`` maps image index -> (R, C) or is empty."""
-    out: dict[int, ImageIdentification] = {}
-    for i, name in enumerate(run.names):
-        table = run.measurements.get(name)
-        if table is None:
-            continue
-        out[i] = identify_image(table, targets, camera, marks=run.marks.get(i), init_pose=poses.get(i),
-                                target_sigma_m=sigma_m, codes_are_markers=run.coded, options=run.identify,
-                                where=name, seed=i)
-    return out
+def _identify_all(run, targets, sigma_m, camera, poses, only=None, fixed_pose: bool = False):
+    """Identify the measured images (``only``: these indices) at once; ``poses`` maps image
+    index -> (R, C) or is empty; ``fixed_pose``: the poses are an adjustment's and are kept."""
+    idx = [i for i, name in enumerate(run.names) if name in run.measurements and (only is None or i in only)]
+    idents = identify_images([run.measurements[run.names[i]] for i in idx], targets, camera,
+                             marks=[run.marks.get(i) for i in idx], init_poses=[poses.get(i) for i in idx],
+                             target_sigma_m=sigma_m, codes_are_markers=run.coded, options=run.identify,
+                             names=[run.names[i] for i in idx], fixed_pose=fixed_pose)
+    return dict(zip(idx, idents, strict=True))
 
 
 def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_view=True):
@@ -276,11 +281,15 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
                identify or IdentifyOptions(), priors or PriorOptions())
     first, keep1, marker1, res1 = _first_pass(run)
-    cam, adjusted, sigma2, poses, starts, prior_reasons = _with_priors(run, first, keep1, res1)
-    second = _identify_all(run, adjusted, sigma2, cam, poses)
+    state = _Oriented(run, res1, keep1, first)
+    starts = {i: "seeds" for i in keep1}
+    prior_reasons = _with_priors(run, state, starts)
+    # 4: every image again with the calibrated camera, from the adjusted poses
+    second = _identify_all(run, state.targets, state.sigma_m, state.camera, state.poses, fixed_pose=True)
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, ecc_max = _eccentricity(run, second, keep2, cam, adjusted, target_normals, eccentricity)
+    uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
+                                         eccentricity)
     # 5: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
@@ -294,7 +303,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     n_first = int(sum(first[i].n_identified for i in keep1))
     run.say(f"identification with the calibrated camera: {len(keep2)} of {len(run.names)} images, "
             f"{len(data.obs)} points (first pass {n_first})")
-    result = adjust_field(data, run.options, progress=run.progress)
+    result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, keep2),
+                          initial_targets_m=state.res.targets_m)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -344,25 +354,91 @@ def _first_pass(run: _Run):
     return first, keep1, marker1, res1
 
 
-def _with_priors(run: _Run, first, keep1, res1):
-    """3: the calibrated camera and the oriented images start the images left out so far."""
-    cam = res1.camera
-    adjusted = replace(run.targets, xyz_m=np.asarray(res1.targets_m, float))
-    poses = {i: (res1.R_world_to_camera[n], res1.center_m[n]) for n, i in enumerate(keep1)}
-    if res1.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
-        sigma2 = np.sqrt(np.mean(np.asarray(res1.sigma_targets_m, float) ** 2, axis=1))
-        sigma2 = np.where(np.isfinite(sigma2), sigma2, run.targets.sigma_mm / 1000.0)
-    else:
-        sigma2 = run.targets.sigma_mm / 1000.0
-    starts = {i: "seeds" for i in keep1}
-    found, reasons = identify_remaining(cam, adjusted, run.measurements, run.names, run.stations, poses,
-                                        marks=run.marks, target_sigma_m=sigma2, codes_are_markers=run.coded,
-                                        options=run.identify, prior=run.priors)
-    starts.update({i: start for i, (_, start) in found.items()})
-    if found:
+class _Oriented:
+    """The latest adjustment during the identification: its camera, adjusted targets, their
+    sigmas, and the poses of every image oriented so far (adjusted or identified)."""
+
+    def __init__(self, run: _Run, res: FieldResult, keep, idents):
+        self.run = run
+        self.idents = dict(idents)
+        self.poses: dict = {}
+        self.update(res, keep)
+
+    def update(self, res: FieldResult, keep) -> None:
+        self.res, self.keep = res, list(keep)
+        self.camera = res.camera
+        self.targets = replace(self.run.targets, xyz_m=np.asarray(res.targets_m, float))
+        prior = self.run.targets.sigma_mm / 1000.0
+        if res.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
+            s = np.sqrt(np.mean(np.asarray(res.sigma_targets_m, float) ** 2, axis=1))
+            self.sigma_m = np.where(np.isfinite(s), s, prior)
+        else:
+            self.sigma_m = prior
+        self.poses.update({i: (res.R_world_to_camera[n], res.center_m[n]) for n, i in enumerate(self.keep)})
+
+    def warm_start(self, data: FieldData, keep) -> InitialValues:
+        """The latest adjustment as the start of one of ``data`` (images ``keep``): its interior,
+        its poses (identified ones for images it did not have), and its gross errors as
+        suspects (readmitted when they fit; the snooping tests every other point again)."""
+        R = np.stack([self.poses[i][0] for i in keep])
+        C = np.stack([self.poses[i][1] for i in keep])
+        old, used = self.res.data, self.res.obs_used
+        # gross errors at the latest adjustment (its gross-error rule): the others are tested afresh
+        z = np.hypot(*(self.res.residual_px / old.obs.sigma_px[:, None]).T)
+        s = max(float(robust_sigma(z[used] / np.sqrt(2.0))), 1e-12)
+        gross = ~used & ~(z <= self.run.options.robust_k * s * np.sqrt(2.0))
+        rejected = {(old.images[m].file, int(t)) for m, t in
+                    zip(old.obs.image[gross], old.obs.target[gross], strict=True)}
+        outliers = np.array([(data.images[m].file, int(t)) in rejected
+                             for m, t in zip(data.obs.image, data.obs.target, strict=True)], bool)
+        return InitialValues(np.asarray(self.res.params, float).copy(), R, C, outliers,
+                             np.full(len(keep), np.nan), "the previous adjustment (warm start)")
+
+    def readjust(self, found) -> bool:
+        """Adjust again with the images ``found`` added (warm start); False when that fails."""
+        run = self.run
+        self.idents.update(found)
+        keep = sorted(set(self.keep) | set(found))
+        data, _, keep, _ = _build(run, keep, self.idents, single_view=not run.options.targets_adjusted)
+        try:
+            res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
+                               initial_targets_m=self.res.targets_m)
+        except GeometryError as err:
+            run.say(f"adjustment with the images identified from pose priors failed ({err}); continuing "
+                    "with the previous one")
+            return False
+        self.update(res, keep)
+        run.say(f"adjustment with {len(keep)} images: f {res.params[0]:.5f} mm, rmse {res.stats()['rmse_px']:.3f} px")
+        return True
+
+
+MAX_PRIOR_ROUNDS = 4
+"""Rounds of identification with pose priors, each followed by an adjustment when images remain."""
+
+
+def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
+    """3: the calibrated camera and the oriented images start the images left out so far; while
+    images remain and new ones were found, the adjustment is repeated with them (a better
+    camera) and the rest tried again. Returns the reasons of the images still left out."""
+    reasons: dict = {}
+    for _ in range(MAX_PRIOR_ROUNDS):
+        pending = [i for i, name in enumerate(run.names) if name in run.measurements and i not in state.poses]
+        if not pending:
+            break
+        oriented = dict(state.poses)
+        found, reasons = identify_remaining(state.camera, state.targets, run.measurements, run.names, run.stations,
+                                            oriented, marks=run.marks, target_sigma_m=state.sigma_m,
+                                            codes_are_markers=run.coded, options=run.identify, prior=run.priors)
+        if not found:
+            break
+        for i, (ident, start) in found.items():
+            starts[i] = start
+            state.poses[i] = (ident.R_world_to_camera, ident.center_m)
         run.say(f"identification with pose priors (calibrated camera): {len(found)} more image(s) ("
                 + ", ".join(f"{k} {v}" for k, v in _count(s for _, s in found.values()).items()) + ")")
-    return cam, adjusted, sigma2, poses, starts, reasons
+        if len(found) == len(pending) or not state.readjust({i: ident for i, (ident, _) in found.items()}):
+            break
+    return reasons
 
 
 def _eccentricity(run: _Run, second, keep2, cam, adjusted, target_normals, eccentricity):
