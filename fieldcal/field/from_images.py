@@ -336,6 +336,8 @@ class _Run:
         self.marks = (read_marks_csv(session.marks_path, self.targets, self.images)
                       if session.marks_path is not None else {})
         self.coded = session.coded is not None
+        size = (session.coded or {}).get("marker_size_mm")
+        self.marker_size_m = float(size) / 1000.0 if size else None
 
 
 def _first_pass(run: _Run):
@@ -421,14 +423,17 @@ def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
     images remain and new ones were found, the adjustment is repeated with them (a better
     camera) and the rest tried again. Returns the reasons of the images still left out."""
     reasons: dict = {}
+    hints: dict = {}
     for _ in range(MAX_PRIOR_ROUNDS):
         pending = [i for i, name in enumerate(run.names) if name in run.measurements and i not in state.poses]
         if not pending:
             break
         oriented = dict(state.poses)
+        reference = {i: state.idents[i].target for i in oriented if i in state.idents}
         found, reasons = identify_remaining(state.camera, state.targets, run.measurements, run.names, run.stations,
                                             oriented, marks=run.marks, target_sigma_m=state.sigma_m,
-                                            codes_are_markers=run.coded, options=run.identify, prior=run.priors)
+                                            codes_are_markers=run.coded, options=run.identify, prior=run.priors,
+                                            reference=reference, marker_size_m=run.marker_size_m, hints=hints)
         if not found:
             break
         for i, (ident, start) in found.items():

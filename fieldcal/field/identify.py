@@ -71,8 +71,8 @@ from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
 
-__all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "identify_images", "mutual_nearest",
-           "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]
+__all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "identify_images", "identify_from_poses",
+           "mutual_nearest", "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]
 
 DEFAULT_MIN_IDENTIFIED = 8
 """Fewer identified targets than this and an image is left out (the adjustment needs 6)."""
@@ -525,6 +525,27 @@ def identify_images(tables, targets: TargetField, camera: Camera, *, marks=None,
                                     target_sigma_m=target_sigma_m, codes_are_markers=codes_are_markers,
                                     options=opt, where=names[k], seed=k)
     return out
+
+
+def identify_from_poses(measurements: pa.Table, targets: TargetField, camera: Camera, poses, *, marks=None,
+                        target_sigma_m=None, codes_are_markers: bool = True, options: IdentifyOptions | None = None,
+                        where: str = "") -> list[ImageIdentification]:
+    """Refine each of several approximate poses of one image to an identification of its own.
+
+    Steps 2-5 of the module docstring for every pose (vectorised over the poses), without
+    choosing among them: the caller compares the results (e.g. hypotheses of a pose search).
+    ``poses`` is a list of ``(R_world_to_camera, center_m)``; the other arguments are those of
+    :func:`identify_image`. Returns one :class:`ImageIdentification` per pose.
+    """
+    opt = options or IdentifyOptions()
+    X = np.asarray(targets.xyz_m, float)
+    im = _image_of(measurements, np.asarray(targets.codes, np.int64), len(X), marks, where)
+    if not len(poses):
+        return []
+    vm = _view_matcher(targets, camera, opt, [im], target_sigma_m, codes_are_markers)
+    ref = vm.refine(np.zeros(len(poses), np.int64), np.stack([np.asarray(p[0], float) for p in poses]),
+                    np.stack([np.asarray(p[1], float) for p in poses]), coded=[im.coded])
+    return [_finish(vm, 0, ref.view(v), im, poses[v], opt) for v in range(len(poses))]
 
 
 def _sqpnp(seed_X, seed_uv, camera):

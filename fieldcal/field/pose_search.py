@@ -36,16 +36,19 @@ many poses have full local support and the session's uniqueness test decides.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from fieldcal.field.geometry import plane_frame
+from fieldcal.field.geometry import plane_frame, singular_values_centred
 from fieldcal.model.camera import Camera
+from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix
 
 __all__ = ["rotations_from_directions", "p3p_batch", "local_support", "poses_from_centre",
-           "poses_pose_free", "Anchor", "field_neighbours"]
+           "poses_pose_free", "Anchor", "field_neighbours", "Symmetry", "field_symmetries",
+           "marker_poses", "poses_from_marker"]
 
-_CHUNK = 20000
+_CHUNK = 4000
 
 
 def field_neighbours(X, m: int):
@@ -174,8 +177,10 @@ def local_support(camera: Camera, R, C, anchor, X, world_nbrs, nbr_uv, gate_px):
         Neighbours with a projected target within ``gate_px``.
     """
     q_meas = camera.correct(camera.sensor.pixel_to_mm(np.asarray(nbr_uv, float)))       # (k, 2) [mm]
-    gate2 = (gate_px * camera.sensor.pixel_mm) ** 2
+    gate_mm = gate_px * camera.sensor.pixel_mm
+    tree = cKDTree(q_meas)
     f = camera.f_mm
+    k = len(q_meas)
     out = np.zeros(len(R), np.int64)
     for a in range(0, len(R), _CHUNK):
         sl = slice(a, a + _CHUNK)
@@ -184,9 +189,14 @@ def local_support(camera: Camera, R, C, anchor, X, world_nbrs, nbr_uv, gate_px):
         z = Pc[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             q = -f * Pc[..., :2] / np.where(z < 0, z, np.nan)[..., None]  # (h, m, 2)
-        d2 = ((q[:, None, :, :] - q_meas[None, :, None, :]) ** 2).sum(axis=3)   # (h, k, m)
-        d2 = np.where(np.isfinite(d2), d2, np.inf)
-        out[sl] = np.sum(d2.min(axis=2) <= gate2, axis=1)
+        flat = q.reshape(-1, 2)
+        fin = np.isfinite(flat).all(axis=1)
+        d = np.full(len(flat), np.inf)
+        j = np.full(len(flat), k)
+        d[fin], j[fin] = tree.query(flat[fin], distance_upper_bound=gate_mm)
+        hit = np.zeros((q.shape[0], k + 1), bool)                      # measured neighbours explained
+        hit[np.repeat(np.arange(q.shape[0]), q.shape[1]), j] = True
+        out[sl] = hit[:, :k].sum(axis=1)
     return out
 
 
@@ -317,3 +327,202 @@ def poses_pose_free(camera: Camera, X, world_nbrs, anchor: Anchor, *, second=Non
     if len(R) == 0:
         return []
     return _two_stage(camera, R, C, K0[src], X, world_nbrs, anchor, keep)
+
+
+class Symmetry:
+    """A rigid motion that maps much of the target field onto itself (a wrong identification's twin).
+
+    ``X' = R X + t`` is a rotation about the field plane's normal and a shift in the plane;
+    ``perm[k]`` is the target that target ``k`` lands on (-1 where none), and ``overlap`` the
+    number of targets that land on one.
+    """
+
+    def __init__(self, R, t, perm, overlap: int):
+        self.R = np.asarray(R, float)
+        self.t = np.asarray(t, float)
+        self.perm = np.asarray(perm, np.int64)
+        self.overlap = int(overlap)
+
+    def pose(self, R_world_to_camera, center_m):
+        """The twin of a pose: what the camera would see with every target replaced by its image
+        under the symmetry (``R R_T^T``, ``R_T C + t``)."""
+        return np.asarray(R_world_to_camera, float) @ self.R.T, self.R @ np.asarray(center_m, float) + self.t
+
+
+def _plane_motion(origin, B, theta, Pa, Pb):
+    """The 3-D motion of a plane motion ``p -> Pb + R(theta) (p - Pa)`` in the frame ``(origin, B)``."""
+    c, s = np.cos(theta), np.sin(theta)
+    Rp = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R = B @ Rp @ B.T
+    t = origin - R @ origin + B @ (np.append(Pb, 0.0) - Rp @ np.append(Pa, 0.0))
+    return R, t
+
+
+def field_symmetries(X, *, tol: float = 0.15, min_repeat: float = 0.97, min_overlap: float = 0.2,
+                     max_count: int = 400, seed: int = 0) -> list[Symmetry]:
+    """The rigid motions in the field's plane under which its targets repeat (twins).
+
+    Measured in the best-fit plane (the relief is left to the residuals of an identification):
+    a motion maps target ``a`` (one of three near the centroid) onto a target ``b`` and turns the
+    direction to ``a``'s nearest neighbour into the direction from ``b`` to one of its neighbours
+    at the same distance. It is kept when ``a``'s six nearest neighbours land on targets, and
+    of the targets that land inside the field (within 1.5 spacings of a target) at least
+    ``min_repeat`` land on one (within ``tol`` spacings), at least ``min_overlap`` of all. A
+    field with random gaps repeats only where its gaps do (about the fraction of targets kept),
+    a regular grid everywhere it overlaps itself; a square sheet also under quarter turns.
+
+    Parameters
+    ----------
+    X : (n, 3) ndarray
+        Targets [m].
+
+    Returns
+    -------
+    list of Symmetry
+        Largest overlap first (at most ``max_count``), the identity excluded.
+    """
+    X = np.asarray(X, float)
+    n = len(X)
+    if n < 8:
+        return []
+    origin, B = plane_frame(X)
+    P = (X - origin) @ B[:, :2]
+    tree = cKDTree(P)
+    try:
+        facets = ConvexHull(P).equations                  # a . p + b <= 0 inside
+    except QhullError:
+        return []
+    d, nn = tree.query(P, k=7)
+    s = float(np.median(d[:, 1]))
+    anchors = np.argsort(np.linalg.norm(P - P.mean(axis=0), axis=1))[:3]
+    cands = []
+    for a in anchors:
+        da = P[nn[a, 1]] - P[a]
+        la, phi = np.linalg.norm(da), np.arctan2(da[1], da[0])
+        # every target b and every neighbour of b at a's nearest-neighbour distance
+        rows, cols = np.nonzero(np.abs(d[:, 1:] - la) <= 0.1 * la)
+        b = rows
+        db = P[nn[rows, cols + 1]] - P[b]
+        theta = np.arctan2(db[:, 1], db[:, 0]) - phi
+        c, si = np.cos(theta), np.sin(theta)
+        O = P[nn[a, 1:]] - P[a]                                            # (6, 2)
+        mapped = P[b][:, None] + np.stack([c[:, None] * O[:, 0] - si[:, None] * O[:, 1],
+                                           si[:, None] * O[:, 0] + c[:, None] * O[:, 1]], axis=2)
+        hit = tree.query(mapped.reshape(-1, 2), distance_upper_bound=tol * s)[0].reshape(len(b), 6)
+        ok = np.isfinite(hit).all(axis=1)
+        cands += [(a, int(bb), float(th)) for bb, th in zip(b[ok], theta[ok], strict=True)]
+    if not cands:
+        return []
+    A = np.array([c[0] for c in cands])
+    Bt = np.array([c[1] for c in cands])
+    TH = np.array([c[2] for c in cands])
+    rng = np.random.default_rng(seed)
+    out: list[Symmetry] = []
+    seen: set = set()
+    for size in (40, n):
+        sample = np.sort(rng.choice(n, size, replace=False)) if size < n else np.arange(n)
+        keep = np.zeros(len(A), bool)
+        perms = np.full((len(A), len(sample)), -1, np.int64)
+        step = max(1, 200000 // len(sample))
+        for lo in range(0, len(A), step):
+            sl = slice(lo, lo + step)
+            c, si = np.cos(TH[sl])[:, None], np.sin(TH[sl])[:, None]
+            Q = P[sample][None] - P[A[sl]][:, None]                         # (h, m, 2)
+            M = P[Bt[sl]][:, None] + np.stack([c * Q[..., 0] - si * Q[..., 1], si * Q[..., 0] + c * Q[..., 1]],
+                                              axis=2)
+            dist, j = tree.query(M.reshape(-1, 2))
+            on = (dist <= tol * s).reshape(M.shape[:2])
+            inside = on | ((M @ facets[:, :2].T + facets[:, 2]).max(axis=2) <= 1e-9 * s)
+            n_on = on.sum(axis=1)
+            keep[sl] = (n_on >= min_repeat * np.maximum(inside.sum(axis=1), 1)) & (n_on >= min_overlap * len(sample))
+            perms[sl] = np.where(on, j.reshape(M.shape[:2]), -1)
+        A, Bt, TH, perms = A[keep], Bt[keep], TH[keep], perms[keep]
+    for a, b, th, perm in zip(A, Bt, TH, perms, strict=True):
+        key = perm.tobytes()
+        if key in seen or np.array_equal(perm, np.arange(n)):
+            continue
+        seen.add(key)
+        R, t = _plane_motion(origin, B, th, P[a], P[b])
+        out.append(Symmetry(R, t, perm, int(np.sum(perm >= 0))))
+    out.sort(key=lambda sym: -sym.overlap)
+    return out[:max_count]
+
+
+def marker_poses(camera: Camera, corners_px, marker_size_m: float):
+    """Poses of a square marker relative to the camera from its four corners (OpenCV's IPPE).
+
+    Parameters
+    ----------
+    corners_px : (4, 2) array_like
+        The outer corners in OpenCV's order (top-left, top-right, bottom-right, bottom-left of
+        the printed marker) [px].
+    marker_size_m : float
+        Its side [m].
+
+    Returns
+    -------
+    list of (R_marker_to_camera (3, 3), centre (3,))
+        In fieldcal's camera frame; the marker frame has ``x`` to the printed marker's right,
+        ``y`` up and ``z`` out of its face. Up to two solutions (IPPE's).
+    """
+    h = 0.5 * float(marker_size_m)
+    obj = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+    img = ideal_pixels(np.asarray(corners_px, float).reshape(4, 2), camera)
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj.reshape(-1, 1, 3), img.reshape(-1, 1, 2),
+                                                 opencv_camera_matrix(camera), None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error:
+        return []
+    out = []
+    for k in range(n):
+        R_cv, _ = cv2.Rodrigues(np.asarray(rvecs[k], float).reshape(3, 1))
+        out.append((FLIP_YZ @ R_cv, FLIP_YZ @ np.asarray(tvecs[k], float).ravel()))
+    return out
+
+
+def _local_normal(X, world_nbrs, t, normals=None):
+    """The field's surface normal at target ``t``: the given normal, else the plane of its 12
+    nearest targets (in the field's plane), else the field's plane."""
+    if normals is not None:
+        n = np.asarray(normals, float)[t]
+        return n / np.linalg.norm(n)
+    P = X[world_nbrs[t, :12]]
+    s = singular_values_centred(P)
+    _, B = plane_frame(P if s[2] < 0.2 * s[1] else X)
+    return B[:, 2]
+
+
+def poses_from_marker(camera: Camera, corners_px, marker_size_m: float, t: int, X, world_nbrs, anchor: Anchor, *,
+                      normals=None, step_deg: float = 1.0, keep: int = 20):
+    """Poses from one coded target's marker: its corners give the camera's pose relative to the
+    marker; the marker's turn in the field's surface is searched (module docstring).
+
+    The marker frame ``(x, y, z)`` relates to the world by a rotation that takes the surface
+    normal at the target to ``z`` and is otherwise a free turn ``phi`` about it; for each
+    ``phi`` (``step_deg`` apart), IPPE solution and sign of the normal,
+    ``R = R_marker_to_camera R_world_to_marker(phi)``, ``C = X_t - R^T c`` with ``c`` the
+    marker's centre in the camera frame. Returned as :func:`poses_from_centre` does (best local
+    support first, the marker's target as the pivot).
+    """
+    sols = marker_poses(camera, corners_px, marker_size_m)
+    if not sols:
+        return []
+    n = _local_normal(X, world_nbrs, t, normals)
+    phi = np.radians(np.arange(0.0, 360.0, step_deg))
+    Rs, Cs = [], []
+    for sign in (1.0, -1.0):
+        z = sign * n
+        e1 = np.cross(z, [0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        R0 = np.stack([e1, np.cross(z, e1), z])                         # world -> a marker frame
+        c, s = np.cos(phi), np.sin(phi)
+        Rz = np.zeros((len(phi), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, s, -s, c, 1.0
+        R_wm = Rz @ R0
+        for R_mc, centre in sols:
+            R = R_mc @ R_wm
+            Rs.append(R)
+            Cs.append(X[t] - np.einsum("hji,j->hi", R, centre))
+    R = np.concatenate(Rs)
+    C = np.concatenate(Cs)
+    return _two_stage(camera, R, C, np.full(len(R), int(t)), X, world_nbrs, anchor, keep)
