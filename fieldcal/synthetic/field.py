@@ -31,7 +31,7 @@ from fieldcal.model.camera import Camera, Sensor
 
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
-    "add_blunders", "Blunders", "measurements_of",
+    "add_blunders", "Blunders", "measurements_of", "target_plane_axes",
 ]
 
 IXU150_TABLE1 = {
@@ -81,6 +81,19 @@ class SyntheticField:
     target_diameter_mm: float
     marker_size_mm: float
     settings: dict = field(default_factory=dict)
+
+
+def target_plane_axes(normals):
+    """A target's plane axes: ``e1`` (world X projected into the plane; world Y for a plane
+    facing X), ``e2 = n x e1``; returns ``(n, e1, e2)``, each (k, 3). A marker is printed with its
+    top towards ``e2`` and its left towards ``-e1``."""
+    n = np.asarray(normals, float)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    ref = np.where((np.abs(n[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    e1 = ref - np.sum(ref * n, axis=1, keepdims=True) * n
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    return n, e1, e2
 
 
 def look_at(center_m, aim_m, roll_rad=0.0, up=(0.0, 0.0, 1.0)):
@@ -298,14 +311,16 @@ def add_blunders(sf: SyntheticField, *, fraction: float = 0.01, survey_offset_m:
 
 
 def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True, max_markers=None,
-                    seed: int = 0, extra_blobs: int = 0):
+                    seed: int = 0, extra_blobs: int = 0, corners: bool = False):
     """The detector's output for one image without the pixels: a ``measurements`` table.
 
     One row per observation of the image in ``sf.data.obs`` (the exact image point plus the
     problem's image noise): a disc, or with ``coded`` an ArUco marker (its code) for a coded
     target. ``max_markers`` keeps that many markers (chosen at random, the others are not
     in the table, as when they are out of view); ``extra_blobs`` adds false discs at random
-    positions. Rows are shuffled, so their order tells nothing.
+    positions; ``corners`` gives each marker its four outer corners (``corners_px``: the
+    marker's square of ``marker_size_mm``, printed as :func:`target_plane_axes` says, seen by
+    the true camera, with the image noise). Rows are shuffled, so their order tells nothing.
 
     Returns
     -------
@@ -341,14 +356,30 @@ def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True,
     n = len(uv)
     schema = arrow_schema("measurements")
     sigma = float(sf.settings.get("image_noise_px", 0.1))
+    corner_col = None
+    if corners and marker.any():
+        corner_col = pa.array([_marker_corners(sf, image_index, int(tt), sigma, rng).tolist() if m else None
+                               for m, tt in zip(marker, t, strict=True)], pa.list_(pa.float64()))
     cols = {"image": [""] * n, "blob": np.arange(n, dtype=np.int32), "kind": np.where(marker, "aruco", "disc"),
             "code": pa.array(np.where(marker, code, 0).astype(np.int32), pa.int32(), mask=~marker),
             "u_px": uv[:, 0], "v_px": uv[:, 1], "sigma_px": np.full(n, max(sigma, 1e-3)),
             "diameter_px": np.full(n, 20.0), "contrast": np.full(n, 1000.0), "snr": np.full(n, 100.0),
             "saturated": np.zeros(n, bool), "truncated": np.zeros(n, bool),
-            "method": np.where(marker, "aruco", "ellipse")}
+            "method": np.where(marker, "aruco", "ellipse"), "corners_px": corner_col}
     arrays = []
     for f in schema:
         v = cols.get(f.name)
         arrays.append(pa.nulls(n, f.type) if v is None else v if isinstance(v, pa.Array) else pa.array(v, f.type))
     return pa.table(arrays, schema=schema), t
+
+
+def _marker_corners(sf: SyntheticField, i: int, t: int, sigma_px: float, rng) -> np.ndarray:
+    """The four outer corners (8,) [px] of target ``t``'s marker in image ``i`` (OpenCV's order:
+    top-left, top-right, bottom-right, bottom-left of the printed marker), with noise."""
+    tt = sf.targets_true
+    normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
+    _, e1, e2 = target_plane_axes(normals[[t]])
+    h = sf.marker_size_mm / 2000.0
+    P = tt.xyz_m[t] + h * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]]) @ np.stack([e1[0], e2[0]])
+    uv = sf.camera.project(P, sf.R_world_to_camera[i], sf.center_m[i])
+    return (uv + rng.normal(0.0, sigma_px, uv.shape)).reshape(-1)

@@ -82,7 +82,7 @@ from scipy import ndimage
 from fieldcal.errors import InputError
 from fieldcal.field.data import FieldObservations
 from fieldcal.model.camera import Camera, Sensor
-from fieldcal.synthetic.field import SyntheticField
+from fieldcal.synthetic.field import SyntheticField, target_plane_axes
 
 __all__ = [
     "RenderedImage", "render_image", "scaled_field", "coverage_window", "check_image_index",
@@ -201,17 +201,6 @@ def aruco_cells(code: int, dictionary: str = ARUCO_DICTIONARY) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # geometry
 # --------------------------------------------------------------------------------------
-def _plane_axes(normals):
-    """In-plane axes ``e1`` (world X projected into the plane), ``e2 = n x e1``; (n, 3) each."""
-    n = np.asarray(normals, float)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    ref = np.where((np.abs(n[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    e1 = ref - np.sum(ref * n, axis=1, keepdims=True) * n
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(n, e1)
-    return n, e1, e2
-
-
 @dataclass
 class _Targets:
     """Per-target geometry of one image, in the camera frame [m], and the figure's sizes."""
@@ -405,7 +394,7 @@ def _select_targets(sf: SyntheticField, i: int, targets, coded: bool, marker_siz
         if idx.size and (idx.min() < 0 or idx.max() >= len(tt)):
             raise InputError(f"targets: indices must be in 0..{len(tt) - 1}")
     normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
-    n_w, e1_w, e2_w = _plane_axes(normals[idx])
+    n_w, e1_w, e2_w = target_plane_axes(normals[idx])
     X = tt.xyz_m[idx]
     codes = tt.codes[idx] if coded else np.full(idx.size, -1)
     is_coded = codes >= 0
@@ -773,7 +762,7 @@ def _max_marker_mm(sf: SyntheticField, radius_m: float, quiet_zone_cells: float)
     if ci.size == 0:
         return np.inf
     normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
-    _, e1, e2 = _plane_axes(normals[ci])
+    _, e1, e2 = target_plane_axes(normals[ci])
     ncell = aruco_cells(0).shape[0]
     factor = 0.5 * (1.0 + 2.0 * quiet_zone_cells / ncell)     # quiet half-side / marker side
     d = tt.xyz_m[None, :, :] - tt.xyz_m[ci][:, None, :]       # (coded, all, 3)
