@@ -52,7 +52,7 @@ from dataclasses import replace
 import numpy as np
 import pyarrow as pa
 
-from fieldcal.errors import GeometryError, InputError
+from fieldcal.errors import GeometryError, InputError, one_line
 from fieldcal.field.adjustment import (
     MIN_POINTS_PER_IMAGE,
     AdjustmentOptions,
@@ -284,8 +284,10 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     state = _Oriented(run, res1, keep1, first)
     starts = {i: "seeds" for i in keep1}
     prior_reasons = _with_priors(run, state, starts)
+    prior_reasons.update(state.rejected)
     # 4: every image again with the calibrated camera, from the adjusted poses
-    second = _identify_all(run, state.targets, state.sigma_m, state.camera, state.poses, fixed_pose=True)
+    second = _identify_all(run, state.targets, state.sigma_m, state.camera, state.poses, fixed_pose=True,
+                           only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
     uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
@@ -295,16 +297,13 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     if factor > 1.0:
         run.say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
                 "to the discs: their sigmas are scaled by that")
-    data, _, keep2, dropped2 = _build(run, keep2, second, uv_override=uv_override, marker_factor=factor,
-                                      single_view=not run.options.targets_adjusted)
-    for i, why in dropped2.items():
-        second[i].reason = why
-    _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    n_first = int(sum(first[i].n_identified for i in keep1))
-    run.say(f"identification with the calibrated camera: {len(keep2)} of {len(run.names)} images, "
-            f"{len(data.obs)} points (first pass {n_first})")
-    result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, keep2),
-                          initial_targets_m=state.res.targets_m)
+
+    def build(keep):
+        return _build(run, keep, second, uv_override=uv_override, marker_factor=factor,
+                      single_view=not run.options.targets_adjusted)
+
+    probation = {i for i in keep2 if starts.get(i, "seeds") != "seeds"}
+    data, result, keep2 = _final_adjustment(run, state, build, keep2, probation, second)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -315,6 +314,51 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
             " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
     return data, result, report
+
+
+REASON_MISFIT = "does not fit the other images"
+
+
+def _misfits(result: FieldResult, keep, probation) -> dict:
+    """Images on probation (identified from pose priors) that do not fit the adjustment: most of
+    their points rejected, or their normalised residuals three times the other images'."""
+    if not probation:
+        return {}
+    img, used = result.data.obs.image, result.obs_used
+    z2 = np.sum((result.residual_px / result.data.obs.sigma_px[:, None]) ** 2, axis=1)
+    n_img = len(keep)
+    n_all = np.bincount(img, minlength=n_img)
+    n_used = np.bincount(img[used], minlength=n_img)
+    rms = np.sqrt(np.bincount(img[used], weights=z2[used], minlength=n_img) / np.maximum(n_used, 1))
+    ref = [n for n, i in enumerate(keep) if i not in probation and n_used[n]]
+    m0 = float(np.median(rms[ref] if ref else rms[n_used > 0]))
+    out = {}
+    for n, i in enumerate(keep):
+        if i in probation and (n_used[n] < 0.5 * n_all[n] or rms[n] > 3.0 * m0):
+            out[i] = (f"{REASON_MISFIT}: {n_all[n] - n_used[n]} of its {n_all[n]} points rejected, normalised "
+                      f"residuals {rms[n] / max(m0, 1e-12):.1f} x the other images' (a wrong identification?)")
+    return out
+
+
+def _final_adjustment(run, state, build, keep, probation, second):
+    """5: the adjustment; an image identified from pose priors that does not fit it
+    (:func:`_misfits`) is left out and the adjustment repeated."""
+    for _ in range(3):
+        data, _, keep, dropped = build(keep)
+        for i, why in dropped.items():
+            second[i].reason = why
+        _check_enough(keep, run.names, second, run.measurements, "calibrated camera")
+        result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, keep),
+                              initial_targets_m=state.res.targets_m)
+        out = _misfits(result, keep, probation)
+        if not out:
+            break
+        for i, why in out.items():
+            second[i].reason = why
+            run.say(f"{run.names[i]}: left out, {why}")
+        keep = [i for i in keep if i not in out]
+        probation = probation - set(out)
+    return data, result, keep
 
 
 class _Run:
@@ -364,6 +408,7 @@ class _Oriented:
         self.run = run
         self.idents = dict(idents)
         self.poses: dict = {}
+        self.rejected: dict = {}            # images left out by the adjustment's check, with the reason
         self.update(res, keep)
 
     def update(self, res: FieldResult, keep) -> None:
@@ -380,15 +425,19 @@ class _Oriented:
 
     def warm_start(self, data: FieldData, keep) -> InitialValues:
         """The latest adjustment as the start of one of ``data`` (images ``keep``): its interior,
-        its poses (identified ones for images it did not have), and its gross errors as
-        suspects (readmitted when they fit; the snooping tests every other point again)."""
+        its poses (identified ones for images it did not have), and as suspects (readmitted
+        when they fit) the points it never readmitted and its gross errors; the snooping tests
+        every other point again, as after a cold start."""
         R = np.stack([self.poses[i][0] for i in keep])
         C = np.stack([self.poses[i][1] for i in keep])
         old, used = self.res.data, self.res.obs_used
-        # gross errors at the latest adjustment (its gross-error rule): the others are tested afresh
+        # suspects as a cold start would have them: the initialisers' suspects that were never
+        # readmitted, and the gross errors (its gross-error rule); the others are tested afresh
         z = np.hypot(*(self.res.residual_px / old.obs.sigma_px[:, None]).T)
         s = max(float(robust_sigma(z[used] / np.sqrt(2.0))), 1e-12)
         gross = ~used & ~(z <= self.run.options.robust_k * s * np.sqrt(2.0))
+        if self.res.initial is not None:
+            gross |= ~used & np.asarray(self.res.initial.outliers, bool)
         rejected = {(old.images[m].file, int(t)) for m, t in
                     zip(old.obs.image[gross], old.obs.target[gross], strict=True)}
         outliers = np.array([(data.images[m].file, int(t)) in rejected
@@ -397,21 +446,47 @@ class _Oriented:
                              np.full(len(keep), np.nan), "the previous adjustment (warm start)")
 
     def readjust(self, found) -> bool:
-        """Adjust again with the images ``found`` added (warm start); False when that fails."""
+        """Adjust again with the images ``found`` added (warm start), on probation: when the
+        adjustment fails, or some of them do not fit (:func:`_misfits`), they are tried in halves
+        until the ones that spoil it are found and left out (``rejected``). False when none is admitted."""
         run = self.run
         self.idents.update(found)
-        keep = sorted(set(self.keep) | set(found))
-        data, _, keep, _ = _build(run, keep, self.idents, single_view=not run.options.targets_adjusted)
+        groups, admitted = [sorted(found)], []
+        while groups:
+            group = groups.pop(0)
+            res, keep, out = self._try(admitted + group, set(group))
+            if res is not None:
+                self.update(res, keep)
+                admitted += group
+                continue
+            if len(group) > 1 and not (set(out) < set(group)):
+                groups[:0] = [group[: len(group) // 2], group[len(group) // 2:]]
+                continue
+            for i, why in out.items():
+                self.rejected[i] = why
+                self.poses.pop(i, None)
+                run.say(f"{run.names[i]}: left out, {why}")
+            rest = [i for i in group if i not in out]
+            if rest:
+                groups.insert(0, rest)
+        if admitted:
+            run.say(f"adjustment with {len(self.keep)} images: f {self.res.params[0]:.5f} mm, "
+                    f"rmse {self.res.stats()['rmse_px']:.3f} px")
+        return bool(admitted)
+
+    def _try(self, extra, probation):
+        """The adjustment with the images ``extra`` added: (result, images, {}) or (None, None, misfits)."""
+        run = self.run
+        data, _, keep, _ = _build(run, sorted(set(self.keep) | set(extra)), self.idents,
+                                  single_view=not run.options.targets_adjusted)
         try:
             res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
                                initial_targets_m=self.res.targets_m)
         except GeometryError as err:
-            run.say(f"adjustment with the images identified from pose priors failed ({err}); continuing "
-                    "with the previous one")
-            return False
-        self.update(res, keep)
-        run.say(f"adjustment with {len(keep)} images: f {res.params[0]:.5f} mm, rmse {res.stats()['rmse_px']:.3f} px")
-        return True
+            return None, None, {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})"
+                                for i in probation}
+        out = _misfits(res, keep, probation)
+        return (None, None, out) if out else (res, keep, {})
 
 
 MAX_PRIOR_ROUNDS = 4
@@ -441,7 +516,8 @@ def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
             state.poses[i] = (ident.R_world_to_camera, ident.center_m)
         run.say(f"identification with pose priors (calibrated camera): {len(found)} more image(s) ("
                 + ", ".join(f"{k} {v}" for k, v in _count(s for _, s in found.values()).items()) + ")")
-        if len(found) == len(pending) or not state.readjust({i: ident for i, (ident, _) in found.items()}):
+        # every image found is admitted only by an adjustment it does not spoil
+        if not state.readjust({i: ident for i, (ident, _) in found.items()}) or len(found) == len(pending):
             break
     return reasons
 
@@ -524,7 +600,7 @@ def _count(items) -> dict:
 def reason_category(reason: str) -> str:
     """A short category of a left-out image's reason (for the run's summary)."""
     for prefix, cat in (("not measured", "not measured"), (REASON_AMBIGUOUS, "ambiguous"),
-                        (REASON_NO_START, "no pose fits"), ("only", "too few targets"),
+                        (REASON_NO_START, "no pose fits"), ("only", "too few targets"), (REASON_MISFIT, "does not fit"),
                         ("no coded targets", "no seeds"), ("the identified points do not fit", "does not fit")):
         if reason.startswith(prefix):
             return cat

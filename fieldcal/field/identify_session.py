@@ -55,7 +55,7 @@ in the wrong place); otherwise the image is left out as ambiguous, never accepte
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyarrow as pa
@@ -101,6 +101,10 @@ class PriorOptions:
         Largest ``q`` relative to the oriented images' (at least 2).
     max_missed : float
         Largest share of missed targets (relative to the identified ones).
+    extra_sigmas : float
+        Unexplained discs allowed beyond the oriented images' rate, in Poisson sigmas.
+    max_iterations : int
+        Rounds of matching and pose refinement of a hypothesis at most.
     n_pivots : int
         Discs near the image centre tried as pivots when there are no seeds.
     n_refine : int
@@ -115,6 +119,8 @@ class PriorOptions:
     min_fit_ratio: float = 2.0
     max_fit_factor: float = 4.0
     max_missed: float = 0.5
+    extra_sigmas: float = 3.0
+    max_iterations: int = 6
     n_pivots: int = 2
     n_refine: int = 4
     n_twins: int = 12
@@ -257,6 +263,9 @@ class _Context:
                         np.broadcast_to(np.asarray(sigma_m, float), (n,)).copy())
         self.coded = codes_are_markers
         self.options = options
+        # a hypothesis that is right settles in a few rounds (the camera is calibrated); one that
+        # keeps changing its pairs is wrong and is not followed further
+        self.refine_options = replace(options, max_iterations=min(options.max_iterations, prior.max_iterations))
         self.prior = prior
         self.marker_size_m = marker_size_m
         tcodes = np.asarray(targets.codes, np.int64)
@@ -300,7 +309,7 @@ class _Context:
         """Few unexplained discs (the oriented images' rate plus three Poisson sigmas), few missed
         targets (a quarter of the identified: real images miss targets in patches, to glare or
         blur), and a fit near the oriented images'."""
-        allowed = self.rate0 * ev.n + 3.0 * np.sqrt(self.rate0 * ev.n + 1.0)
+        allowed = self.rate0 * ev.n + self.prior.extra_sigmas * np.sqrt(self.rate0 * ev.n + 1.0)
         return bool(ev.n >= self.options.min_identified and ev.extra <= allowed
                     and ev.missed <= max(allowed, self.prior.max_missed * ev.n)
                     and ev.q <= self.prior.max_fit_factor * max(self.q0, 0.5))
@@ -311,7 +320,7 @@ class _Context:
             return []
         idents = identify_from_poses(img.table, self.targets, self.camera, poses, marks=marks,
                                      target_sigma_m=self.sigma_m, codes_are_markers=self.coded,
-                                     options=self.options, where=img.name)
+                                     options=self.refine_options, where=img.name)
         out = []
         for ident in idents:
             if not ident.ok or len(ident.wrong_marks) or len(ident.wrong_codes) or not self.in_front(ident.center_m):

@@ -145,10 +145,21 @@ def p3p_batch(X, rays):
     h, r = np.nonzero(good)
     Pc = rays[h] * s[h, r][:, :, None]                                 # (N, 3, 3) camera frame
     Xw = X[h]
-    Xm, Pm = Xw.mean(axis=1), Pc.mean(axis=1)
-    R = rotations_from_directions(Pc - Pm[:, None], Xw - Xm[:, None])  # Pc - Pm = R (X - Xm)
-    C = Xm - np.einsum("nji,nj->ni", R, Pm)
+    # the rotation that takes the triangle's frame in the world to its frame in the camera (the
+    # distances agree exactly, so the two triads are congruent): R = F_c F_w^T
+    R = _triad(Pc) @ np.swapaxes(_triad(Xw), 1, 2)
+    C = Xw.mean(axis=1) - np.einsum("nji,nj->ni", R, Pc.mean(axis=1))
     return R, C, h
+
+
+def _triad(P):
+    """Orthonormal frames (N, 3, 3) (columns) of point triangles (N, 3, 3): the first side, the
+    normal, and their cross product."""
+    e1 = P[:, 1] - P[:, 0]
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e3 = np.cross(e1, P[:, 2] - P[:, 0])
+    e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(e3, e1), e3], axis=2)
 
 
 def local_support(camera: Camera, R, C, anchor, X, world_nbrs, nbr_uv, gate_px):
@@ -189,11 +200,14 @@ def local_support(camera: Camera, R, C, anchor, X, world_nbrs, nbr_uv, gate_px):
         z = Pc[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             q = -f * Pc[..., :2] / np.where(z < 0, z, np.nan)[..., None]  # (h, m, 2)
+        if k <= 10:       # a few measured neighbours: every distance (no tree)
+            d2 = ((q[:, :, None, :] - q_meas[None, None]) ** 2).sum(axis=3)          # (h, m, k)
+            out[sl] = np.sum((np.where(np.isfinite(d2), d2, np.inf) <= gate_mm**2).any(axis=1), axis=1)
+            continue
         flat = q.reshape(-1, 2)
         fin = np.isfinite(flat).all(axis=1)
-        d = np.full(len(flat), np.inf)
         j = np.full(len(flat), k)
-        d[fin], j[fin] = tree.query(flat[fin], distance_upper_bound=gate_mm)
+        j[fin] = tree.query(flat[fin], distance_upper_bound=gate_mm)[1]
         hit = np.zeros((q.shape[0], k + 1), bool)                      # measured neighbours explained
         hit[np.repeat(np.arange(q.shape[0]), q.shape[1]), j] = True
         out[sl] = hit[:, :k].sum(axis=1)
@@ -214,14 +228,18 @@ class Anchor:
 
 
 def _two_stage(camera, R, C, anchor_t, X, world_nbrs, anchor: Anchor, keep):
-    """Local support of the nearest 8 measured neighbours against 25 field neighbours, then
-    of all the anchor's neighbours against all the field neighbours for the poses tied best
-    (on a grid many poses explain a small neighbourhood; the pattern's gaps tell them apart
-    farther out)."""
+    """Local support of the nearest 6 measured neighbours against 12 field neighbours, of the
+    nearest 8 against 25 for the poses tied best, then of all the anchor's neighbours against
+    all the field neighbours for the poses tied best again (on a grid many poses explain a small
+    neighbourhood; the pattern's gaps tell them apart farther out)."""
     gate = 0.25 * anchor.spacing_px
-    first = local_support(camera, R, C, anchor_t, X, world_nbrs[:, :25], anchor.nbr_uv[:8], gate)
-    if len(first) == 0:
+    if len(R) == 0:
         return []
+    # a cheap first cut: the 6 nearest measured neighbours against 12 field neighbours
+    zero = local_support(camera, R, C, anchor_t, X, world_nbrs[:, :12], anchor.nbr_uv[:6], gate)
+    k = np.flatnonzero(zero >= zero.max() - 1)
+    R, C, anchor_t = R[k], C[k], anchor_t[k]
+    first = local_support(camera, R, C, anchor_t, X, world_nbrs[:, :25], anchor.nbr_uv[:8], gate)
     best = first >= first.max() - 1
     k = np.flatnonzero(best)
     second = local_support(camera, R[k], C[k], anchor_t[k], X, world_nbrs, anchor.nbr_uv, gate)

@@ -16,6 +16,7 @@ import numpy as np
 import pyarrow as pa
 
 from fieldcal.field.from_images import calibrate_from_measurements
+from fieldcal.field.identify_session import PriorOptions
 from fieldcal.field.pose_search import field_symmetries, marker_poses
 from fieldcal.session.loader import load_session
 from fieldcal.synthetic.field import measurements_of, wide_field
@@ -48,13 +49,13 @@ def _foreign(sf, folder, meas, truth, n: int):
     (folder / "session.json").write_text(json.dumps(manifest))
 
 
-def _session(tmp_path, *, marks=False, keep_fraction=0.92, foreign=0):
+def _session(tmp_path, *, marks=False, keep_fraction=0.92, foreign=0, images=IMAGES):
     sf = wide_field(seed=1, keep_fraction=keep_fraction)
     folder = tmp_path / "s"
-    write_field_session(folder, sf, images=False, coded=not marks, marks_csv=marks, image_indices=IMAGES,
+    write_field_session(folder, sf, images=False, coded=not marks, marks_csv=marks, image_indices=images,
                         marks_images=SEEDED if marks else None, seed=3)
     meas, truth = {}, {}
-    for i in IMAGES:
+    for i in images:
         tab, t = measurements_of(sf, i, coded=not marks, max_markers=MARKERS.get(i), seed=2, corners=True)
         meas[sf.data.images[i].file], truth[sf.data.images[i].file] = tab, t
     if foreign:
@@ -94,6 +95,23 @@ def test_few_coded_targets_and_foreign_images(tmp_path):
         assert r["status"] == "left out" and r["n_measured"] >= 20 and r["reason"]
     assert summary["left_out"] == {"no pose fits": 2}
     assert abs(result.params[0] - sf.camera.f_mm) < 3 * result.sigma["f_mm"]
+
+
+def test_a_wrong_identification_is_left_out_by_the_adjustment(tmp_path):
+    """With the verification switched off, an image of another field is identified (wrongly);
+    the adjustment it would spoil leaves it out, and every image of the field stays."""
+    images = [0, 1, 2, 3, 4, 5, 6]
+    sf, sess, meas, truth = _session(tmp_path, foreign=1, images=images)
+    lax = PriorOptions(max_fit_factor=1e9, max_missed=1e9, extra_sigmas=1e9, min_fit_ratio=0.0)
+    data, result, report = calibrate_from_measurements(sess, meas, priors=lax)
+    wrong, rate = _check(meas, truth, data, report)
+    by = {r["image"]: r for r in report}
+    print(f"\nverification off, 1 foreign image: {data.meta['identification']}; "
+          f"{by['images/foreign_0.tif']['reason']}")
+    assert wrong == 0 and rate >= 0.99
+    assert data.meta["identification"]["used"] == len(images)
+    assert by["images/foreign_0.tif"]["status"] == "left out"
+    assert by["images/foreign_0.tif"]["reason"].startswith("does not fit the other images")
 
 
 def test_marks_in_three_images_of_a_periodic_grid(tmp_path):
