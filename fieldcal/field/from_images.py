@@ -302,8 +302,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         return _build(run, keep, second, uv_override=uv_override, marker_factor=factor,
                       single_view=not run.options.targets_adjusted)
 
-    probation = {i for i in keep2 if starts.get(i, "seeds") != "seeds"}
-    data, result, keep2 = _final_adjustment(run, state, build, keep2, probation, second)
+    data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -340,25 +339,59 @@ def _misfits(result: FieldResult, keep, probation) -> dict:
     return out
 
 
+def _admit(fixed, candidates, attempt):
+    """Admit the ``candidates`` (images identified from pose priors) by adjustments they do not spoil.
+
+    ``attempt(images, probation)`` adjusts ``fixed`` plus some candidates and returns
+    ``(misfits, None)`` (a dict of image -> reason: all of ``probation`` when the adjustment
+    fails, else :func:`_misfits`) or ``({}, outcome)``. All candidates are tried at once; a group
+    that fails is split in halves until the images that spoil it are found (group testing: one
+    adjustment when all fit, a few per bad image otherwise). Returns the last successful
+    outcome (None if there was none) and the rejected images with their reasons.
+    """
+    groups, admitted, rejected, outcome = ([sorted(candidates)] if candidates else []), [], {}, None
+    while groups:
+        group = groups.pop(0)
+        out, got = attempt(list(fixed) + admitted + group, set(group))
+        if got is not None:
+            outcome, admitted = got, admitted + group
+        elif len(group) > 1 and set(out) >= set(group):      # failed as a whole: which ones?
+            groups[:0] = [group[: len(group) // 2], group[len(group) // 2:]]
+        else:
+            rejected.update(out)
+            rest = [i for i in group if i not in out]
+            if rest:
+                groups.insert(0, rest)
+    return outcome, rejected
+
+
 def _final_adjustment(run, state, build, keep, probation, second):
-    """5: the adjustment; an image identified from pose priors that does not fit it
-    (:func:`_misfits`) is left out and the adjustment repeated."""
-    for _ in range(3):
-        data, _, keep, dropped = build(keep)
+    """5: the adjustment, the images identified from pose priors and not adjusted yet admitted
+    as :func:`_admit` says (an image that spoils it is left out)."""
+    fixed = [i for i in keep if i not in probation]
+
+    def attempt(images, group):
+        data, _, kept, dropped = build(sorted(images))
         for i, why in dropped.items():
             second[i].reason = why
-        _check_enough(keep, run.names, second, run.measurements, "calibrated camera")
-        result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, keep),
-                              initial_targets_m=state.res.targets_m)
-        out = _misfits(result, keep, probation)
-        if not out:
-            break
-        for i, why in out.items():
-            second[i].reason = why
-            run.say(f"{run.names[i]}: left out, {why}")
-        keep = [i for i in keep if i not in out]
-        probation = probation - set(out)
-    return data, result, keep
+        _check_enough(kept, run.names, second, run.measurements, "calibrated camera")
+        try:
+            result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, kept),
+                                  initial_targets_m=state.res.targets_m)
+        except GeometryError as err:
+            if not group:
+                raise
+            return {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})" for i in group}, None
+        out = _misfits(result, kept, group)
+        return (out, None) if out else ({}, (data, result, kept))
+
+    outcome, rejected = _admit(fixed, [i for i in keep if i in probation], attempt)
+    for i, why in rejected.items():
+        second[i].reason = why
+        run.say(f"{run.names[i]}: left out, {why}")
+    if outcome is None:
+        outcome = attempt(fixed, set())[1]
+    return outcome
 
 
 class _Run:
@@ -409,6 +442,7 @@ class _Oriented:
         self.idents = dict(idents)
         self.poses: dict = {}
         self.rejected: dict = {}            # images left out by the adjustment's check, with the reason
+        self.probation: set = set()         # images identified from priors and not admitted yet
         self.update(res, keep)
 
     def update(self, res: FieldResult, keep) -> None:
@@ -446,47 +480,33 @@ class _Oriented:
                              np.full(len(keep), np.nan), "the previous adjustment (warm start)")
 
     def readjust(self, found) -> bool:
-        """Adjust again with the images ``found`` added (warm start), on probation: when the
-        adjustment fails, or some of them do not fit (:func:`_misfits`), they are tried in halves
-        until the ones that spoil it are found and left out (``rejected``). False when none is admitted."""
+        """Adjust again with the images ``found`` added (warm start), each admitted only by an
+        adjustment it does not spoil (:func:`_admit`; the others are ``rejected``). False when
+        none is admitted."""
         run = self.run
         self.idents.update(found)
-        groups, admitted = [sorted(found)], []
-        while groups:
-            group = groups.pop(0)
-            res, keep, out = self._try(admitted + group, set(group))
-            if res is not None:
-                self.update(res, keep)
-                admitted += group
-                continue
-            if len(group) > 1 and not (set(out) < set(group)):
-                groups[:0] = [group[: len(group) // 2], group[len(group) // 2:]]
-                continue
-            for i, why in out.items():
-                self.rejected[i] = why
-                self.poses.pop(i, None)
-                run.say(f"{run.names[i]}: left out, {why}")
-            rest = [i for i in group if i not in out]
-            if rest:
-                groups.insert(0, rest)
-        if admitted:
-            run.say(f"adjustment with {len(self.keep)} images: f {self.res.params[0]:.5f} mm, "
-                    f"rmse {self.res.stats()['rmse_px']:.3f} px")
-        return bool(admitted)
 
-    def _try(self, extra, probation):
-        """The adjustment with the images ``extra`` added: (result, images, {}) or (None, None, misfits)."""
-        run = self.run
-        data, _, keep, _ = _build(run, sorted(set(self.keep) | set(extra)), self.idents,
-                                  single_view=not run.options.targets_adjusted)
-        try:
-            res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
-                               initial_targets_m=self.res.targets_m)
-        except GeometryError as err:
-            return None, None, {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})"
-                                for i in probation}
-        out = _misfits(res, keep, probation)
-        return (None, None, out) if out else (res, keep, {})
+        def attempt(images, group):
+            data, _, keep, _ = _build(run, sorted(images), self.idents, single_view=not run.options.targets_adjusted)
+            try:
+                res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
+                                   initial_targets_m=self.res.targets_m)
+            except GeometryError as err:
+                return {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})" for i in group}, None
+            out = _misfits(res, keep, group)
+            return (out, None) if out else ({}, (res, keep))
+
+        outcome, rejected = _admit(self.keep, sorted(found), attempt)
+        for i, why in rejected.items():
+            self.rejected[i] = why
+            self.poses.pop(i, None)
+            run.say(f"{run.names[i]}: left out, {why}")
+        if outcome is None:
+            return False
+        self.update(*outcome)
+        run.say(f"adjustment with {len(self.keep)} images: f {self.res.params[0]:.5f} mm, "
+                f"rmse {self.res.stats()['rmse_px']:.3f} px")
+        return True
 
 
 MAX_PRIOR_ROUNDS = 4
@@ -514,10 +534,15 @@ def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
         for i, (ident, start) in found.items():
             starts[i] = start
             state.poses[i] = (ident.R_world_to_camera, ident.center_m)
+            state.probation.add(i)
         run.say(f"identification with pose priors (calibrated camera): {len(found)} more image(s) ("
                 + ", ".join(f"{k} {v}" for k, v in _count(s for _, s in found.values()).items()) + ")")
-        # every image found is admitted only by an adjustment it does not spoil
-        if not state.readjust({i: ident for i, (ident, _) in found.items()}) or len(found) == len(pending):
+        # the images found are admitted by an adjustment they do not spoil: this one, when images
+        # remain to be tried with its better camera, else the final adjustment
+        if len(found) == len(pending):
+            break
+        state.probation -= set(found)
+        if not state.readjust({i: ident for i, (ident, _) in found.items()}):
             break
     return reasons
 
