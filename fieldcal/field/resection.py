@@ -181,6 +181,21 @@ def _candidates(X, uv, Xl, uvi, K, camera, origin, B, planar, ransac, init, need
     return candidates
 
 
+def _best_candidate(candidates, X, uv, Xl, uvi, K, camera, origin, B, refine, ransac, threshold_px):
+    """Each candidate refined on its points and scored: the truncated quadratic cost (MSAC) with
+    RANSAC, the median residual otherwise; the best as (rvec, tvec, R, C, residuals, |residuals|, used)."""
+    best = None
+    for rvec, tvec, use in candidates:
+        if refine:
+            rvec, tvec = _refine(Xl[use], uvi[use], K, rvec, tvec)
+        R, C = _to_fieldcal(rvec, tvec, origin, B)
+        res, e = _residuals(X, uv, camera, R, C)
+        score = np.sum(np.minimum(e, threshold_px) ** 2) if ransac else np.median(e)
+        if best is None or score < best[0]:
+            best = (score, rvec, tvec, R, C, res, e, use)
+    return best[1:]
+
+
 def _reselect(X, uv, Xl, uvi, K, camera, origin, B, rvec, tvec, e, inliers, need, threshold_px, tol_rel,
               where):
     """RANSAC's inliers re-selected in measured pixels and the pose refitted until stable."""
@@ -262,13 +277,8 @@ def resect(
     n = len(X)
     need = max(4, int(min_inliers)) if ransac else 4
     if n < need:
-        raise GeometryError(
-            at(
-                where,
-                f"resection{' with RANSAC' if ransac else ''} needs at least "
-                f"{need} points, got {n}",
-            )
-        )
+        raise GeometryError(at(where, f"resection{' with RANSAC' if ransac else ''} needs at least {need} points, "
+                                      f"got {n}"))
     if is_collinear(X, tol_rel):
         raise GeometryError(at(where, f"resection: the {n} world points are collinear"))
     planar = is_coplanar(X, tol_rel)
@@ -283,24 +293,10 @@ def resect(
         candidates = _candidates(X, uv, Xl, uvi, K, camera, origin, B, planar, ransac, init, need,
                                  threshold_px, max_iterations, confidence, tol_rel)
         if not candidates:
-            raise GeometryError(
-                at(
-                    where,
-                    "resection: RANSAC found no pose consistent with "
-                    f"{need} or more of the {n} points (threshold {threshold_px} px)",
-                )
-            )
-        best = None
-        for rvec, tvec, use in candidates:
-            if refine or ransac:
-                rvec, tvec = _refine(Xl[use], uvi[use], K, rvec, tvec)
-            R, C = _to_fieldcal(rvec, tvec, origin, B)
-            res, e = _residuals(X, uv, camera, R, C)
-            # truncated quadratic cost (MSAC) with RANSAC, the median residual otherwise
-            score = np.sum(np.minimum(e, threshold_px) ** 2) if ransac else np.median(e)
-            if best is None or score < best[0]:
-                best = (score, rvec, tvec, R, C, res, e, use)
-        _, rvec, tvec, R, C, res, e, inliers = best
+            raise GeometryError(at(where, f"resection: RANSAC found no pose consistent with {need} or more of "
+                                          f"the {n} points (threshold {threshold_px} px)"))
+        rvec, tvec, R, C, res, e, inliers = _best_candidate(candidates, X, uv, Xl, uvi, K, camera, origin, B,
+                                                            refine or ransac, ransac, threshold_px)
         if ransac:  # re-select the inliers in measured pixels and refit until stable
             R, C, res, e, inliers = _reselect(X, uv, Xl, uvi, K, camera, origin, B, rvec, tvec, e, inliers,
                                               need, threshold_px, tol_rel, where)
