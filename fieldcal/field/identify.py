@@ -72,7 +72,7 @@ from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
 
 __all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "identify_images", "identify_from_poses",
-           "mutual_nearest", "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]
+           "identify_views", "mutual_nearest", "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]
 
 DEFAULT_MIN_IDENTIFIED = 8
 """Fewer identified targets than this and an image is left out (the adjustment needs 6)."""
@@ -337,7 +337,7 @@ class _Seeds:
 
 
 def _seeds_of(kind, code, uv_all, usable, tcodes, n_targets, marks, where) -> _Seeds:
-    code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
+    code_to_target = dict(zip(tcodes[tcodes >= 0].tolist(), np.flatnonzero(tcodes >= 0).tolist(), strict=True))
     marker_rows = np.flatnonzero((kind == "aruco") & usable)
     marker_t = np.array([code_to_target.get(int(c), -1) for c in code[marker_rows]], np.int64)
     coded_rows, coded_t = marker_rows[marker_t >= 0], marker_t[marker_t >= 0]
@@ -537,15 +537,37 @@ def identify_from_poses(measurements: pa.Table, targets: TargetField, camera: Ca
     ``poses`` is a list of ``(R_world_to_camera, center_m)``; the other arguments are those of
     :func:`identify_image`. Returns one :class:`ImageIdentification` per pose.
     """
+    return identify_views([measurements], targets, camera, [poses], marks=[marks], target_sigma_m=target_sigma_m,
+                          codes_are_markers=codes_are_markers, options=options, names=[where])[0]
+
+
+def identify_views(tables, targets: TargetField, camera: Camera, poses, *, marks=None, target_sigma_m=None,
+                   codes_are_markers: bool = True, options: IdentifyOptions | None = None,
+                   names=None) -> list[list[ImageIdentification]]:
+    """:func:`identify_from_poses` for several images at once (one refinement of all their views).
+
+    ``tables`` are the images' measurement tables, ``poses[k]`` the approximate poses of image
+    ``k`` (a list), ``marks[k]`` its marks or None. Returns, per image, one
+    :class:`ImageIdentification` per pose.
+    """
     opt = options or IdentifyOptions()
+    n = len(tables)
+    marks = marks if marks is not None else [None] * n
+    names = names if names is not None else [""] * n
     X = np.asarray(targets.xyz_m, float)
-    im = _image_of(measurements, np.asarray(targets.codes, np.int64), len(X), marks, where)
-    if not len(poses):
-        return []
-    vm = _view_matcher(targets, camera, opt, [im], target_sigma_m, codes_are_markers)
-    ref = vm.refine(np.zeros(len(poses), np.int64), np.stack([np.asarray(p[0], float) for p in poses]),
-                    np.stack([np.asarray(p[1], float) for p in poses]), coded=[im.coded])
-    return [_finish(vm, 0, ref.view(v), im, poses[v], opt) for v in range(len(poses))]
+    tcodes = np.asarray(targets.codes, np.int64)
+    ims = [_image_of(t, tcodes, len(X), marks[k], names[k]) for k, t in enumerate(tables)]
+    image = np.array([k for k in range(n) for _ in poses[k]], np.int64)
+    out: list[list[ImageIdentification]] = [[] for _ in range(n)]
+    if not len(image):
+        return out
+    vm = _view_matcher(targets, camera, opt, ims, target_sigma_m, codes_are_markers)
+    flat = [p for k in range(n) for p in poses[k]]
+    ref = vm.refine(image, np.stack([np.asarray(p[0], float) for p in flat]),
+                    np.stack([np.asarray(p[1], float) for p in flat]), coded=[im.coded for im in ims])
+    for v, k in enumerate(image):
+        out[k].append(_finish(vm, k, ref.view(v), ims[k], flat[v], opt))
+    return out
 
 
 def _sqpnp(seed_X, seed_uv, camera):

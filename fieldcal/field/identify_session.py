@@ -66,8 +66,8 @@ from fieldcal.field.geometry import plane_frame
 from fieldcal.field.identify import (
     IdentifyOptions,
     ImageIdentification,
-    identify_from_poses,
-    identify_image,
+    identify_images,
+    identify_views,
     measured_points,
 )
 from fieldcal.field.matching import ViewMatcher, local_correction
@@ -154,7 +154,8 @@ class _Image:
     corners: list               # [(target, (4, 2) corners [px])] of the markers
     station: str | None
     tried: set = field(default_factory=set)     # prior centres and searches already tried
-    seeds_reason: str = ""
+    hint: tuple | None = None                   # competitors of an earlier call: (start, poses)
+    ambiguous: bool = False
 
     @property
     def uv(self) -> np.ndarray:
@@ -162,7 +163,7 @@ class _Image:
 
 
 def evidence(table: pa.Table, target: np.ndarray, R, C, camera: Camera, X, match_target, sigma_m,
-             neighbours: int = 8) -> Evidence:
+             neighbours: int = 8, *, parsed=None) -> Evidence:
     """The evidence of an identification (module docstring).
 
     Parameters
@@ -180,13 +181,17 @@ def evidence(table: pa.Table, target: np.ndarray, R, C, camera: Camera, X, match
         Targets that appear as discs.
     sigma_m : (n,) ndarray
         Targets' coordinate sigmas [m].
+    parsed : (uv (rows, 2), usable discs (rows,), sigma_px (rows,)), optional
+        The table's columns, when the caller has them already.
 
     Returns
     -------
     Evidence
     """
-    kind, _, uv_all, usable = measured_points(table)
-    disc = (kind == "disc") & usable
+    if parsed is None:
+        kind, _, uv_all, usable = measured_points(table)
+        parsed = (uv_all, (kind == "disc") & usable, _sigma(table))
+    uv_all, disc, sig_all = parsed
     found = disc & (target >= 0)
     n = int(found.sum())
     if n < 4 or R is None:
@@ -201,14 +206,14 @@ def evidence(table: pa.Table, target: np.ndarray, R, C, camera: Camera, X, match
             return (p @ facets[:, :2].T + facets[:, 2]).max(axis=1) <= 1e-9
 
     extra = disc & ~found & inside(uv_all)
-    pred = camera.project(X, R, C)
+    pred = _project_near(camera, X, R, C)
     ok = match_target & np.isfinite(pred).all(axis=1)
     ok[target[found]] = False
     k = np.flatnonzero(ok)
     missed = int(np.sum(inside(pred[k]))) if len(k) else 0
     t = target[found]
     res = uv_all[found] - pred[t]
-    sig = _sigma(table)[found]
+    sig = sig_all[found]
     depth = np.abs((X[t] - C) @ R[2])
     prior = sigma_m[t] * camera.f_mm / depth / camera.sensor.pixel_mm
     if n > neighbours + 1:
@@ -216,6 +221,21 @@ def evidence(table: pa.Table, target: np.ndarray, R, C, camera: Camera, X, match
         res = res - corr
     z2 = np.sum(res**2, axis=1) / (sig**2 + prior**2)
     return Evidence(n, int(extra.sum()), missed, float(np.sqrt(np.mean(z2) / 2.0)))
+
+
+def _project_near(camera: Camera, X, R, C):
+    """:meth:`Camera.project` of the targets within 1.5 times the frame's half-size in the ideal
+    image (NaN for the others: a large field is mostly out of view)."""
+    Xc = (X - C) @ np.asarray(R).T
+    s = camera.sensor
+    reach = 1.5 * 0.5 * np.array([s.width_px, s.height_px]) * s.pixel_mm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -camera.f_mm * Xc[:, :2] / Xc[:, 2:3]
+    near = (Xc[:, 2] < 0) & (np.abs(q) <= reach).all(axis=1)
+    out = np.full((len(X), 2), np.nan)
+    if near.any():
+        out[near] = s.mm_to_pixel(camera.distort(q[near], check=False))
+    return out
 
 
 def _sigma(table: pa.Table) -> np.ndarray:
@@ -270,7 +290,7 @@ class _Context:
         self.marker_size_m = marker_size_m
         tcodes = np.asarray(targets.codes, np.int64)
         self.match = tcodes < 0 if codes_are_markers else np.ones(n, bool)
-        self.code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
+        self.code_to_target = dict(zip(tcodes[tcodes >= 0].tolist(), np.flatnonzero(tcodes >= 0).tolist(), strict=True))
         self.world_nbrs = field_neighbours(self.X, min(100, n))
         self._symmetries = None
         self.rate0, self.q0 = 0.02, 1.0
@@ -314,27 +334,38 @@ class _Context:
                     and ev.missed <= max(allowed, self.prior.max_missed * ev.n)
                     and ev.q <= self.prior.max_fit_factor * max(self.q0, 0.5))
 
-    def results(self, img: _Image, poses, marks) -> list[_Result]:
-        """Each pose refined (all at once) with its evidence; only results whose seeds agree."""
-        if not poses:
-            return []
-        idents = identify_from_poses(img.table, self.targets, self.camera, poses, marks=marks,
-                                     target_sigma_m=self.sigma_m, codes_are_markers=self.coded,
-                                     options=self.refine_options, where=img.name)
+    def results(self, items) -> list[list[_Result]]:
+        """The poses of several images refined together (``items``: (image, poses, marks)), each
+        with its evidence; only results whose seeds agree and whose camera is in front."""
+        views = identify_views([img.table for img, _, _ in items], self.targets, self.camera,
+                               [poses for _, poses, _ in items], marks=[m for _, _, m in items],
+                               target_sigma_m=self.sigma_m, codes_are_markers=self.coded,
+                               options=self.refine_options, names=[img.name for img, _, _ in items])
         out = []
-        for ident in idents:
-            if not ident.ok or len(ident.wrong_marks) or len(ident.wrong_codes) or not self.in_front(ident.center_m):
-                continue
-            ev = evidence(img.table, ident.target, ident.R_world_to_camera, ident.center_m, self.camera, self.X,
-                          self.match, self.sigma_m)
-            rows = np.flatnonzero(ident.target >= 0)
-            out.append(_Result(ident, ev, set(zip(rows.tolist(), ident.target[rows].tolist(), strict=True))))
+        for (img, _, _), idents in zip(items, views, strict=True):
+            rs = []
+            for ident in idents:
+                if not ident.ok or len(ident.wrong_marks) or len(ident.wrong_codes) or \
+                        not self.in_front(ident.center_m):
+                    continue
+                ev = evidence(img.table, ident.target, ident.R_world_to_camera, ident.center_m, self.camera, self.X,
+                              self.match, self.sigma_m, parsed=(img.uv_all, img.disc, img.sigma_px))
+                rows = np.flatnonzero(ident.target >= 0)
+                rs.append(_Result(ident, ev, set(zip(rows.tolist(), ident.target[rows].tolist(), strict=True))))
+            out.append(rs)
         return out
 
-    def _score(self, img: _Image, R, C) -> np.ndarray:
-        """Targets each pose pairs with the first gates (:meth:`ViewMatcher.score`)."""
-        vm = ViewMatcher(self.X, self.match, self.camera, self.options, [img.uv], self.sigma_m)
-        return vm.score(np.zeros(len(R), np.int64), R, C)[0]
+    def _score(self, images: list[_Image], poses) -> list[np.ndarray]:
+        """Targets each pose pairs with the first gates (:meth:`ViewMatcher.score`), per image."""
+        vm = ViewMatcher(self.X, self.match, self.camera, self.options, [img.uv for img in images], self.sigma_m)
+        image = np.array([k for k, p in enumerate(poses) for _ in p], np.int64)
+        out = [np.zeros(0, np.int64) for _ in images]
+        if len(image):
+            flat = [q for p in poses for q in p]
+            count = vm.score(image, np.stack([q[0] for q in flat]), np.stack([q[1] for q in flat]))[0]
+            for k in range(len(images)):
+                out[k] = count[image == k]
+        return out
 
     def twins(self, img: _Image, res: _Result):
         """Poses of the result's twins under the field's symmetries, those that keep most of
@@ -394,9 +425,7 @@ class _Context:
         order = np.argsort(-score, kind="stable")
         return [(hyps[k][0], hyps[k][1], int(score[k])) for k in order]
 
-    def decide(self, img: _Image, hyps, marks):
-        """Refine the best hypotheses and their twins: the accepted identification (or None), the
-        reason, and when ambiguous the poses of the competing results (to judge again later)."""
+    def _top_poses(self, img: _Image, hyps):
         poses = []
         for R, C, score in self.global_rank(img, hyps):
             if len(poses) >= self.prior.n_refine or score < self.options.min_identified:
@@ -405,17 +434,30 @@ class _Context:
                    for R2, C2 in poses):
                 continue
             poses.append((R, C))
-        results = [r for r in self.results(img, poses, marks) if self.admissible(r.ev)]
-        if not results:
-            return None, "", []
-        best = max(results, key=lambda r: (r.score, -r.ev.q))
-        twins = self.twins(img, best)
-        if twins:       # refine the twins that pair nearly as many targets as the best start
-            R = np.stack([p[0] for p in twins])
-            C = np.stack([p[1] for p in twins])
-            count = self._score(img, R, C)
-            twins = [p for p, c in zip(twins, count, strict=True) if c >= self.prior.max_ambiguity * best.ev.n]
-        results += [r for r in self.results(img, twins, marks) if self.admissible(r.ev)]
+        return poses
+
+    def decide(self, items):
+        """For several images (``items``: (image, hypotheses, marks)), refine the best hypotheses
+        and the twins of the best result, all images together; per image the accepted
+        identification (or None), the reason, and when ambiguous the poses of the competing
+        results (to judge again later)."""
+        results = self.results([(img, self._top_poses(img, hyps), m) for img, hyps, m in items])
+        results = [[r for r in rs if self.admissible(r.ev)] for rs in results]
+        twins, best = [], []
+        for (img, _, _), rs in zip(items, results, strict=True):
+            best.append(max(rs, key=lambda r: (r.score, -r.ev.q)) if rs else None)
+            twins.append(self.twins(img, best[-1]) if rs else [])
+        # the twins that pair nearly as many targets as the best result are refined too
+        counts = self._score([img for img, _, _ in items], twins)
+        twins = [[p for p, c in zip(tw, cnt, strict=True) if c >= self.prior.max_ambiguity * b.ev.n] if b else []
+                 for tw, cnt, b in zip(twins, counts, best, strict=True)]
+        more = self.results([(img, tw, m) for (img, _, m), tw in zip(items, twins, strict=True)])
+        return [self._choose(rs + [r for r in rs2 if self.admissible(r.ev)]) if rs else (None, "", [])
+                for rs, rs2 in zip(results, more, strict=True)]
+
+    def _choose(self, results):
+        """The best-fitting of the results with nearly the best evidence, unless another fits
+        almost as well (module docstring)."""
         groups = _group(results)
         top = max(r.score for r in groups)
         contenders = sorted((r for r in groups if r.score >= self.prior.max_ambiguity * top), key=lambda r: r.ev.q)
@@ -445,86 +487,79 @@ def _centres(img: _Image, oriented, stations):
     return "neighbours", out
 
 
-def _centre_hyps(ctx: _Context, img: _Image, centres, anchors):
-    """Hypotheses for each prior centre not tried yet (:func:`poses_from_centre`)."""
+def _next_step(ctx: _Context, img: _Image, oriented, stations, cheap: bool):
+    """The image's next untried start (module docstring), as ``(kind, hypotheses)``, or None.
+
+    ``cheap``: only the starts that need no search (competitors of an earlier call judged again,
+    the station's centre, a marker's corners); the pose-free pivots and the other images'
+    centres follow when no image has a cheap start left. An image found ambiguous takes only
+    cheap starts (a search would bring the same twins)."""
+    if img.hint is not None:
+        (kind, poses), img.hint = img.hint, None
+        return kind, [(R, C) for R, C in poses]
+    cheap = cheap or img.ambiguous
+    kind, centres = _centres(img, oriented, stations)
+    if kind == "station":
+        for C in centres:
+            key = tuple(np.round(C, 6))
+            if key not in img.tried:
+                img.tried.add(key)
+                return kind, _centre_hyps(ctx, img, C)
+    if "marker" not in img.tried and img.corners and ctx.marker_size_m is not None:
+        img.tried.add("marker")
+        hyps = _marker_hyps(ctx, img)
+        if hyps:
+            return "marker", hyps
+    if cheap:
+        return None
+    second = (int(img.seeds_t[1]), img.seeds_uv[1]) if len(img.seeds_t) >= 2 else None
+    anchors = ctx.anchors(img)
+    for k, a in enumerate(anchors[:1] if second is not None else anchors):
+        if ("pose-free", k) not in img.tried:
+            img.tried.add(("pose-free", k))
+            return "pattern", poses_pose_free(ctx.camera, ctx.X, ctx.world_nbrs, a, second=second)
+    if kind != "station":
+        for C in centres:
+            key = tuple(np.round(C, 6))
+            if key not in img.tried:
+                img.tried.add(key)
+                return kind, _centre_hyps(ctx, img, C)
+    return None
+
+
+def _centre_hyps(ctx: _Context, img: _Image, C):
+    """Hypotheses for a prior centre (:func:`poses_from_centre` about every pivot)."""
     seeds = (img.seeds_t, img.seeds_uv) if len(img.seeds_t) else None
-    for C in centres:
-        key = tuple(np.round(C, 6))
-        if key in img.tried:
-            continue
-        img.tried.add(key)
-        hyps = []
-        for a in anchors:
-            hyps += poses_from_centre(ctx.camera, C, ctx.X, ctx.world_nbrs, a, seeds=seeds)
-        yield hyps
+    hyps = []
+    for a in ctx.anchors(img):
+        hyps += poses_from_centre(ctx.camera, C, ctx.X, ctx.world_nbrs, a, seeds=seeds)
+    return hyps
 
 
 def _marker_hyps(ctx: _Context, img: _Image):
-    """Hypotheses from the markers' corners (:func:`poses_from_marker`), once."""
-    if "marker" in img.tried or not img.corners or ctx.marker_size_m is None:
-        return
-    img.tried.add("marker")
+    """Hypotheses from the markers' corners (:func:`poses_from_marker`)."""
     anchors = {int(a.targets[0]): a for a in ctx.anchors(img) if len(a.targets) == 1}
     hyps = []
     for t, corners in img.corners:
         if t in anchors:
             hyps += poses_from_marker(ctx.camera, corners, ctx.marker_size_m, t, ctx.X, ctx.world_nbrs, anchors[t],
                                       normals=ctx.targets.normals)
-    yield hyps
+    return hyps
 
 
-def _pose_free_hyps(ctx: _Context, img: _Image, anchors):
-    """Hypotheses of the pose-free search, one pivot after the other, once."""
-    if "pose-free" in img.tried:
+def _own_seeds(ctx: _Context, pending: dict, marks, found: dict, reasons: dict) -> None:
+    """The images with three or more seeds, identified from them with the calibrated camera."""
+    idx = [i for i, img in pending.items() if len(img.seeds_t) >= 3]
+    if not idx:
         return
-    img.tried.add("pose-free")
-    second = (int(img.seeds_t[1]), img.seeds_uv[1]) if len(img.seeds_t) >= 2 else None
-    for a in anchors[:1] if second is not None else anchors:
-        yield poses_pose_free(ctx.camera, ctx.X, ctx.world_nbrs, a, second=second)
-
-
-def _search(ctx: _Context, img: _Image, oriented, stations, marks, hints):
-    """One image: its seeds, then the starts of the module docstring until one is accepted.
-
-    An ambiguous result ends the image's search in this round (another start would bring the
-    same twins); its competitors are kept in ``hints`` and judged first in the next round,
-    when a better camera may tell them apart."""
-    why = img.seeds_reason
-    if len(img.seeds_t) >= 3 and "seeds" not in img.tried:
-        img.tried.add("seeds")
-        ident = _own_seeds(ctx, img, marks)
+    idents = identify_images([pending[i].table for i in idx], ctx.targets, ctx.camera,
+                             marks=[marks.get(i) for i in idx], target_sigma_m=ctx.sigma_m,
+                             codes_are_markers=ctx.coded, options=ctx.options, names=[pending[i].name for i in idx])
+    for i, ident in zip(idx, idents, strict=True):
         if ident.ok:
-            return ident, "seeds", ""
-        why = img.seeds_reason = ident.reason
-    if len(img.uv) < ctx.prior.min_discs:
-        return None, "", why or f"only {len(img.uv)} discs measured: too few to search for a pose"
-    anchors = ctx.anchors(img)
-    kind, centres = _centres(img, oriented, stations)
-    starts = []
-    if img.index in hints:
-        start, poses = hints.pop(img.index)
-        starts.append((start, iter([[(R, C) for R, C in poses]])))
-    if kind == "station":
-        starts.append((kind, _centre_hyps(ctx, img, centres, anchors)))
-    starts += [("marker", _marker_hyps(ctx, img)), ("pattern", _pose_free_hyps(ctx, img, anchors))]
-    if kind != "station":
-        starts.append((kind, _centre_hyps(ctx, img, centres, anchors)))
-    for start, hyps_lists in starts:
-        for hyps in hyps_lists:
-            ident, reason, competitors = ctx.decide(img, hyps, marks)
-            if ident is not None:
-                return ident, start, ""
-            if competitors:
-                hints[img.index] = (start, competitors)
-                return None, "", reason
-            why = why or reason
-    return None, "", why
-
-
-def _own_seeds(ctx: _Context, img: _Image, marks) -> ImageIdentification:
-    """The image's own seeds with the calibrated camera."""
-    return identify_image(img.table, ctx.targets, ctx.camera, marks=marks, target_sigma_m=ctx.sigma_m,
-                          codes_are_markers=ctx.coded, options=ctx.options, where=img.name, seed=img.index)
+            found[i] = (ident, "seeds")
+        else:
+            reasons[i] = ident.reason
 
 
 def identify_remaining(camera: Camera, targets: TargetField, measurements: Mapping[str, pa.Table], names,
@@ -584,29 +619,45 @@ def identify_remaining(camera: Camera, targets: TargetField, measurements: Mappi
         if i in oriented or name not in measurements:
             continue
         pending[i] = _image_of(ctx, i, name, measurements[name], stations[i], marks.get(i))
+        pending[i].hint = hints.pop(i, None)
     found, reasons = {}, {}
-    while pending:
-        # the images of a station with an oriented image first, then by number of seeds
-        order = sorted(pending, key=lambda i: (not any(stations[j] == stations[i] and stations[i] is not None
-                                                       for j in oriented), -len(pending[i].seeds_t), i))
-        progressed = False
-        for i in order:
-            ident, start, why = _search(ctx, pending[i], oriented, stations, marks.get(i), hints)
-            if ident is None:
-                reasons[i] = why
-                continue
-            found[i] = (ident, start)
-            oriented[i] = (ident.R_world_to_camera, ident.center_m)
-            reasons.pop(i, None)
+    _own_seeds(ctx, pending, marks, found, reasons)
+    for i, (ident, _) in found.items():
+        oriented[i] = (ident.R_world_to_camera, ident.center_m)
+        del pending[i]
+    for i, img in list(pending.items()):
+        if len(img.uv) < ctx.prior.min_discs:
+            reasons[i] = reasons.get(i) or f"only {len(img.uv)} discs measured: too few to search for a pose"
             del pending[i]
-            progressed = True
-            say(f"{names[i]}: identified from the {start} ({ident.n_identified} targets)")
-        if not progressed:
+    while pending:
+        # every image takes its next start, all images at once: first the cheap ones, the searches
+        # only when no image has a cheap start left
+        for cheap in (True, False):
+            steps = {i: st for i, img in pending.items()
+                     if (st := _next_step(ctx, img, oriented, stations, cheap)) is not None}
+            if steps:
+                break
+        if not steps:
             break
-    for i in pending:
+        decisions = ctx.decide([(pending[i], hyps, marks.get(i)) for i, (_, hyps) in steps.items()])
+        for (i, (start, _)), (ident, reason, competitors) in zip(steps.items(), decisions, strict=True):
+            if ident is not None:
+                found[i] = (ident, start)
+                oriented[i] = (ident.R_world_to_camera, ident.center_m)
+                reasons.pop(i, None)
+                hints.pop(i, None)
+                del pending[i]
+                say(f"{names[i]}: identified from the {start} ({ident.n_identified} targets)")
+            elif competitors:      # ambiguous: judged again with a better camera (next call)
+                hints[i] = (start, competitors)
+                pending[i].ambiguous = True
+                reasons[i] = reason
+            else:
+                reasons[i] = reasons.get(i) or reason
+    for i, img in pending.items():
         if not reasons.get(i):
             reasons[i] = (f"{REASON_NO_START}: no pose prior or pattern match fits its "
-                          f"{len(pending[i].uv)} measured discs and {len(pending[i].seeds_t)} seed(s)")
+                          f"{len(img.uv)} measured discs and {len(img.seeds_t)} seed(s)")
     return found, reasons
 
 
