@@ -222,10 +222,8 @@ def refine_poses(f_mm: float, R, C, view, X, q_mm, *, steps: int = 6, tol: float
         J = np.concatenate([-D @ Px, -D @ R[view]], axis=2)   # (P, 2, 6)
         JtJ = np.einsum("pki,pkj->pij", J, J).reshape(len(P), 36)
         Jtr = np.einsum("pki,pk->pi", J, r)
-        N = np.zeros((V, 36))
-        b = np.zeros((V, 6))
-        np.add.at(N, view, JtJ)
-        np.add.at(b, view, Jtr)
+        N = np.stack([np.bincount(view, weights=JtJ[:, c], minlength=V) for c in range(36)], axis=1)
+        b = np.stack([np.bincount(view, weights=Jtr[:, c], minlength=V) for c in range(6)], axis=1)
         N = N.reshape(V, 6, 6)
         scale = np.sqrt(np.maximum(np.einsum("vii->vi", N), 1e-300))
         Ns = N / scale[:, :, None] / scale[:, None, :] + 1e-12 * np.eye(6)
@@ -342,7 +340,7 @@ class ViewMatcher:
         targets' sigma seen from each pose (V, n) [px]."""
         R, C = np.asarray(R, float), np.asarray(C, float)
         V = len(R)
-        Xc = np.einsum("vij,vtj->vti", R, self.X[None] - C[:, None])
+        Xc = np.matmul(self.X[None] - C[:, None], np.swapaxes(R, 1, 2))       # (V, n, 3)
         z = Xc[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             q = -self.camera.f_mm * Xc[..., :2] / z[..., None]
