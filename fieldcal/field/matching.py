@@ -49,7 +49,7 @@ from fieldcal.model.camera import Camera
 from fieldcal.robust import MAD_TO_SIGMA, robust_sigma
 
 __all__ = ["ViewMatcher", "Refined", "mutual_nearest", "local_correction", "grouped_median", "rotation_exp",
-           "refine_poses"]
+           "pinhole_jacobian", "refine_poses"]
 
 
 def mutual_nearest(pred_px, gate_px, meas_px):
@@ -170,6 +170,40 @@ def rotation_exp(w):
     return np.where(small[..., None, None], np.eye(3), R)
 
 
+def pinhole_jacobian(f_mm: float, R, C, X):
+    """Pinhole projections of points and their derivatives by the pose (module docstring).
+
+    Parameters
+    ----------
+    f_mm : float
+    R, C : (P, 3, 3), (P, 3) ndarrays
+        The pose of each point's view.
+    X : (P, 3) ndarray
+        The points [m].
+
+    Returns
+    -------
+    proj : (P, 2) ndarray
+        ``-f (P_x, P_y) / P_z`` [mm] (NaN behind the camera).
+    J : (P, 2, 6) ndarray
+        Derivatives by ``(w, dC)`` of the update ``R <- exp([w]x) R``, ``C <- C + dC`` [mm/rad, mm/m].
+    """
+    P = np.einsum("pij,pj->pi", R, X - C)
+    z = P[:, 2]
+    zs = np.where(z < 0, z, np.nan)
+    proj = -f_mm * P[:, :2] / zs[:, None]
+    D = np.zeros((len(P), 2, 3))                         # d pi / d P
+    g = f_mm / zs**2
+    D[:, 0, 0] = D[:, 1, 1] = -g * zs
+    D[:, 0, 2] = g * P[:, 0]
+    D[:, 1, 2] = g * P[:, 1]
+    Px = np.zeros((len(P), 3, 3))                        # [P]x
+    Px[:, 0, 1], Px[:, 0, 2] = -P[:, 2], P[:, 1]
+    Px[:, 1, 0], Px[:, 1, 2] = P[:, 2], -P[:, 0]
+    Px[:, 2, 0], Px[:, 2, 1] = -P[:, 1], P[:, 0]
+    return proj, np.concatenate([-D @ Px, -D @ R], axis=2)
+
+
 def refine_poses(f_mm: float, R, C, view, X, q_mm, *, steps: int = 6, tol: float = 1e-10):
     """Least-squares poses of views from their point pairs (module docstring, Gauss-Newton).
 
@@ -202,25 +236,11 @@ def refine_poses(f_mm: float, R, C, view, X, q_mm, *, steps: int = 6, tol: float
     if len(view) == 0:
         return R, C
     for _ in range(steps):
-        P = np.einsum("pij,pj->pi", R[view], X - C[view])
-        z = P[:, 2]
-        ok = z < 0                                           # in front of the camera
-        zs = np.where(ok, z, -1.0)
-        proj = -f_mm * P[:, :2] / zs[:, None]
-        r = np.where(ok[:, None], q_mm - proj, 0.0)
-        # d pi / d P (P, 2, 3)
-        D = np.zeros((len(P), 2, 3))
-        g = f_mm / zs**2
-        D[:, 0, 0] = D[:, 1, 1] = -g * zs
-        D[:, 0, 2] = g * P[:, 0]
-        D[:, 1, 2] = g * P[:, 1]
-        D *= ok[:, None, None]
-        Px = np.zeros((len(P), 3, 3))                        # [P]x
-        Px[:, 0, 1], Px[:, 0, 2] = -P[:, 2], P[:, 1]
-        Px[:, 1, 0], Px[:, 1, 2] = P[:, 2], -P[:, 0]
-        Px[:, 2, 0], Px[:, 2, 1] = -P[:, 1], P[:, 0]
-        J = np.concatenate([-D @ Px, -D @ R[view]], axis=2)   # (P, 2, 6)
-        JtJ = np.einsum("pki,pkj->pij", J, J).reshape(len(P), 36)
+        proj, J = pinhole_jacobian(f_mm, R[view], C[view], X)
+        ok = np.isfinite(proj).all(axis=1)
+        r = np.where(ok[:, None], q_mm - np.where(ok[:, None], proj, 0.0), 0.0)
+        J = np.where(ok[:, None, None], J, 0.0)
+        JtJ = np.einsum("pki,pkj->pij", J, J).reshape(len(view), 36)
         Jtr = np.einsum("pki,pk->pi", J, r)
         N = np.stack([np.bincount(view, weights=JtJ[:, c], minlength=V) for c in range(36)], axis=1)
         b = np.stack([np.bincount(view, weights=Jtr[:, c], minlength=V) for c in range(6)], axis=1)

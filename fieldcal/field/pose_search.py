@@ -147,8 +147,11 @@ def p3p_batch(X, rays):
     Xw = X[h]
     # the rotation that takes the triangle's frame in the world to its frame in the camera (the
     # distances agree exactly, so the two triads are congruent): R = F_c F_w^T
-    R = _triad(Pc) @ np.swapaxes(_triad(Xw), 1, 2)
-    C = Xw.mean(axis=1) - np.einsum("nji,nj->ni", R, Pc.mean(axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):        # a collinear triple has no frame
+        R = _triad(Pc) @ np.swapaxes(_triad(Xw), 1, 2)
+    C = Xw.mean(axis=1) - np.einsum("nji,nj->ni", np.nan_to_num(R), Pc.mean(axis=1))
+    fin = np.isfinite(R).all(axis=(1, 2)) & np.isfinite(C).all(axis=1)
+    R, C, h = R[fin], C[fin], h[fin]
     return R, C, h
 
 

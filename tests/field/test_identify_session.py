@@ -17,7 +17,6 @@ import pyarrow as pa
 
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.field.identify_session import PriorOptions
-from fieldcal.field.pose_search import field_symmetries, marker_poses
 from fieldcal.session.loader import load_session
 from fieldcal.synthetic.field import measurements_of, wide_field
 from fieldcal.synthetic.session_writer import write_field_session
@@ -128,40 +127,3 @@ def test_marks_in_three_images_of_a_periodic_grid(tmp_path):
         if r["status"] != "ok":
             assert r["reason"].startswith(("ambiguous", "not identified")), r["reason"]
     assert abs(result.params[0] - sf.camera.f_mm) < 3 * result.sigma["f_mm"]
-
-
-def test_field_symmetries_of_a_square_sheet_and_of_a_field_with_gaps():
-    """A square 10 x 10 grid repeats under three quarter turns (all of it) and under shifts (part
-    of it); with random gaps it repeats only over small parts, by chance."""
-    g = np.arange(10) * 0.15
-    xx, yy = np.meshgrid(g, g)
-    X = np.stack([xx.ravel(), yy.ravel(), np.zeros(100)], axis=1)
-    sym = field_symmetries(X)
-    full = [s for s in sym if s.overlap == 100]
-    assert len(full) == 3                              # 90, 180, 270 degrees
-    for s in sym:                                      # each maps its targets onto their images
-        k = np.flatnonzero(s.perm >= 0)
-        assert np.allclose(X[k] @ s.R.T + s.t, X[s.perm[k]], atol=1e-9)
-    assert any(s.overlap == 90 for s in sym)           # one step
-    rng = np.random.default_rng(0)
-    gaps = X[rng.random(100) < 0.9]
-    assert all(s.overlap < 0.55 * len(gaps) for s in field_symmetries(gaps))
-
-
-def test_marker_poses_give_the_marker_in_the_camera_frame():
-    """IPPE on a marker's four projected corners: the marker's centre and axes in the camera frame."""
-    sf = wide_field(seed=1)
-    i = 4
-    tab, t = measurements_of(sf, i, coded=True, seed=0, corners=True)
-    rows = np.flatnonzero(tab["kind"].to_numpy(zero_copy_only=False) == "aruco")
-    assert len(rows)
-    r = rows[0]
-    corners = np.asarray(tab["corners_px"][int(r)].as_py()).reshape(4, 2)
-    sols = marker_poses(sf.camera, corners, sf.marker_size_mm / 1000.0)
-    R, C = sf.R_world_to_camera[i], sf.center_m[i]
-    centre = R @ (sf.targets_true.xyz_m[t[r]] - C)
-    normal = R @ np.array([0.0, -1.0, 0.0])             # the wall faces -Y
-    err = [(np.linalg.norm(c - centre), np.degrees(np.arccos(np.clip(Rm[:, 2] @ normal, -1, 1)))) for Rm, c in sols]
-    best = min(err, key=lambda e: e[1])            # IPPE's two solutions: one turned the wrong way
-    # 0.1 px corner noise on a 120 mm marker ~5 m away: centre within 3 cm, normal within 5 degrees
-    assert best[0] < 0.03 and best[1] < 5.0, err
