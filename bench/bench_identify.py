@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -115,10 +117,12 @@ stamps = []
 def progress(line):
     stamps.append((time.perf_counter(), line))
 t = time.perf_counter()
+c = time.process_time()
 out = solve(prepared, meas, fingerprint_="sha256:" + "0" * 64, progress=progress)
 dt = time.perf_counter() - t
+cpu = time.process_time() - c
 doc = out.document
-print(json.dumps({"solve_s": dt, "import_s": t - t0, "params": doc["parameters"],
+print(json.dumps({"solve_s": dt, "cpu_s": cpu, "import_s": t - t0, "params": doc["parameters"],
                   "sigma": doc["sigma"], "n_images": doc["stats"]["n_images"],
                   "n_observations": doc["stats"]["n_observations"],
                   "left_out": len(out.left_out),
@@ -164,6 +168,24 @@ def drop_codes(folder: Path, keep_max: int, seed: int = 0) -> dict:
     return drop
 
 
+def _ratios(results: dict) -> None:
+    """New / old per round (the two ran back to back), wall and CPU."""
+    keys = list(results)
+    for key in keys:
+        if not key.startswith("new"):
+            continue
+        other = [k for k in keys if k.startswith("old") and k.split(", ", 1)[1] == key.split(", ", 1)[1]]
+        if not other:
+            continue
+        pairs = [(a, b) for a, b in zip(results[key], results[other[0]], strict=False)
+                 if "error" not in a and "error" not in b]
+        if pairs:
+            wall = [a["solve_s"] / b["solve_s"] for a, b in pairs]
+            cpu = [a.get("cpu_s", np.nan) / b.get("cpu_s", np.nan) for a, b in pairs]
+            print(f"{key.split(', ', 1)[1]}: new/old per round, wall {', '.join(f'{r:.2f}' for r in wall)}; "
+                  f"CPU {', '.join(f'{r:.2f}' for r in cpu)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rounds", type=int, default=3)
@@ -186,16 +208,18 @@ def main() -> None:
                 print(f"round {r}: {key}: " + (res.get("error") or
                       f"{res['solve_s']:.2f} s, {res['n_images']} images, f {res['params']['f_mm']:.5f}"),
                       flush=True)
-    print("\n| run | solve step [s] (best) | images used | observations | f_mm |")
-    print("|---|---|---|---|---|")
+    print("\n| run | solve step [s] (best) | CPU [s] (best) | images used | observations | f_mm |")
+    print("|---|---|---|---|---|---|")
     for key, rows in results.items():
         ok = [x for x in rows if "error" not in x]
         if not ok:
-            print(f"| {key} | failed: {rows[0]['error']} | | | |")
+            print(f"| {key} | failed: {rows[0]['error']} | | | | |")
             continue
         best = min(ok, key=lambda x: x["solve_s"])
-        print(f"| {key} | {best['solve_s']:.2f} | {best['n_images']} | {best['n_observations']} | "
+        cpu = min(x.get("cpu_s", np.nan) for x in ok)
+        print(f"| {key} | {best['solve_s']:.2f} | {cpu:.2f} | {best['n_images']} | {best['n_observations']} | "
               f"{best['params']['f_mm']:.5f} |")
+    _ratios(results)
     for key, rows in results.items():
         ok = [x for x in rows if "error" not in x]
         if ok:
