@@ -1,16 +1,16 @@
-"""Field calibration from measured images: identify, adjust, identify again, adjust again.
+"""Field calibration from measured images: identify, adjust, identify the rest, identify again, adjust again.
 
 The measuring step (:func:`fieldcal.pipeline.measure`, one ``measurements`` table per
 image) knows nothing of the targets' identities. This module turns those tables into a
 calibration (:func:`calibrate_from_measurements`):
 
 1. **First identification, nominal camera.** Every image is identified
-   (:func:`fieldcal.field.identify.identify_image`) with the camera the session describes: the
-   nominal focal length (``lens.nominal_focal_mm``), principal point at the sensor centre, no
-   distortion. It starts from the coded targets (ArUco markers named in targets.csv) or, in
-   fields without coded targets, from the hand marks of marks.csv (CONTRACT section 3).
-   Images whose measurement table is missing (the file could not be read or measured) or
-   with too few identified targets are left out and reported.
+   (:func:`fieldcal.field.identify.identify_images`, all images at once) with the camera the
+   session describes: the nominal focal length (``lens.nominal_focal_mm``), principal point at
+   the sensor centre, no distortion. It starts from the coded targets (ArUco markers named in
+   targets.csv) or, in fields without coded targets, from the hand marks of marks.csv (CONTRACT
+   section 3). Images whose measurement table is missing (the file could not be read or
+   measured) or with too few identified targets are left out and reported.
 2. **First adjustment** (:func:`fieldcal.field.adjustment.adjust_field`) of the identified points,
    each with the detector's a-priori ``sigma_px`` (the session's ``default_sigma_px`` where
    the detector gives none). With adjusted targets (the default), a point of a target that
@@ -19,19 +19,31 @@ calibration (:func:`calibrate_from_measurements`):
    (5 mm is ~0.6 px at the paper's 60 m). Such points are left out, and an image left with
    fewer than 6 points with them. (They would also drive the adjustment's gross-error
    scale, a median over all residuals, towards zero and start a cascade of rejections.)
-3. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
+3. **Pose priors** (:func:`fieldcal.field.identify_session.identify_remaining`): the calibrated
+   camera and the oriented images start the images left out so far (their station, a marker's
+   corners, a pose-free search, the other images' centres). While images remain and new ones
+   were found, the adjustment is repeated with them (warm) and the rest tried again with its
+   better camera (``MAX_PRIOR_ROUNDS``). An image found this way is admitted only by an
+   adjustment it does not spoil (:func:`_admit`: when the adjustment fails, or the image's
+   points are mostly rejected or scatter three times more than the others', the group is
+   halved until the culprits are found; they are left out with the reason).
+4. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
    or the plane of a planar field, and the session gives ``target_diameter_mm``): the
-   detector measures the centre of the imaged ellipse; with the first adjustment's camera and
-   poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image of
-   its centre.
-4. **Second identification, calibrated camera**, with the adjusted poses and target
-   coordinates: the gates shrink to the measurement noise, and targets near the corners,
-   where the nominal camera's missing distortion was too large, are found too. Images left out
-   in the first pass are tried again from their seeds.
-5. **Second adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+   detector measures the centre of the imaged ellipse; with the calibrated camera and the
+   poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image
+   of its centre.
+5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
+   adjustment's, better than one image's resection) and target coordinates: the gates shrink
+   to the measurement noise, and targets near the corners, where the nominal camera's missing
+   distortion was too large, are found too. Images left out so far are tried again from their
+   seeds.
+6. **Final adjustment**: the result. The markers' a-priori sigmas are first scaled by how
    much more their normalised residuals scatter than the discs' did in the first adjustment
    (a variance component, at least 1): the corner-based centres of markers measure worse
-   than the detector's edge-line sigma says.
+   than the detector's edge-line sigma says. It starts from the latest adjustment (a warm
+   start: its interior orientation, poses and targets, with the suspects a cold start would
+   have: the initialisers' outliers that were never readmitted and the gross errors), so it
+   reaches the same optimum without the initial values and with fewer rounds.
 
 The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
 ``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
@@ -285,14 +297,14 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     starts = {i: "seeds" for i in keep1}
     prior_reasons = _with_priors(run, state, starts)
     prior_reasons.update(state.rejected)
-    # 4: every image again with the calibrated camera, from the adjusted poses
+    # 5: every image again with the calibrated camera, from the adjusted poses
     second = _identify_all(run, state.targets, state.sigma_m, state.camera, state.poses, fixed_pose=True,
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
     uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
                                          eccentricity)
-    # 5: the final adjustment
+    # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
         run.say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
@@ -366,7 +378,7 @@ def _admit(fixed, candidates, attempt):
 
 
 def _final_adjustment(run, state, build, keep, probation, second):
-    """5: the adjustment, the images identified from pose priors and not adjusted yet admitted
+    """6: the adjustment, the images identified from pose priors and not adjusted yet admitted
     as :func:`_admit` says (an image that spoils it is left out)."""
     fixed = [i for i in keep if i not in probation]
 

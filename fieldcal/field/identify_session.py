@@ -15,22 +15,23 @@ the oriented images then give *pose priors* for every other image
 3. **a single coded target**: its marker's four corners (``corners_px``) and its size give the
    camera's pose relative to the marker (OpenCV's IPPE), up to the marker's turn in the
    field's surface, which is searched (:func:`fieldcal.field.pose_search.poses_from_marker`);
-4. **the neighbouring images**: without a station, the centres of the oriented images
-   (clustered) are tried as in 2;
-5. **pose-free**: P3P over triples of a pivot and its measured neighbours against the field's
+4. **pose-free**: P3P over triples of a pivot and its measured neighbours against the field's
    neighbourhoods (:func:`fieldcal.field.pose_search.poses_pose_free`), with the seeds as
-   pivots where there are any.
+   pivots where there are any, one pivot after the other;
+5. **the neighbouring images**: without a station, the centres of the oriented images
+   (clustered) are tried as in 2.
 
-Newly oriented images add their centres for the images still left; the loop ends when a
-round orients none.
+All pending images advance together, in *waves*: each takes its next untried start, the
+cheap ones (1-3) first and the searches (4, 5) only when no image has a cheap start left;
+the hypotheses of all of them are refined in one call
+(:func:`fieldcal.field.identify.identify_views`). Newly oriented images give their station's
+centre to the images still left; the loop ends when no image has a start left.
 
 Verification
 ------------
 Every start's best hypotheses (local support, then the targets they pair in the whole frame)
-are refined together (:func:`fieldcal.field.identify.identify_from_poses`, which checks the
-fit and the expected fraction) with gates from the known noise (the oriented images'), not
-from the residuals of the hypothesis itself (a wrong one would widen its own gates). Each
-result's *evidence* (:func:`evidence`) is measured inside the area it identifies:
+are refined (which checks the fit and the expected fraction, :mod:`fieldcal.field.identify`).
+Each result's *evidence* (:func:`evidence`) is measured inside the area it identifies:
 
 - ``n``: identified discs; ``extra``: measured discs left unexplained there; ``missed``:
   targets predicted there and not found. A right identification explains nearly every dot
@@ -40,16 +41,20 @@ result's *evidence* (:func:`evidence`) is measured inside the area it identifies
   each normalised by its expected sigma (the detector's sigma and the target's coordinate
   sigma seen from the pose); 1 at the noise.
 
-A result is *admissible* when its seeds agree, ``extra + missed`` stays within what the
-oriented images show (their rate plus three Poisson sigmas) and ``q`` within
-``max_fit_factor`` of theirs. Where the field repeats (:func:`fieldcal.field.pose_search.field_symmetries`:
-a regular grid shifted by its step, a square sheet turned by a quarter), the accepted
-result's *twins* (its identities moved by each symmetry, the pose moved with them) are
-refined and judged too. Among the admissible results (grouped: two results are one when
-they share half of their identities) with at least ``max_ambiguity`` of the best evidence,
-the one that fits best (smallest ``q``) is accepted when every other fits at least
-``min_fit_ratio`` times worse (e.g. the relief or the unevenness of a sheet that a twin puts
-in the wrong place); otherwise the image is left out as ambiguous, never accepted on a guess.
+A result is *admissible* when its seeds agree, its camera is on the side of the field the
+oriented cameras are on (a flat field's mirror image fits as well, seen from behind),
+``extra`` stays within what the oriented images show (their rate plus ``extra_sigmas`` Poisson
+sigmas), ``missed`` within ``max_missed`` of ``n`` (real images miss targets in patches) and ``q``
+within ``max_fit_factor`` of theirs. Where the field repeats
+(:func:`fieldcal.field.pose_search.field_symmetries`: a regular grid shifted by its step, a
+square sheet turned by a quarter), the best result's *twins* (its identities moved by each
+symmetry, the pose moved with them) are refined and judged too. Among the admissible results
+(grouped: two results are one when they share half of their identities) with at least
+``max_ambiguity`` of the best evidence, the one that fits best (smallest ``q``) is accepted
+when every other fits at least ``min_fit_ratio`` times worse (e.g. the relief, or the
+unevenness of a sheet, that a twin puts in the wrong place); otherwise the image is
+ambiguous: it is never accepted on a guess, and its competitors are judged again after the
+next adjustment, whose camera may tell them apart.
 """
 
 from __future__ import annotations
@@ -629,16 +634,26 @@ def identify_remaining(camera: Camera, targets: TargetField, measurements: Mappi
         if len(img.uv) < ctx.prior.min_discs:
             reasons[i] = reasons.get(i) or f"only {len(img.uv)} discs measured: too few to search for a pose"
             del pending[i]
+    _waves(ctx, pending, oriented, stations, marks, hints, found, reasons, lambda i, start, n: say(
+        f"{names[i]}: identified from the {start} ({n} targets)"))
+    for i, img in pending.items():
+        if not reasons.get(i):
+            reasons[i] = (f"{REASON_NO_START}: no pose prior or pattern match fits its "
+                          f"{len(img.uv)} measured discs and {len(img.seeds_t)} seed(s)")
+    return found, reasons
+
+
+def _waves(ctx: _Context, pending, oriented, stations, marks, hints, found, reasons, say) -> None:
+    """Every pending image takes its next start, all at once, until none has a start left
+    (module docstring); ``pending``, ``oriented``, ``hints``, ``found``, ``reasons`` are updated."""
     while pending:
-        # every image takes its next start, all images at once: first the cheap ones, the searches
-        # only when no image has a cheap start left
         for cheap in (True, False):
             steps = {i: st for i, img in pending.items()
                      if (st := _next_step(ctx, img, oriented, stations, cheap)) is not None}
             if steps:
                 break
         if not steps:
-            break
+            return
         decisions = ctx.decide([(pending[i], hyps, marks.get(i)) for i, (_, hyps) in steps.items()])
         for (i, (start, _)), (ident, reason, competitors) in zip(steps.items(), decisions, strict=True):
             if ident is not None:
@@ -647,18 +662,13 @@ def identify_remaining(camera: Camera, targets: TargetField, measurements: Mappi
                 reasons.pop(i, None)
                 hints.pop(i, None)
                 del pending[i]
-                say(f"{names[i]}: identified from the {start} ({ident.n_identified} targets)")
+                say(i, start, ident.n_identified)
             elif competitors:      # ambiguous: judged again with a better camera (next call)
                 hints[i] = (start, competitors)
                 pending[i].ambiguous = True
                 reasons[i] = reason
             else:
                 reasons[i] = reasons.get(i) or reason
-    for i, img in pending.items():
-        if not reasons.get(i):
-            reasons[i] = (f"{REASON_NO_START}: no pose prior or pattern match fits its "
-                          f"{len(img.uv)} measured discs and {len(img.seeds_t)} seed(s)")
-    return found, reasons
 
 
 def _image_of(ctx: _Context, i, name, table, station, marks) -> _Image:

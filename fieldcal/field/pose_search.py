@@ -22,16 +22,26 @@ the field. Each anchored set gives poses:
   seed or none, the pivot and its nearest measured neighbour (angle ``theta``) are paired
   with every target pair seen at ``theta`` (the star tracker's pair catalogue: a KD-tree
   of the unit directions), each pair giving one rotation;
+- **a marker's corners** (:func:`poses_from_marker`): OpenCV's IPPE on the four corners of a
+  square of known size gives the camera's pose relative to the marker (:func:`marker_poses`,
+  two solutions); the marker lies in the field's surface, so its frame is the world's up to a
+  turn ``phi`` about the surface normal at its target, which is searched in steps;
 - **nothing known** (:func:`poses_pose_free`): the pivot and two measured neighbours paired
   with the pivot target and two of its field neighbours give up to four poses each by
   Grunert's P3P (:func:`p3p_batch`, every real part of the quartic's roots, vectorised
-  over all triples).
+  over all triples; the rotation from the two triangles' frames).
 
-Local support. Every pose projects the pivot target's ``n_world`` nearest field neighbours
-(:func:`local_support`); it scores the number of the pivot's ``n_image`` nearest measured
-neighbours that have a projected target within a quarter of the pivot's neighbour spacing.
-Only the best-supported poses go on to the full matching; on a field whose pattern repeats,
-many poses have full local support and the session's uniqueness test decides.
+Local support. Every pose projects the pivot target's nearest field neighbours
+(:func:`local_support`); it scores the number of the pivot's nearest measured neighbours
+that have a projected target within a quarter of the pivot's neighbour spacing, in three
+stages (6 against 12, 8 against 25, 40 against 100), each keeping the poses tied best. Only
+the best-supported poses go on to the full matching; on a field whose pattern repeats, many
+poses have full local support and the session's uniqueness test decides.
+
+Twins. :func:`field_symmetries` finds the rigid motions in the field's plane under which the
+targets repeat (a regular grid's shifts, a square sheet's quarter turns); the identification
+of an image has a *twin* under each (:meth:`Symmetry.pose`), which the session refines and
+judges by its fit.
 """
 
 from __future__ import annotations
