@@ -93,7 +93,7 @@ def main() -> None:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     from fieldcal.synthetic.field import wide_field
-    from fieldcal.synthetic.render import write_field_session
+    from fieldcal.synthetic.session_writer import write_field_session
 
     session = out / "wall"
     write_field_session(session, wide_field(seed=1), images=False, observations_csv=True, camera_id="cam-bench")

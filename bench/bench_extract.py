@@ -108,7 +108,7 @@ def make_images(workdir: Path):
     return raw, zst, truth_p
 
 
-# the renderer's mix of TIFF layouts (fieldcal.synthetic.render.write_field_session with
+# the renderer's mix of TIFF layouts (fieldcal.synthetic.session_writer.write_field_session with
 # compression_mix=True: image k uses layout k mod 4)
 MIX = (
     ("tiled 256, zstd", {"tile": (256, 256), "compression": "zstd", "bigtiff": False}),

@@ -44,7 +44,8 @@ N_OBS, N_IMG = 20, 4
 def make_sessions(root: Path) -> list[Path]:
     """The 24 session folders (written once, reused)."""
     from fieldcal.synthetic.field import paper_field, wide_field
-    from fieldcal.synthetic.render import scaled_field, write_field_session
+    from fieldcal.synthetic.render import scaled_field
+    from fieldcal.synthetic.session_writer import write_field_session
 
     folders = []
     for k in range(N_OBS):

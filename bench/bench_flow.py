@@ -54,7 +54,7 @@ def _render_chunk(args):
     """Render some images of the session into a scratch folder (one process of the pool)."""
     folder, indices, seed = args
     from fieldcal.synthetic.field import paper_field
-    from fieldcal.synthetic.render import write_field_session
+    from fieldcal.synthetic.session_writer import write_field_session
 
     write_field_session(folder, paper_field(seed=seed), images=True, coded=True, image_indices=indices,
                         seed=seed, camera_id="ixu150-bench", session_id="paper72")
@@ -66,7 +66,7 @@ def render_session(folder: Path, n_images: int, procs: int, seed: int = 0) -> fl
     import multiprocessing
 
     from fieldcal.synthetic.field import paper_field
-    from fieldcal.synthetic.render import write_field_session
+    from fieldcal.synthetic.session_writer import write_field_session
 
     t = time.perf_counter()
     sf = paper_field(seed=seed)

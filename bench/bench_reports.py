@@ -24,7 +24,7 @@ from fieldcal.products.uncertainty import Calibration
 from fieldcal.products.undistort import undistort_image
 from fieldcal.synthetic.field import IXU150_TABLE1, WIDE_ANGLE, paper_field
 from fieldcal.synthetic.goniometer import make_scenario, write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 CAMERAS = {
     "iXU150 (paper Table 1), 8208 x 6280": Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1),

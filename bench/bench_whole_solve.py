@@ -161,7 +161,7 @@ class Worker:
 # ------------------------------------------------------------------------------------------
 def write_sessions(work: Path) -> dict:
     from fieldcal.synthetic.field import paper_field, wide_field
-    from fieldcal.synthetic.render import write_field_session
+    from fieldcal.synthetic.session_writer import write_field_session
 
     out = {}
     for name, make in (("paper", paper_field), ("wide", wide_field)):

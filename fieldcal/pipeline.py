@@ -229,6 +229,8 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
     stats = res.stats()
     stats["left_out_images"] = [r.get("image") for r in left_out]
     stats["left_out"] = [{"image": r.get("image"), "reason": r.get("reason")} for r in left_out]
+    if "identification" in data.meta:
+        stats["identification"] = data.meta["identification"]
     doc = calibration_document(
         camera_id=sess.camera_id, session_id=sess.session_id, version="", method="field",
         sensor=sess.sensor, parameters=res.params, sigma=res.sigma, stats=stats,

@@ -47,7 +47,8 @@ def _field(out: Path, scenario: str, seed: int, images: bool, scale: float, n_im
     import numpy as np
 
     from fieldcal.synthetic.field import paper_field, wide_field
-    from fieldcal.synthetic.render import scaled_field, write_field_session
+    from fieldcal.synthetic.render import scaled_field
+    from fieldcal.synthetic.session_writer import write_field_session
 
     sf = {"paper": paper_field, "wide": wide_field}[scenario](seed=seed)
     if images:

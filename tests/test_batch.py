@@ -14,7 +14,7 @@ from fieldcal.lake.store import Lake
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ from fieldcal import fleet, pipeline
 from fieldcal.errors import InputError
 from fieldcal.lake.store import Lake
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 
 @pytest.fixture

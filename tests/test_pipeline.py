@@ -13,7 +13,7 @@ from fieldcal import pipeline
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 
 def _keep_rows(folder, keep) -> None:

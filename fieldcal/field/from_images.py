@@ -1,16 +1,16 @@
-"""Field calibration from measured images: identify, adjust, identify again, adjust again.
+"""Field calibration from measured images: identify, adjust, identify the rest, identify again, adjust again.
 
 The measuring step (:func:`fieldcal.pipeline.measure`, one ``measurements`` table per
 image) knows nothing of the targets' identities. This module turns those tables into a
 calibration (:func:`calibrate_from_measurements`):
 
 1. **First identification, nominal camera.** Every image is identified
-   (:func:`fieldcal.field.identify.identify_image`) with the camera the session describes: the
-   nominal focal length (``lens.nominal_focal_mm``), principal point at the sensor centre, no
-   distortion. It starts from the coded targets (ArUco markers named in targets.csv) or, in
-   fields without coded targets, from the hand marks of marks.csv (docs/conventions.md section 3).
-   Images whose measurement table is missing (the file could not be read or measured) or
-   with too few identified targets are left out and reported.
+   (:func:`fieldcal.field.identify.identify_images`, all images at once) with the camera the
+   session describes: the nominal focal length (``lens.nominal_focal_mm``), principal point at
+   the sensor centre, no distortion. It starts from the coded targets (ArUco markers named in
+   targets.csv) or, in fields without coded targets, from the hand marks of marks.csv (docs/
+   conventions.md section 3). Images whose measurement table is missing (the file could not be read or
+   measured) or with too few identified targets are left out and reported.
 2. **First adjustment** (:func:`fieldcal.field.adjustment.adjust_field`) of the identified points,
    each with the detector's a-priori ``sigma_px`` (the session's ``default_sigma_px`` where
    the detector gives none). With adjusted targets (the default), a point of a target that
@@ -19,19 +19,31 @@ calibration (:func:`calibrate_from_measurements`):
    (5 mm is ~0.6 px at the paper's 60 m). Such points are left out, and an image left with
    fewer than 6 points with them. (They would also drive the adjustment's gross-error
    scale, a median over all residuals, towards zero and start a cascade of rejections.)
-3. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
+3. **Pose priors** (:func:`fieldcal.field.identify_session.identify_remaining`): the calibrated
+   camera and the oriented images start the images left out so far (their station, a marker's
+   corners, a pose-free search, the other images' centres). While images remain and new ones
+   were found, the adjustment is repeated with them (warm) and the rest tried again with its
+   better camera (``MAX_PRIOR_ROUNDS``). An image found this way is admitted only by an
+   adjustment it does not spoil (:func:`_admit`: when the adjustment fails, or the image's
+   points are mostly rejected or scatter three times more than the others', the group is
+   halved until the culprits are found; they are left out with the reason).
+4. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
    or the plane of a planar field, and the session gives ``target_diameter_mm``): the
-   detector measures the centre of the imaged ellipse; with the first adjustment's camera and
-   poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image of
-   its centre.
-4. **Second identification, calibrated camera**, with the adjusted poses and target
-   coordinates: the gates shrink to the measurement noise, and targets near the corners,
-   where the nominal camera's missing distortion was too large, are found too. Images left out
-   in the first pass are tried again from their seeds.
-5. **Second adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+   detector measures the centre of the imaged ellipse; with the calibrated camera and the
+   poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image
+   of its centre.
+5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
+   adjustment's, better than one image's resection) and target coordinates: the gates shrink
+   to the measurement noise, and targets near the corners, where the nominal camera's missing
+   distortion was too large, are found too. Images left out so far are tried again from their
+   seeds.
+6. **Final adjustment**: the result. The markers' a-priori sigmas are first scaled by how
    much more their normalised residuals scatter than the discs' did in the first adjustment
    (a variance component, at least 1): the corner-based centres of markers measure worse
-   than the detector's edge-line sigma says.
+   than the detector's edge-line sigma says. It starts from the latest adjustment (a warm
+   start: its interior orientation, poses and targets, with the suspects a cold start would
+   have: the initialisers' outliers that were never readmitted and the gross errors), so it
+   reaches the same optimum without the initial values and with fewer rounds.
 
 The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
 ``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
@@ -52,16 +64,25 @@ from dataclasses import replace
 import numpy as np
 import pyarrow as pa
 
-from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, adjust_field
+from fieldcal.errors import GeometryError, InputError, one_line
+from fieldcal.field.adjustment import (
+    MIN_POINTS_PER_IMAGE,
+    AdjustmentOptions,
+    FieldResult,
+    InitialValues,
+    adjust_field,
+)
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
-from fieldcal.field.identify import DEFAULT_MIN_IDENTIFIED, ImageIdentification, identify_image, measured_points
+from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
+from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.model.camera import INDEX, Camera
+from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session, read_marks_csv
 
-__all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of"]
+__all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
+           "reason_category"]
 
 MIN_IMAGES = 3
 MIN_POINTS = MIN_POINTS_PER_IMAGE
@@ -107,20 +128,18 @@ def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
     return np.where(np.isfinite(s) & (s > 0), s, default)
 
 
-def _identify_all(targets, sigma_m, camera, measurements, marks, coded, poses, kw, names):
-    """Identify every measured image; ``poses`` maps image index -> (R, C) or is empty."""
-    out: dict[int, ImageIdentification] = {}
-    for i, name in enumerate(names):
-        table = measurements.get(name)
-        if table is None:
-            continue
-        out[i] = identify_image(table, targets, camera, marks=marks.get(i), init_pose=poses.get(i),
-                                target_sigma_m=sigma_m, codes_are_markers=coded, where=name, seed=i, **kw)
-    return out
+def _identify_all(run, targets, sigma_m, camera, poses, only=None, fixed_pose: bool = False):
+    """Identify the measured images (``only``: these indices) at once; ``poses`` maps image
+    index -> (R, C) or is empty; ``fixed_pose``: the poses are an adjustment's and are kept."""
+    idx = [i for i, name in enumerate(run.names) if name in run.measurements and (only is None or i in only)]
+    idents = identify_images([run.measurements[run.names[i]] for i in idx], targets, camera,
+                             marks=[run.marks.get(i) for i in idx], init_poses=[poses.get(i) for i in idx],
+                             target_sigma_m=sigma_m, codes_are_markers=run.coded, options=run.identify,
+                             names=[run.names[i] for i in idx], fixed_pose=fixed_pose)
+    return dict(zip(idx, idents, strict=True))
 
 
-def _build(session, targets, images, keep, idents, measurements, names, *, uv_override=None,
-           marker_factor=1.0, single_view=True):
+def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_view=True):
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
@@ -140,8 +159,8 @@ def _build(session, targets, images, keep, idents, measurements, names, *, uv_ov
     keep = list(keep)
     dropped: dict[int, str] = {}
     while True:
-        data, marker = _assemble(session, targets, images, keep, idents, measurements, names, uv_override,
-                                 marker_factor, single_view)
+        data, marker = _assemble(run.session, run.targets, run.images, keep, idents, run.measurements,
+                                 run.names, uv_override, marker_factor, single_view)
         counts = np.bincount(data.obs.image, minlength=len(keep))
         weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
         if not weak:
@@ -226,8 +245,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                                 options: AdjustmentOptions | None = None, *,
                                 progress: Callable[[str], None] | None = None,
                                 target_normals=None, eccentricity: bool = True,
-                                min_identified: int = DEFAULT_MIN_IDENTIFIED,
-                                **identify_kw) -> tuple[FieldData, FieldResult, list[dict]]:
+                                identify: IdentifyOptions | None = None,
+                                priors: PriorOptions | None = None) -> tuple[FieldData, FieldResult, list[dict]]:
     """Identify the measured targets of every image and calibrate (module docstring).
 
     Parameters
@@ -247,10 +266,10 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     eccentricity : bool
         Apply the perspective-eccentricity correction to disc centres when it can be computed
         (normals known and ``field.target_diameter_mm`` in the session).
-    min_identified : int
-        An image with fewer identified targets is left out.
-    **identify_kw
-        Further settings of :func:`fieldcal.field.identify.identify_image` (gates).
+    identify : IdentifyOptions, optional
+        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
+    priors : PriorOptions, optional
+        Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
 
     Returns
     -------
@@ -266,106 +285,320 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     InputError
         Not a field session, no nominal focal length, unreadable targets.csv / marks.csv.
     GeometryError
-        Fewer than 3 images could be identified (the message lists why), or the adjustment
-        cannot calibrate.
+        Fewer than 3 images could be identified from their seeds (the message lists why), or
+        the adjustment cannot calibrate.
     """
     if session.method != "field":
         raise InputError("not a field-method session", str(session.folder / "session.json"))
-    say = progress or (lambda _line: None)
-    options = options or AdjustmentOptions()
-    nominal = nominal_camera(session)
-    targets = session.targets()
-    images = list(session.images)
-    names = [im.file for im in images]
-    marks = read_marks_csv(session.marks_path, targets, images) if session.marks_path is not None else {}
-    coded = session.coded is not None
-    kw = dict(identify_kw, min_identified=min_identified)
-
-    # 1-2: nominal camera, first adjustment
-    first = _identify_all(targets, targets.sigma_mm / 1000.0, nominal, measurements, marks, coded, {}, kw,
-                          names)
-    keep1 = _usable(first, names, measurements)
-    _check_enough(keep1, names, first, measurements, "nominal camera")
-    single_view = not options.targets_adjusted
-    data1, marker1, keep1, dropped1 = _build(session, targets, images, keep1, first, measurements, names,
-                                             single_view=single_view)
-    for i, why in dropped1.items():
-        first[i].reason = why
-    _check_enough(keep1, names, first, measurements, "nominal camera")
-    say(f"identification with the nominal camera (f {nominal.f_mm:g} mm): {len(keep1)} of {len(names)} "
-        f"images, {len(data1.obs)} points")
-    res1 = adjust_field(data1, options, progress=progress)
-    say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
-
-    # 4: calibrated camera, adjusted poses and targets
-    cam = res1.camera
-    adjusted = replace(targets, xyz_m=np.asarray(res1.targets_m, float))
-    poses = {i: (res1.R_world_to_camera[n], res1.center_m[n]) for n, i in enumerate(keep1)}
-    if res1.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
-        sigma2 = np.sqrt(np.mean(np.asarray(res1.sigma_targets_m, float) ** 2, axis=1))
-        sigma2 = np.where(np.isfinite(sigma2), sigma2, targets.sigma_mm / 1000.0)
-    else:
-        sigma2 = targets.sigma_mm / 1000.0
-    second = _identify_all(adjusted, sigma2, cam, measurements, marks, coded, poses, kw, names)
-    keep2 = _usable(second, names, measurements)
-    _check_enough(keep2, names, second, measurements, "calibrated camera")
-
-    # 3: perspective eccentricity of the discs, with the calibrated camera and the new poses
-    normals = target_normals_of(targets, target_normals)
-    diameter_mm = session.target_diameter_mm
-    ecc_max = {}
-    uv_override = None
-    if eccentricity and normals is not None and diameter_mm:
-        uv_override = {}
-        all_e = []
-        for i in keep2:
-            table = measurements[names[i]]
-            kind, _, uv_all, _ = measured_points(table)
-            rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
-            t = second[i].target[rows]
-            e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
-                              normals[t], diameter_mm / 2000.0)
-            e = np.where(np.isfinite(e), e, 0.0)
-            uv = uv_all.copy()
-            uv[rows] = uv_all[rows] - e
-            uv_override[i] = uv
-            norm = np.hypot(e[:, 0], e[:, 1])
-            ecc_max[i] = float(norm.max()) if len(norm) else 0.0
-            all_e.append(norm)
-        all_e = np.concatenate(all_e) if all_e else np.zeros(0)
-        if len(all_e):
-            say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
-                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-
-    # 5: the final adjustment
+    run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
+               identify or IdentifyOptions(), priors or PriorOptions())
+    first, keep1, marker1, res1 = _first_pass(run)
+    state = _Oriented(run, res1, keep1, first)
+    starts = {i: "seeds" for i in keep1}
+    prior_reasons = _with_priors(run, state, starts)
+    prior_reasons.update(state.rejected)
+    # 5: every image again with the calibrated camera, from the adjusted poses
+    second = _identify_all(run, state.targets, state.sigma_m, state.camera, state.poses, fixed_pose=True,
+                           only={i for i in range(len(run.names)) if i not in state.rejected})
+    keep2 = _usable(second, run.names, measurements)
+    _check_enough(keep2, run.names, second, measurements, "calibrated camera")
+    uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
+                                         eccentricity)
+    # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
-        say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
-            "to the discs: their sigmas are scaled by that")
-    data, _, keep2, dropped2 = _build(session, targets, images, keep2, second, measurements, names,
-                                      uv_override=uv_override, marker_factor=factor, single_view=single_view)
-    for i, why in dropped2.items():
-        second[i].reason = why
-    _check_enough(keep2, names, second, measurements, "calibrated camera")
-    n_first = int(sum(first[i].n_identified for i in keep1))
-    say(f"identification with the calibrated camera: {len(keep2)} of {len(names)} images, "
-        f"{len(data.obs)} points (first pass {n_first})")
-    result = adjust_field(data, options, progress=progress)
+        run.say(f"markers' centres scatter {factor:.2f} x more than their a-priori sigma says, relative "
+                "to the discs: their sigmas are scaled by that")
+
+    def build(keep):
+        return _build(run, keep, second, uv_override=uv_override, marker_factor=factor,
+                      single_view=not run.options.targets_adjusted)
+
+    data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
     data.meta["marker_sigma_factor"] = factor
-    data.meta["identifications"] = {names[i]: second[i] for i in second}
+    data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
         data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
+    report = _report(run, data, first, second, keep2, starts, prior_reasons, ecc_max)
+    data.meta["identification"] = summary = identification_summary(report)
+    run.say("images used: " + f"{summary['used']} of {summary['images']}" +
+            "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
+            " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
+    return data, result, report
 
+
+REASON_MISFIT = "does not fit the other images"
+
+
+def _misfits(result: FieldResult, keep, probation) -> dict:
+    """Images on probation (identified from pose priors) that do not fit the adjustment: most of
+    their points rejected, or their normalised residuals three times the other images'."""
+    if not probation:
+        return {}
+    img, used = result.data.obs.image, result.obs_used
+    z2 = np.sum((result.residual_px / result.data.obs.sigma_px[:, None]) ** 2, axis=1)
+    n_img = len(keep)
+    n_all = np.bincount(img, minlength=n_img)
+    n_used = np.bincount(img[used], minlength=n_img)
+    rms = np.sqrt(np.bincount(img[used], weights=z2[used], minlength=n_img) / np.maximum(n_used, 1))
+    ref = [n for n, i in enumerate(keep) if i not in probation and n_used[n]]
+    m0 = float(np.median(rms[ref] if ref else rms[n_used > 0]))
+    out = {}
+    for n, i in enumerate(keep):
+        if i in probation and (n_used[n] < 0.5 * n_all[n] or rms[n] > 3.0 * m0):
+            out[i] = (f"{REASON_MISFIT}: {n_all[n] - n_used[n]} of its {n_all[n]} points rejected, normalised "
+                      f"residuals {rms[n] / max(m0, 1e-12):.1f} x the other images' (a wrong identification?)")
+    return out
+
+
+def _admit(fixed, candidates, attempt):
+    """Admit the ``candidates`` (images identified from pose priors) by adjustments they do not spoil.
+
+    ``attempt(images, probation)`` adjusts ``fixed`` plus some candidates and returns
+    ``(misfits, None)`` (a dict of image -> reason: all of ``probation`` when the adjustment
+    fails, else :func:`_misfits`) or ``({}, outcome)``. All candidates are tried at once; a group
+    that fails is split in halves until the images that spoil it are found (group testing: one
+    adjustment when all fit, a few per bad image otherwise). Returns the last successful
+    outcome (None if there was none) and the rejected images with their reasons.
+    """
+    groups, admitted, rejected, outcome = ([sorted(candidates)] if candidates else []), [], {}, None
+    while groups:
+        group = groups.pop(0)
+        out, got = attempt(list(fixed) + admitted + group, set(group))
+        if got is not None:
+            outcome, admitted = got, admitted + group
+        elif len(group) > 1 and set(out) >= set(group):      # failed as a whole: which ones?
+            groups[:0] = [group[: len(group) // 2], group[len(group) // 2:]]
+        else:
+            rejected.update(out)
+            rest = [i for i in group if i not in out]
+            if rest:
+                groups.insert(0, rest)
+    return outcome, rejected
+
+
+def _final_adjustment(run, state, build, keep, probation, second):
+    """6: the adjustment, the images identified from pose priors and not adjusted yet admitted
+    as :func:`_admit` says (an image that spoils it is left out)."""
+    fixed = [i for i in keep if i not in probation]
+
+    def attempt(images, group):
+        data, _, kept, dropped = build(sorted(images))
+        for i, why in dropped.items():
+            second[i].reason = why
+        _check_enough(kept, run.names, second, run.measurements, "calibrated camera")
+        try:
+            result = adjust_field(data, run.options, progress=run.progress, initial=state.warm_start(data, kept),
+                                  initial_targets_m=state.res.targets_m)
+        except GeometryError as err:
+            if not group:
+                raise
+            return {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})" for i in group}, None
+        out = _misfits(result, kept, group)
+        return (out, None) if out else ({}, (data, result, kept))
+
+    outcome, rejected = _admit(fixed, [i for i in keep if i in probation], attempt)
+    for i, why in rejected.items():
+        second[i].reason = why
+        run.say(f"{run.names[i]}: left out, {why}")
+    if outcome is None:
+        outcome = attempt(fixed, set())[1]
+    return outcome
+
+
+class _Run:
+    """What every stage of :func:`calibrate_from_measurements` shares."""
+
+    def __init__(self, session, measurements, options, say, identify, priors):
+        self.session = session
+        self.measurements = measurements
+        self.options = options
+        self.say = say
+        self.progress = None if say is None else say
+        self.identify = identify
+        self.priors = priors
+        self.nominal = nominal_camera(session)
+        self.targets = session.targets()
+        self.images = list(session.images)
+        self.names = [im.file for im in self.images]
+        self.stations = [im.station for im in self.images]
+        self.marks = (read_marks_csv(session.marks_path, self.targets, self.images)
+                      if session.marks_path is not None else {})
+        self.coded = session.coded is not None
+        size = (session.coded or {}).get("marker_size_mm")
+        self.marker_size_m = float(size) / 1000.0 if size else None
+
+
+def _first_pass(run: _Run):
+    """1-2: the images with seeds, nominal camera; the first adjustment."""
+    first = _identify_all(run, run.targets, run.targets.sigma_mm / 1000.0, run.nominal, {})
+    keep1 = _usable(first, run.names, run.measurements)
+    _check_enough(keep1, run.names, first, run.measurements, "nominal camera")
+    data1, marker1, keep1, dropped1 = _build(run, keep1, first, single_view=not run.options.targets_adjusted)
+    for i, why in dropped1.items():
+        first[i].reason = why
+    _check_enough(keep1, run.names, first, run.measurements, "nominal camera")
+    run.say(f"identification with the nominal camera (f {run.nominal.f_mm:g} mm): {len(keep1)} of "
+            f"{len(run.names)} images, {len(data1.obs)} points")
+    res1 = adjust_field(data1, run.options, progress=run.progress)
+    run.say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
+    return first, keep1, marker1, res1
+
+
+class _Oriented:
+    """The latest adjustment during the identification: its camera, adjusted targets, their
+    sigmas, and the poses of every image oriented so far (adjusted or identified)."""
+
+    def __init__(self, run: _Run, res: FieldResult, keep, idents):
+        self.run = run
+        self.idents = dict(idents)
+        self.poses: dict = {}
+        self.rejected: dict = {}            # images left out by the adjustment's check, with the reason
+        self.probation: set = set()         # images identified from priors and not admitted yet
+        self.update(res, keep)
+
+    def update(self, res: FieldResult, keep) -> None:
+        self.res, self.keep = res, list(keep)
+        self.camera = res.camera
+        self.targets = replace(self.run.targets, xyz_m=np.asarray(res.targets_m, float))
+        prior = self.run.targets.sigma_mm / 1000.0
+        if res.sigma_targets_m is not None:     # adjusted targets: their a-posteriori sigma
+            s = np.sqrt(np.mean(np.asarray(res.sigma_targets_m, float) ** 2, axis=1))
+            self.sigma_m = np.where(np.isfinite(s), s, prior)
+        else:
+            self.sigma_m = prior
+        self.poses.update({i: (res.R_world_to_camera[n], res.center_m[n]) for n, i in enumerate(self.keep)})
+
+    def warm_start(self, data: FieldData, keep) -> InitialValues:
+        """The latest adjustment as the start of one of ``data`` (images ``keep``): its interior,
+        its poses (identified ones for images it did not have), and as suspects (readmitted
+        when they fit) the points it never readmitted and its gross errors; the snooping tests
+        every other point again, as after a cold start."""
+        R = np.stack([self.poses[i][0] for i in keep])
+        C = np.stack([self.poses[i][1] for i in keep])
+        old, used = self.res.data, self.res.obs_used
+        # suspects as a cold start would have them: the initialisers' suspects that were never
+        # readmitted, and the gross errors (its gross-error rule); the others are tested afresh
+        z = np.hypot(*(self.res.residual_px / old.obs.sigma_px[:, None]).T)
+        s = max(float(robust_sigma(z[used] / np.sqrt(2.0))), 1e-12)
+        gross = ~used & ~(z <= self.run.options.robust_k * s * np.sqrt(2.0))
+        if self.res.initial is not None:
+            gross |= ~used & np.asarray(self.res.initial.outliers, bool)
+        rejected = {(old.images[m].file, int(t)) for m, t in
+                    zip(old.obs.image[gross], old.obs.target[gross], strict=True)}
+        outliers = np.array([(data.images[m].file, int(t)) in rejected
+                             for m, t in zip(data.obs.image, data.obs.target, strict=True)], bool)
+        return InitialValues(np.asarray(self.res.params, float).copy(), R, C, outliers,
+                             np.full(len(keep), np.nan), "the previous adjustment (warm start)")
+
+    def readjust(self, found) -> bool:
+        """Adjust again with the images ``found`` added (warm start), each admitted only by an
+        adjustment it does not spoil (:func:`_admit`; the others are ``rejected``). False when
+        none is admitted."""
+        run = self.run
+        self.idents.update(found)
+
+        def attempt(images, group):
+            data, _, keep, _ = _build(run, sorted(images), self.idents, single_view=not run.options.targets_adjusted)
+            try:
+                res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
+                                   initial_targets_m=self.res.targets_m)
+            except GeometryError as err:
+                return {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})" for i in group}, None
+            out = _misfits(res, keep, group)
+            return (out, None) if out else ({}, (res, keep))
+
+        outcome, rejected = _admit(self.keep, sorted(found), attempt)
+        for i, why in rejected.items():
+            self.rejected[i] = why
+            self.poses.pop(i, None)
+            run.say(f"{run.names[i]}: left out, {why}")
+        if outcome is None:
+            return False
+        self.update(*outcome)
+        run.say(f"adjustment with {len(self.keep)} images: f {self.res.params[0]:.5f} mm, "
+                f"rmse {self.res.stats()['rmse_px']:.3f} px")
+        return True
+
+
+MAX_PRIOR_ROUNDS = 4
+"""Rounds of identification with pose priors, each followed by an adjustment when images remain."""
+
+
+def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
+    """3: the calibrated camera and the oriented images start the images left out so far; while
+    images remain and new ones were found, the adjustment is repeated with them (a better
+    camera) and the rest tried again. Returns the reasons of the images still left out."""
+    reasons: dict = {}
+    hints: dict = {}
+    for _ in range(MAX_PRIOR_ROUNDS):
+        pending = [i for i, name in enumerate(run.names) if name in run.measurements and i not in state.poses]
+        if not pending:
+            break
+        oriented = dict(state.poses)
+        reference = {i: state.idents[i].target for i in oriented if i in state.idents}
+        found, reasons = identify_remaining(state.camera, state.targets, run.measurements, run.names, run.stations,
+                                            oriented, marks=run.marks, target_sigma_m=state.sigma_m,
+                                            codes_are_markers=run.coded, options=run.identify, prior=run.priors,
+                                            reference=reference, marker_size_m=run.marker_size_m, hints=hints)
+        if not found:
+            break
+        for i, (ident, start) in found.items():
+            starts[i] = start
+            state.poses[i] = (ident.R_world_to_camera, ident.center_m)
+            state.probation.add(i)
+        run.say(f"identification with pose priors (calibrated camera): {len(found)} more image(s) ("
+                + ", ".join(f"{k} {v}" for k, v in _count(s for _, s in found.values()).items()) + ")")
+        # the images found are admitted by an adjustment they do not spoil: this one, when images
+        # remain to be tried with its better camera, else the final adjustment
+        if len(found) == len(pending):
+            break
+        state.probation -= set(found)
+        if not state.readjust({i: ident for i, (ident, _) in found.items()}):
+            break
+    return reasons
+
+
+def _eccentricity(run: _Run, second, keep2, cam, adjusted, target_normals, eccentricity):
+    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses."""
+    normals = target_normals_of(run.targets, target_normals)
+    diameter_mm = run.session.target_diameter_mm
+    ecc_max: dict[int, float] = {}
+    if not (eccentricity and normals is not None and diameter_mm):
+        return None, ecc_max
+    uv_override, all_e = {}, []
+    for i in keep2:
+        kind, _, uv_all, _ = measured_points(run.measurements[run.names[i]])
+        rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
+        t = second[i].target[rows]
+        e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
+                          normals[t], diameter_mm / 2000.0)
+        e = np.where(np.isfinite(e), e, 0.0)
+        uv = uv_all.copy()
+        uv[rows] = uv_all[rows] - e
+        uv_override[i] = uv
+        norm = np.hypot(e[:, 0], e[:, 1])
+        ecc_max[i] = float(norm.max()) if len(norm) else 0.0
+        all_e.append(norm)
+    all_e = np.concatenate(all_e) if all_e else np.zeros(0)
+    if len(all_e):
+        run.say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
+                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
+    return uv_override, ecc_max
+
+
+def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:
+    """One entry per image of the session (module docstring)."""
     used = np.bincount(data.obs.image, minlength=len(keep2))
     n_used = {i: int(used[n]) for n, i in enumerate(keep2)}
     report = []
-    for i, name in enumerate(names):
-        table = measurements.get(name)
+    for i, name in enumerate(run.names):
+        table = run.measurements.get(name)
         entry = {"image": name, "n_measured": 0 if table is None else int(table.num_rows),
                  "n_coded": 0, "n_identified": 0, "n_identified_first": 0,
-                 "n_marks": int(len(marks[i][0])) if i in marks else 0,
+                 "n_marks": int(len(run.marks[i][0])) if i in run.marks else 0,
                  "n_used": n_used.get(i, 0), "wrong_marks": [], "wrong_codes": [], "rms_px": None,
-                 "eccentricity_max_px": None}
+                 "eccentricity_max_px": None, "start": None}
         if table is None:
             entry.update(status="left out", reason="not measured (the image could not be read or measured)")
             report.append(entry)
@@ -374,7 +607,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         entry["n_identified_first"] = int(a.n_identified) if a is not None and a.ok else 0
         ident = b if b is not None else a
         entry.update(n_coded=int(ident.n_coded), n_identified=int(ident.n_identified) if i in keep2 else 0,
-                     wrong_marks=[str(targets.ids[t]) for t in ident.wrong_marks],
+                     wrong_marks=[str(run.targets.ids[t]) for t in ident.wrong_marks],
                      wrong_codes=[int(c) for c in ident.wrong_codes],
                      rms_px=None if not np.isfinite(ident.rms_px) else float(ident.rms_px),
                      eccentricity_max_px=ecc_max.get(i))
@@ -386,8 +619,34 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             if entry["wrong_codes"]:
                 notes.append(f"marker code(s) {', '.join(map(str, entry['wrong_codes']))} disagree with "
                              "the identification (not used)")
-            entry.update(status="ok", reason="; ".join(notes))
+            entry.update(status="ok", reason="; ".join(notes), start=starts.get(i))
         else:
-            entry.update(status="left out", reason=ident.reason)
+            reason = ident.reason if b is not None and i in starts else prior_reasons.get(i) or ident.reason
+            entry.update(status="left out", reason=reason)
         report.append(entry)
-    return data, result, report
+    return report
+
+
+def _count(items) -> dict:
+    out: dict = {}
+    for x in items:
+        out[x] = out.get(x, 0) + 1
+    return out
+
+
+def reason_category(reason: str) -> str:
+    """A short category of a left-out image's reason (for the run's summary)."""
+    for prefix, cat in (("not measured", "not measured"), (REASON_AMBIGUOUS, "ambiguous"),
+                        (REASON_NO_START, "no pose fits"), ("only", "too few targets"), (REASON_MISFIT, "does not fit"),
+                        ("no coded targets", "no seeds"), ("the identified points do not fit", "does not fit")):
+        if reason.startswith(prefix):
+            return cat
+    return "other"
+
+
+def identification_summary(report: list[dict]) -> dict:
+    """Images used, left out by reason category, and how the used ones were started."""
+    used = [r for r in report if r["status"] == "ok"]
+    return {"images": len(report), "used": len(used),
+            "left_out": _count(reason_category(r["reason"]) for r in report if r["status"] != "ok"),
+            "started_from": _count(r.get("start") or "seeds" for r in used)}

@@ -73,7 +73,7 @@ def plane_frame(X):
     """
     X = np.asarray(X, dtype=float)
     origin = X.mean(axis=0)
-    _, _, Vt = np.linalg.svd(X - origin, full_matrices=True)
+    _, _, Vt = np.linalg.svd(X - origin, full_matrices=len(X) < 3)
     B = Vt.T.copy()
     if np.linalg.det(B) < 0:
         B[:, 2] = -B[:, 2]

@@ -66,13 +66,13 @@ from scipy.spatial import cKDTree
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.data import TargetField
 from fieldcal.field.geometry import is_collinear
+from fieldcal.field.matching import ViewMatcher, local_correction, mutual_nearest
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
-from fieldcal.robust import robust_sigma
 
-__all__ = ["ImageIdentification", "identify_image", "mutual_nearest", "local_correction",
-           "measured_points", "DEFAULT_MIN_IDENTIFIED"]
+__all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "identify_images", "identify_from_poses",
+           "identify_views", "mutual_nearest", "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]
 
 DEFAULT_MIN_IDENTIFIED = 8
 """Fewer identified targets than this and an image is left out (the adjustment needs 6)."""
@@ -161,96 +161,6 @@ def measured_points(measurements: pa.Table):
     return kind, code, uv.reshape(n, 2), usable
 
 
-def mutual_nearest(pred_px, gate_px, meas_px):
-    """Mutual nearest neighbours of predictions and measured points, inside gates.
-
-    Parameters
-    ----------
-    pred_px : (m, 2) ndarray
-        Predicted positions [px] (finite).
-    gate_px : float or (m,) ndarray
-        Gate of each prediction [px].
-    meas_px : (n, 2) ndarray
-        Measured positions [px] (finite).
-
-    Returns
-    -------
-    i_pred, j_meas : (k,) int ndarrays
-        The pairs: each is the other's nearest neighbour, closer than the prediction's gate,
-        and neither side has a second candidate within the gate (ambiguous pairs are
-        dropped, since a wrong identity is worse than a missing one).
-    """
-    pred = np.asarray(pred_px, float).reshape(-1, 2)
-    meas = np.asarray(meas_px, float).reshape(-1, 2)
-    m, n = len(pred), len(meas)
-    if m == 0 or n == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    gate = np.broadcast_to(np.asarray(gate_px, float), (m,))
-    d, j = cKDTree(meas).query(pred, k=2)          # inf / n where fewer than 2 points
-    e, i = cKDTree(pred).query(meas, k=2)
-    j1 = j[:, 0]
-    own = np.arange(m)
-    mutual = i[j1, 0] == own
-    close = d[:, 0] <= gate
-    alone_meas = d[:, 1] > gate                    # no second measured point near the prediction
-    alone_pred = e[j1, 1] > gate                   # no second prediction near the measured point
-    ok = mutual & close & alone_meas & alone_pred
-    return own[ok], j1[ok]
-
-
-def local_correction(at_px, matched_px, residual_px, self_index=None, *, neighbours: int = 8):
-    """Median residual of the nearest matched points, and its spread, at given positions.
-
-    Parameters
-    ----------
-    at_px : (m, 2) ndarray
-        Where to evaluate [px].
-    matched_px : (k, 2) ndarray
-        Positions of the matched points [px].
-    residual_px : (k, 2) ndarray
-        Their residuals (measured minus projected) [px].
-    self_index : (m,) int ndarray, optional
-        For each position, the index of the matched point it *is* (-1 for none): that point
-        is left out of its own correction (leave-one-out).
-    neighbours : int
-        Matched points per correction.
-
-    Returns
-    -------
-    correction : (m, 2) ndarray
-        The median of the neighbours' residuals [px] (zero with too few matched points).
-    spread : (m,) ndarray
-        1.4826 x the median absolute deviation of the neighbours' residuals about it, the
-        larger of the two axes [px].
-    """
-    at = np.asarray(at_px, float).reshape(-1, 2)
-    P = np.asarray(matched_px, float).reshape(-1, 2)
-    r = np.asarray(residual_px, float).reshape(-1, 2)
-    m, k = len(at), len(P)
-    K = min(int(neighbours), k - 1)
-    if K < 3:
-        return np.zeros((m, 2)), np.zeros(m)
-    _, idx = cKDTree(P).query(at, k=K + 1)
-    me = np.full(m, -1) if self_index is None else np.asarray(self_index)
-    is_self = idx == me[:, None]
-    # drop the point itself where it is among the K + 1, else the farthest
-    drop = np.where(is_self.any(axis=1), np.argmax(is_self, axis=1), K)
-    keep = np.ones(idx.shape, bool)
-    keep[np.arange(m), drop] = False
-    nb = r[idx[keep].reshape(m, K)]                                  # (m, K, 2)
-    corr = np.median(nb, axis=1)
-    spread = robust_sigma(nb - corr[:, None, :], axis=1).max(axis=1)
-    return corr, spread
-
-
-def _prediction_spacing(pred):
-    """Distance from each prediction to the nearest other one [px] (inf when alone)."""
-    if len(pred) < 2:
-        return np.full(len(pred), np.inf)
-    d, _ = cKDTree(pred).query(pred, k=2)
-    return d[:, 1]
-
-
 def _opencv_inputs(X, uv, camera):
     origin = X.mean(axis=0)
     obj = np.ascontiguousarray(X - origin, np.float64).reshape(-1, 1, 3)
@@ -318,77 +228,7 @@ def _p3p_poses(X, uv, camera):
     return out
 
 
-# ---------------------------------------------------------------------------- the matcher
-class _Matcher:
-    """Projection, matching and local correction for one image (shared by all candidates)."""
-
-    def __init__(self, X, match_target, meas_uv, camera, gate_px, factor, min_gate, first_fraction,
-                 neighbours, target_sigma_m=None):
-        self.X = X
-        self.target_sigma_m = target_sigma_m  # (n_t,) or None
-        self.prior_px = np.zeros(len(X))
-        self.match_target = match_target      # (n_t,) bool: targets matched to discs
-        self.meas = meas_uv                   # (n_m, 2) usable discs
-        self.camera = camera
-        self.gate_px = gate_px
-        self.factor = factor
-        self.min_gate = min_gate
-        self.first_fraction = first_fraction
-        self.neighbours = neighbours
-        s = camera.sensor
-        self.lo = np.array([-0.5, -0.5])
-        self.hi = np.array([s.width_px - 0.5, s.height_px - 0.5])
-
-    def project(self, R, C):
-        uv = self.camera.project(self.X, R, C)
-        if self.target_sigma_m is not None:     # the survey's uncertainty seen from this pose [px]
-            depth = np.abs((self.X - np.asarray(C)) @ np.asarray(R)[2])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                self.prior_px = np.nan_to_num(self.target_sigma_m * self.camera.f_mm / depth
-                                              / self.camera.sensor.pixel_mm, posinf=0.0)
-        inside = np.isfinite(uv).all(axis=1) & (uv >= self.lo).all(axis=1) & (uv <= self.hi).all(axis=1)
-        return uv, inside
-
-    def first_gates(self, uv, inside):
-        """The wide gate of the first matching: a fraction of the local prediction spacing."""
-        gate = np.full(len(uv), np.nan)
-        k = np.flatnonzero(inside)
-        gate[k] = self.first_fraction * _prediction_spacing(uv[k])
-        if self.gate_px is not None:
-            gate[k] = np.minimum(gate[k], self.gate_px)
-        return gate
-
-    def match(self, uv, inside, gate, corr):
-        """Pairs (target indices, measured indices) of the predicted points ``uv + corr``."""
-        t = np.flatnonzero(inside & self.match_target & np.isfinite(gate))
-        i, j = mutual_nearest(uv[t] + corr[t], gate[t], self.meas)
-        return t[i], j
-
-    def corrected(self, uv, inside, tm, jm):
-        """Local correction, its spread and the gates, from the pairs ``(tm, jm)``."""
-        n = len(uv)
-        corr, spread = np.zeros((n, 2)), np.zeros(n)
-        first = self.first_gates(uv, inside)
-        res = self.meas[jm] - uv[tm]
-        if len(tm) < 4:       # too few pairs for a correction: the first gates and raw residuals
-            return corr, spread, first, np.inf, np.hypot(res[:, 0], res[:, 1])
-        self_index = np.full(n, -1)
-        self_index[tm] = np.arange(len(tm))
-        k = np.flatnonzero(inside)
-        corr[k], spread[k] = local_correction(uv[k], uv[tm], res, self_index[k], neighbours=self.neighbours)
-        e = res - corr[tm]                                     # leave-one-out corrected residuals
-        s = max(float(robust_sigma(e)), 1e-3)
-        gate = np.clip(self.factor * np.sqrt(s**2 + spread**2 + self.prior_px**2), self.min_gate, first)
-        return corr, spread, gate, s, np.hypot(e[:, 0], e[:, 1])
-
-
-def _score(matcher, R, C):
-    """Targets a pose identifies with the first gate (the verification of a candidate)."""
-    uv, inside = matcher.project(R, C)
-    tm, _ = matcher.match(uv, inside, matcher.first_gates(uv, inside), np.zeros_like(uv))
-    return len(tm)
-
-
+# ---------------------------------------------------------------------------- starts
 def _candidate_poses(seed_X, seed_uv, camera, init_pose, threshold_px, where):
     """The first candidates: the given pose and the resection of all seeds."""
     cands = []
@@ -442,13 +282,135 @@ def _subset_poses(seed_X, seed_uv, camera, where, rng):
     return cands
 
 
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """Settings of :func:`identify_image` (module docstring, steps 1-5).
+
+    Attributes
+    ----------
+    gate_px : float, optional
+        Upper bound of the gate [px]; default ``first_gate_fraction`` of the local spacing of
+        the predictions only.
+    min_identified : int
+        Fewer identified targets and the image is not usable (``reason`` says so); >= 4.
+    gate_factor, min_gate_px, first_gate_fraction, neighbours, max_iterations
+        The matcher's settings (module docstring, steps 2-4).
+    min_fraction : float
+        The image is not usable when fewer than this fraction of the plain targets the final
+        pose puts well inside the frame (at most the number of measured discs) are
+        identified: a pose from wrong seeds matches only a few by chance.
+    max_rms_fraction : float
+        The image is not usable when the RMS of the identified points' residuals, after the
+        local correction, exceeds this fraction of the targets' spacing in the image (a right
+        identification fits to the measurement noise, a wrong one to a good part of the spacing).
+    max_starts : int
+        When the best-scored start is not convincing (step 1), up to this many of the best
+        candidate poses are refined, and the first that fits is kept.
+    """
+
+    gate_px: float | None = None
+    min_identified: int = DEFAULT_MIN_IDENTIFIED
+    gate_factor: float = 5.0
+    min_gate_px: float = 1.0
+    first_gate_fraction: float = 0.3
+    neighbours: int = 8
+    max_iterations: int = 12
+    min_fraction: float = 0.3
+    max_rms_fraction: float = 0.05
+    max_starts: int = 3
+
+    def __post_init__(self):
+        if self.min_identified < 4:
+            raise InputError(f"min_identified must be at least 4, got {self.min_identified}")
+
+
+@dataclass
+class _Seeds:
+    """The seeds of one image: coded targets (marker rows whose code names a target) and marks."""
+
+    coded_rows: np.ndarray     # (c,) rows of the measurement table
+    coded_t: np.ndarray        # (c,) their targets
+    t: np.ndarray              # (s,) targets of all seeds, markers first
+    uv: np.ndarray             # (s, 2) [px]
+    is_mark: np.ndarray        # (s,) bool
+    n_marks: int
+
+
+def _seeds_of(kind, code, uv_all, usable, tcodes, n_targets, marks, where) -> _Seeds:
+    code_to_target = dict(zip(tcodes[tcodes >= 0].tolist(), np.flatnonzero(tcodes >= 0).tolist(), strict=True))
+    marker_rows = np.flatnonzero((kind == "aruco") & usable)
+    marker_t = np.array([code_to_target.get(int(c), -1) for c in code[marker_rows]], np.int64)
+    coded_rows, coded_t = marker_rows[marker_t >= 0], marker_t[marker_t >= 0]
+    seed_t, seed_uv, n_marks = [coded_t], [uv_all[coded_rows]], 0
+    if marks is not None:
+        mt, muv = np.asarray(marks[0], np.int64).reshape(-1), np.asarray(marks[1], float).reshape(-1, 2)
+        if len(mt) != len(muv):
+            raise InputError(f"marks: {len(mt)} target indices but {len(muv)} points", where or None)
+        if len(mt) and (mt.min() < 0 or mt.max() >= n_targets):
+            raise InputError("marks: target index out of range", where or None)
+        new = ~np.isin(mt, coded_t)               # a marked coded target: the marker is better
+        seed_t.append(mt[new])
+        seed_uv.append(muv[new])
+        n_marks = int(new.sum())
+    t = np.concatenate(seed_t).astype(np.int64)
+    return _Seeds(coded_rows, coded_t, t, np.concatenate(seed_uv).reshape(-1, 2),
+                  np.arange(len(t)) >= len(coded_t), n_marks)
+
+
+@dataclass
+class _Image:
+    """One image's measurement table as arrays, its usable discs and its seeds."""
+
+    kind: np.ndarray
+    code: np.ndarray
+    uv_all: np.ndarray
+    disc_rows: np.ndarray
+    sd: _Seeds
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.kind)
+
+    @property
+    def discs(self) -> np.ndarray:
+        return self.uv_all[self.disc_rows]
+
+    @property
+    def coded(self):
+        """The markers whose code names a target: (targets, uv)."""
+        return self.sd.coded_t, self.uv_all[self.sd.coded_rows]
+
+    def failed(self, reason: str) -> ImageIdentification:
+        n = self.n_rows
+        return ImageIdentification(np.full(n, -1, np.int64), None, None, 0, len(self.sd.coded_t), len(self.sd.t),
+                                   np.nan, np.nan, np.full((n, 2), np.nan), reason=reason)
+
+
+def _image_of(measurements: pa.Table, tcodes, n_targets: int, marks, where: str) -> _Image:
+    kind, code, uv_all, usable = measured_points(measurements)
+    sd = _seeds_of(kind, code, uv_all, usable, tcodes, n_targets, marks, where)
+    return _Image(kind, code, uv_all, np.flatnonzero((kind == "disc") & usable), sd)
+
+
+def _no_start(im: _Image) -> ImageIdentification:
+    n_seeds = len(im.sd.t)
+    if n_seeds == 0:
+        return im.failed("no coded targets seen and no marks: nothing to start the identification from")
+    return im.failed(f"only {n_seeds} seed(s) (coded targets and marks); at least 3 (better 4) are needed")
+
+
+def _view_matcher(targets: TargetField, camera, opt, images, target_sigma_m, codes_are_markers) -> ViewMatcher:
+    X = np.asarray(targets.xyz_m, float)
+    tcodes = np.asarray(targets.codes, np.int64)
+    match_target = tcodes < 0 if codes_are_markers else np.ones(len(X), bool)
+    if target_sigma_m is not None:
+        target_sigma_m = np.broadcast_to(np.asarray(target_sigma_m, float), (len(X),))
+    return ViewMatcher(X, match_target, camera, opt, [im.discs for im in images], target_sigma_m)
+
+
 def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera, *,
-                   marks=None, init_pose=None, gate_px: float | None = None, target_sigma_m=None,
-                   min_identified: int = DEFAULT_MIN_IDENTIFIED, codes_are_markers: bool = True,
-                   gate_factor: float = 5.0, min_gate_px: float = 1.0,
-                   first_gate_fraction: float = 0.3, neighbours: int = 8,
-                   max_iterations: int = 12, min_fraction: float = 0.3,
-                   max_rms_fraction: float = 0.05, max_starts: int = 3, where: str = "",
+                   marks=None, init_pose=None, target_sigma_m=None, codes_are_markers: bool = True,
+                   options: IdentifyOptions | None = None, where: str = "",
                    seed: int = 0) -> ImageIdentification:
     """Identify the measured targets of one image (see the module docstring).
 
@@ -466,32 +428,17 @@ def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera,
         Hand-identified targets of this image (``marks.csv``, as
         :func:`fieldcal.session.loader.read_marks_csv` returns them per image).
     init_pose : (R_world_to_camera (3, 3), center_m (3,)), optional
-        An approximate pose (e.g. from an adjustment); tried as a candidate.
-    gate_px : float, optional
-        Upper bound of the gate [px]; default ``first_gate_fraction`` of the local spacing of
-        the predictions only.
+        An approximate pose (e.g. from an adjustment, or a pose prior); tried as a candidate.
+        Without it at least 3 seeds are needed.
     target_sigma_m : float or (n,) array_like, optional
         One-sigma uncertainty of each target's coordinates [m] (survey, or adjustment). Seen
         from the pose it widens the target's gate (in quadrature with the residual scale),
         so that a target known worse than its neighbours is not missed.
-    min_identified : int
-        Fewer identified targets and the image is not usable (``reason`` says so).
     codes_are_markers : bool
         Coded targets are seen as ArUco markers and identified by their codes only (the
         session has ``field.coded``); ``False`` matches every target to discs.
-    gate_factor, min_gate_px, first_gate_fraction, neighbours, max_iterations
-        The matcher's settings (module docstring, steps 2-4).
-    min_fraction : float
-        The image is not usable when fewer than this fraction of the plain targets the final
-        pose puts well inside the frame (at most the number of measured discs) are
-        identified: a pose from wrong seeds matches only a few by chance.
-    max_rms_fraction : float
-        The image is not usable when the RMS of the identified points' residuals, after the
-        local correction, exceeds this fraction of the targets' spacing in the image (a right
-        identification fits to the measurement noise, a wrong one to a good part of the spacing).
-    max_starts : int
-        When the best-scored start is not convincing (step 1), up to this many of the best
-        candidate poses are refined, and the first that fits is kept.
+    options : IdentifyOptions, optional
+        The matcher's settings and the checks' limits.
     where : str
         The image's name, for messages.
     seed : int
@@ -501,233 +448,301 @@ def identify_image(measurements: pa.Table, targets: TargetField, camera: Camera,
     -------
     ImageIdentification
     """
-    if min_identified < 4:
-        raise InputError(f"min_identified must be at least 4, got {min_identified}")
-    kind, code, uv_all, usable = measured_points(measurements)
-    n_rows = len(kind)
+    opt = options or IdentifyOptions()
+    X = np.asarray(targets.xyz_m, float)
+    im = _image_of(measurements, np.asarray(targets.codes, np.int64), len(X), marks, where)
+    if init_pose is None and len(im.sd.t) < 3:
+        return _no_start(im)
+    vm = _view_matcher(targets, camera, opt, [im], target_sigma_m, codes_are_markers)
+    cands, scores, convincing = _starting_poses(vm, im, X, init_pose, opt, where, seed)
+    if not cands:
+        return im.failed("no pose could be computed from the seeds (collinear or inconsistent)")
+    best = _best_refined(vm, im, cands, scores, convincing, opt)
+    return _finish(vm, 0, best, im, init_pose, opt)
+
+
+def identify_images(tables, targets: TargetField, camera: Camera, *, marks=None, init_poses=None,
+                    target_sigma_m=None, codes_are_markers: bool = True, options: IdentifyOptions | None = None,
+                    names=None, fixed_pose: bool = False) -> list[ImageIdentification]:
+    """Identify many images at once: :func:`identify_image` of each, vectorised over images.
+
+    Each image starts from ``init_poses[k]`` when given, else from OpenCV's SQPnP of its seeds;
+    the starts that pair most of the targets they put in the frame (and agree with the seeds)
+    are refined together (:class:`fieldcal.field.matching.ViewMatcher`); every other image
+    goes through :func:`identify_image` (all candidate starts, subsets of the seeds).
+
+    Parameters
+    ----------
+    tables : list of pyarrow.Table
+        The images' ``measurements`` tables.
+    targets, camera, target_sigma_m, codes_are_markers, options
+        As for :func:`identify_image`.
+    marks : list, optional
+        Per image, its marks or None.
+    init_poses : list, optional
+        Per image, an approximate pose ``(R_world_to_camera, center_m)`` or None.
+    names : list of str, optional
+        The images' names, for messages.
+    fixed_pose : bool
+        The ``init_poses`` are an adjustment's: they are kept (not re-estimated from one image).
+
+    Returns
+    -------
+    list of ImageIdentification
+    """
+    opt = options or IdentifyOptions()
+    n = len(tables)
+    marks = marks if marks is not None else [None] * n
+    init_poses = init_poses if init_poses is not None else [None] * n
+    names = names if names is not None else [""] * n
     X = np.asarray(targets.xyz_m, float)
     tcodes = np.asarray(targets.codes, np.int64)
-    is_disc = (kind == "disc") & usable
-    is_marker = (kind == "aruco") & usable
+    ims = [_image_of(t, tcodes, len(X), marks[k], names[k]) for k, t in enumerate(tables)]
+    starts = []
+    for k, im in enumerate(ims):
+        if init_poses[k] is not None:
+            starts.append((k, np.asarray(init_poses[k][0], float), np.asarray(init_poses[k][1], float)))
+        elif len(im.sd.t) >= 3 and not is_collinear(X[im.sd.t]):
+            pose = _sqpnp(X[im.sd.t], im.sd.uv, camera)
+            if pose is not None:
+                starts.append((k, *pose))
+    out: list = [None] * n
+    if starts:
+        vm = _view_matcher(targets, camera, opt, ims, target_sigma_m, codes_are_markers)
+        img = np.array([s[0] for s in starts])
+        R, C = np.stack([s[1] for s in starts]), np.stack([s[2] for s in starts])
+        count, expected, uv, _ = vm.score(img, R, C)
+        good = [v for v, k in enumerate(img) if count[v] >= max(opt.min_identified, 0.5 * expected[v])
+                and (len(ims[k].sd.t) == 0 or _seeds_agree(uv[v], ims[k].sd))]
+        if good:
+            ref = vm.refine(img[good], R[good], C[good], coded=[im.coded for im in ims],
+                            update_pose=not fixed_pose)
+            for v, k in enumerate(img[good]):
+                out[k] = _finish(vm, k, ref.view(v), ims[k], init_poses[k], opt)
+    for k in range(n):
+        if out[k] is None:
+            out[k] = identify_image(tables[k], targets, camera, marks=marks[k], init_pose=init_poses[k],
+                                    target_sigma_m=target_sigma_m, codes_are_markers=codes_are_markers,
+                                    options=opt, where=names[k], seed=k)
+    return out
 
-    # coded seeds: marker rows whose code names a target
-    code_to_target = {int(c): k for k, c in enumerate(tcodes) if c >= 0}
-    marker_rows = np.flatnonzero(is_marker)
-    marker_t = np.array([code_to_target.get(int(c), -1) for c in code[marker_rows]], np.int64)
-    coded_rows, coded_t = marker_rows[marker_t >= 0], marker_t[marker_t >= 0]
-    seed_t = list(coded_t)
-    seed_uv = [uv_all[coded_rows]]
-    n_marks = 0
-    if marks is not None:
-        mt, muv = np.asarray(marks[0], np.int64).reshape(-1), np.asarray(marks[1], float).reshape(-1, 2)
-        if len(mt) != len(muv):
-            raise InputError(f"marks: {len(mt)} target indices but {len(muv)} points", where or None)
-        if len(mt) and (mt.min() < 0 or mt.max() >= len(X)):
-            raise InputError("marks: target index out of range", where or None)
-        new = ~np.isin(mt, coded_t)               # a marked coded target: the marker is better
-        seed_t += list(mt[new])
-        seed_uv.append(muv[new])
-        n_marks = int(new.sum())
-    seed_t = np.asarray(seed_t, np.int64)
-    seed_uv = np.concatenate(seed_uv) if seed_uv else np.zeros((0, 2))
-    seed_is_mark = np.arange(len(seed_t)) >= len(coded_t)
-    n_seeds = len(seed_t)
 
-    def failed(reason, R=None, C=None, iterations=0):
-        return ImageIdentification(np.full(n_rows, -1, np.int64), R, C, 0, len(coded_t), n_seeds,
-                                   np.nan, np.nan, np.full((n_rows, 2), np.nan), iterations=iterations,
-                                   reason=reason)
+def identify_from_poses(measurements: pa.Table, targets: TargetField, camera: Camera, poses, *, marks=None,
+                        target_sigma_m=None, codes_are_markers: bool = True, options: IdentifyOptions | None = None,
+                        where: str = "") -> list[ImageIdentification]:
+    """Refine each of several approximate poses of one image to an identification of its own.
 
-    if init_pose is None and n_seeds < 3:
-        if n_seeds == 0:
-            return failed("no coded targets seen and no marks: nothing to start the identification from")
-        return failed(f"only {n_seeds} seed(s) (coded targets and marks); at least 3 (better 4) are needed")
+    Steps 2-5 of the module docstring for every pose (vectorised over the poses), without
+    choosing among them: the caller compares the results (e.g. hypotheses of a pose search).
+    ``poses`` is a list of ``(R_world_to_camera, center_m)``; the other arguments are those of
+    :func:`identify_image`. Returns one :class:`ImageIdentification` per pose.
+    """
+    return identify_views([measurements], targets, camera, [poses], marks=[marks], target_sigma_m=target_sigma_m,
+                          codes_are_markers=codes_are_markers, options=options, names=[where])[0]
 
-    match_target = tcodes < 0 if codes_are_markers else np.ones(len(X), bool)
-    disc_rows = np.flatnonzero(is_disc)
-    if target_sigma_m is not None:
-        target_sigma_m = np.broadcast_to(np.asarray(target_sigma_m, float), (len(X),))
-    matcher = _Matcher(X, match_target, uv_all[disc_rows], camera, gate_px, gate_factor, min_gate_px,
-                       first_gate_fraction, neighbours, target_sigma_m)
+
+def identify_views(tables, targets: TargetField, camera: Camera, poses, *, marks=None, target_sigma_m=None,
+                   codes_are_markers: bool = True, options: IdentifyOptions | None = None,
+                   names=None) -> list[list[ImageIdentification]]:
+    """:func:`identify_from_poses` for several images at once (one refinement of all their views).
+
+    ``tables`` are the images' measurement tables, ``poses[k]`` the approximate poses of image
+    ``k`` (a list), ``marks[k]`` its marks or None. Returns, per image, one
+    :class:`ImageIdentification` per pose.
+    """
+    opt = options or IdentifyOptions()
+    n = len(tables)
+    marks = marks if marks is not None else [None] * n
+    names = names if names is not None else [""] * n
+    X = np.asarray(targets.xyz_m, float)
+    tcodes = np.asarray(targets.codes, np.int64)
+    ims = [_image_of(t, tcodes, len(X), marks[k], names[k]) for k, t in enumerate(tables)]
+    image = np.array([k for k in range(n) for _ in poses[k]], np.int64)
+    out: list[list[ImageIdentification]] = [[] for _ in range(n)]
+    if not len(image):
+        return out
+    vm = _view_matcher(targets, camera, opt, ims, target_sigma_m, codes_are_markers)
+    flat = [p for k in range(n) for p in poses[k]]
+    ref = vm.refine(image, np.stack([np.asarray(p[0], float) for p in flat]),
+                    np.stack([np.asarray(p[1], float) for p in flat]), coded=[im.coded for im in ims])
+    for v, k in enumerate(image):
+        out[k].append(_finish(vm, k, ref.view(v), ims[k], flat[v], opt))
+    return out
+
+
+def _sqpnp(seed_X, seed_uv, camera):
+    """OpenCV's SQPnP pose of the seeds (fieldcal convention), or None."""
+    origin, obj, img, K = _opencv_inputs(seed_X, seed_uv, camera)
+    try:
+        ok, rv, tv = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    if not ok:
+        return None
+    R, C = pose_from_opencv(rv, tv)
+    return R, C + origin
+
+
+def _spacing_at(uv, t):
+    """Distance from the predictions of targets ``t`` to their nearest other finite prediction [px]."""
+    finite = np.isfinite(uv).all(axis=1)
+    out = np.full(len(t), np.inf)
+    if finite.sum() < 2:
+        return out
+    ok = finite[t]
+    if ok.any():
+        d, _ = cKDTree(uv[finite]).query(uv[t[ok]], k=2)
+        out[ok] = d[:, 1]
+    return out
+
+
+def _seeds_agree(uv, sd: _Seeds) -> bool:
+    """Do all seeds lie within a quarter spacing of their targets' predictions ``uv`` (n, 2)?"""
+    pred = uv[sd.t]
+    if np.isfinite(uv).all(axis=1).sum() < 2 or not np.isfinite(pred).all():
+        return False
+    return bool(np.all(np.hypot(*(sd.uv - pred).T) <= 0.25 * _spacing_at(uv, sd.t)))
+
+
+def _starting_poses(vm: ViewMatcher, im: _Image, X, init_pose, opt: IdentifyOptions, where, seed):
+    """Step 1: candidate poses, their scores, and whether the best is convincing."""
+    sd = im.sd
+    meas = vm.measured[0]
     # a generous threshold for the seeds' RANSAC: the nominal camera's distortion is in them
-    disc_spacing = np.median(_prediction_spacing(uv_all[disc_rows])) if len(disc_rows) >= 2 else np.inf
+    disc_spacing = float(np.median(cKDTree(meas).query(meas, k=2)[0][:, 1])) if len(meas) >= 2 else np.inf
     seed_thr = float(np.clip(0.3 * disc_spacing, 4.0, 1e4)) if np.isfinite(disc_spacing) else 50.0
+    sX, suv = X[sd.t], sd.uv
 
-    # ---- step 1: the starting pose
-    sX, suv = X[seed_t], seed_uv
-    cands = _candidate_poses(sX, suv, camera, init_pose, seed_thr, where)
-    scores = [_score(matcher, R, C) for R, C in cands]
+    def scored(poses):
+        if not poses:
+            return [], np.zeros(0), None
+        count, expected, uv, _ = vm.score(np.zeros(len(poses), np.int64), np.stack([p[0] for p in poses]),
+                                          np.stack([p[1] for p in poses]))
+        return list(count), expected, uv
+
+    if init_pose is not None:   # a convincing approximate pose needs no seeds' candidates
+        pose = (np.asarray(init_pose[0], float), np.asarray(init_pose[1], float))
+        count, expected, uv = scored([pose])
+        if count[0] >= max(opt.min_identified, 0.5 * expected[0]) and (len(sd.t) == 0 or _seeds_agree(uv[0], sd)):
+            return [pose], count, True
+    cands = _candidate_poses(sX, suv, vm.camera, init_pose, seed_thr, where)
+    scores, expected, uv = scored(cands)
     convincing = False
     if cands:
-        best = cands[int(np.argmax(scores))]
-        uv0, inside0 = matcher.project(*best)
-        expected0 = int(np.sum(inside0 & match_target))
-        convincing = max(scores) >= max(min_identified, 0.5 * expected0) and _seeds_agree(matcher, best, sX, suv)
-    if not convincing and n_seeds >= 3:
-        rng = np.random.default_rng(seed)
-        more = _subset_poses(sX, suv, camera, where, rng)
+        b = int(np.argmax(scores))
+        convincing = scores[b] >= max(opt.min_identified, 0.5 * expected[b]) and _seeds_agree(uv[b], sd)
+    if not convincing and len(sd.t) >= 3:
+        more = _subset_poses(sX, suv, vm.camera, where, np.random.default_rng(seed))
         cands += more
-        scores += [_score(matcher, R, C) for R, C in more]
-    if not cands:
-        return failed("no pose could be computed from the seeds (collinear or inconsistent)")
+        scores += scored(more)[0]
+    return cands, scores, convincing
 
-    # ---- steps 2-4: match, correct, re-resect until stable
-    def refine(R, C):
-        uv, inside = matcher.project(R, C)
-        corr = np.zeros_like(uv)
-        gate = matcher.first_gates(uv, inside)
-        pairs = None
-        iterations = 0
-        for _ in range(max_iterations):
-            iterations += 1
-            tm, jm = matcher.match(uv, inside, gate, corr)
-            key = (tuple(tm), tuple(jm))
-            if key == pairs:
-                break
-            pairs = key
-            # the markers join the pose where they agree with it (a wrong code must not pull it)
-            c_ok = np.zeros(len(coded_t), bool)
-            if len(coded_t):
-                c_corr, _ = _correction_at(matcher, uv, tm, jm, coded_t)
-                c_err = np.hypot(*(uv_all[coded_rows] - uv[coded_t] - c_corr).T)
-                c_ok = np.isfinite(c_err) & (c_err <= _seed_tolerance(matcher, uv, coded_t, gate))
-            if len(tm) + c_ok.sum() < 4:
-                break
-            Xp = np.concatenate([X[tm], X[coded_t[c_ok]]])
-            uvp = np.concatenate([matcher.meas[jm], uv_all[coded_rows[c_ok]]])
-            if is_collinear(Xp):
-                break
-            try:
-                r = resect(Xp, uvp, camera, init=(R, C), where=where)
-            except GeometryError:
-                break
-            R, C = r.R_world_to_camera, r.center_m
-            uv, inside = matcher.project(R, C)
-            corr, _, gate, _, _ = matcher.corrected(uv, inside, tm, jm)
-        # final pairs with the last pose and gates
-        tm, jm = matcher.match(uv, inside, gate, corr)
-        corr, _, gate, s, e = matcher.corrected(uv, inside, tm, jm)
-        good = e <= gate[tm]
-        spacing = float(np.median(_prediction_spacing(uv[inside]))) if inside.sum() > 1 else np.inf
-        rms = float(np.sqrt(np.mean(e[good] ** 2))) if good.any() else np.inf
-        return dict(R=R, C=C, uv=uv, inside=inside, corr=corr, gate=gate, s=s, tm=tm[good], jm=jm[good],
-                    e=e[good], iterations=iterations, spacing=spacing, fits=rms <= max_rms_fraction * spacing)
 
+def _best_refined(vm: ViewMatcher, im: _Image, cands, scores, convincing, opt: IdentifyOptions) -> dict:
+    """Step 4's choice: the best-scored start, or up to ``max_starts`` of them (refined together):
+    the first in score order that fits, else the one with most pairs."""
     order = np.argsort(scores, kind="stable")[::-1]
-    tried, best = [], None
-    for k in order[: 1 if convincing else max_starts]:
-        R, C = cands[k]
-        if any(np.linalg.norm(C - C2) < 1e-6 * (1 + np.linalg.norm(C)) for C2 in tried):
+    picked: list[int] = []
+    for k in order[: 1 if convincing else opt.max_starts]:
+        C = cands[k][1]
+        if any(np.linalg.norm(C - cands[j][1]) < 1e-6 * (1 + np.linalg.norm(C)) for j in picked):
             continue
-        tried.append(C)
-        st = refine(R, C)
+        picked.append(int(k))
+    ref = vm.refine(np.zeros(len(picked), np.int64), np.stack([cands[k][0] for k in picked]),
+                    np.stack([cands[k][1] for k in picked]), coded=[im.coded])
+    best = None
+    for v, k in enumerate(picked):
+        st = ref.view(v)
         if best is None or (st["fits"], len(st["tm"])) > (best["fits"], len(best["tm"])):
             best = st
-        if st["fits"] and len(st["tm"]) >= max(min_identified, 0.5 * scores[k]):
+        if st["fits"] and len(st["tm"]) >= max(opt.min_identified, 0.5 * scores[k]):
             break
-    R, C, uv, inside, gate, s = best["R"], best["C"], best["uv"], best["inside"], best["gate"], best["s"]
-    tm, jm, e, iterations = best["tm"], best["jm"], best["e"], best["iterations"]
-    target = np.full(n_rows, -1, np.int64)
-    target[disc_rows[jm]] = tm
-    residual = np.full((n_rows, 2), np.nan)
-    residual[disc_rows[jm]] = matcher.meas[jm] - uv[tm]
+    return best
 
-    # markers: identified by code, kept when they agree with the pose
-    if len(coded_t):
+
+def _finish(vm: ViewMatcher, image: int, best, im: _Image, init_pose, opt: IdentifyOptions) -> ImageIdentification:
+    """The identities of the rows, the markers and marks checked against the pose (step 5)."""
+    sd, kind, code, uv_all, disc_rows = im.sd, im.kind, im.code, im.uv_all, im.disc_rows
+    meas = vm.measured[image]
+    R, C, uv, gate, s = best["R"], best["C"], best["uv"], best["gate"], best["s"]
+    tm, jm, e = best["tm"], best["jm"], best["e"]
+    target = np.full(im.n_rows, -1, np.int64)
+    target[disc_rows[jm]] = tm
+    residual = np.full((im.n_rows, 2), np.nan)
+    residual[disc_rows[jm]] = meas[jm] - uv[tm]
+    wrong_codes, e_codes = np.zeros(0, np.int64), np.zeros(0)
+    if len(sd.coded_t):     # markers: identified by code, kept when they agree with the pose
         # a coded target's correction comes from the discs around it
-        c_corr, c_spread = _correction_at(matcher, uv, tm, jm, coded_t)
-        cres = uv_all[coded_rows] - uv[coded_t]
+        c_corr, c_spread = _correction_at(meas, best, sd.coded_t, opt)
+        cres = uv_all[sd.coded_rows] - uv[sd.coded_t]
         ce = np.hypot(*(cres - c_corr).T)
-        cgate = np.clip(gate_factor * np.hypot(s if np.isfinite(s) else 0.0, c_spread), min_gate_px,
+        cgate = np.clip(opt.gate_factor * np.hypot(s if np.isfinite(s) else 0.0, c_spread), opt.min_gate_px,
                         np.inf)
-        cgate = np.maximum(cgate, _seed_tolerance(matcher, uv, coded_t, gate))
+        cgate = np.maximum(cgate, vm.seed_tolerance(gate[sd.coded_t], _spacing_at(uv, sd.coded_t)))
         agree = np.isfinite(ce) & (ce <= cgate)
         # a coded target matched as a disc too (codes_are_markers=False): the marker wins
-        twice = np.isin(target, coded_t[agree]) & (kind == "disc")
+        twice = np.isin(target, sd.coded_t[agree]) & (kind == "disc")
         target[twice] = -1
         residual[twice] = np.nan
-        target[coded_rows[agree]] = coded_t[agree]
-        residual[coded_rows[agree]] = cres[agree]
-        wrong_codes = code[coded_rows[~agree]]
-    else:
-        wrong_codes = np.zeros(0, np.int64)
-
-    # marks: compared with the prediction of their target
+        target[sd.coded_rows[agree]] = sd.coded_t[agree]
+        residual[sd.coded_rows[agree]] = cres[agree]
+        wrong_codes, e_codes = code[sd.coded_rows[~agree]], ce[agree]
     wrong_marks = np.zeros(0, np.int64)
-    if n_marks:
-        mt, muv = seed_t[seed_is_mark], seed_uv[seed_is_mark]
-        m_corr, _ = _correction_at(matcher, uv, tm, jm, mt)
+    if sd.n_marks:          # marks: compared with the prediction of their target
+        mt, muv = sd.t[sd.is_mark], sd.uv[sd.is_mark]
+        m_corr, _ = _correction_at(meas, best, mt, opt)
         d = np.hypot(*(muv - uv[mt] - m_corr).T)
-        tol = _seed_tolerance(matcher, uv, mt, gate)
+        tol = vm.seed_tolerance(gate[mt], _spacing_at(uv, mt))
         wrong_marks = mt[~(np.isfinite(d) & (d <= tol))]
-
     n_id = int(np.sum(target >= 0))
-    e_all = np.concatenate([e, ce[agree]]) if len(coded_t) else e
+    e_all = np.concatenate([e, e_codes])
     rms = float(np.sqrt(np.mean(e_all**2))) if len(e_all) else np.nan
     gate_med = float(np.median(gate[tm])) if len(tm) else np.nan
-    reason = ""
     n_wrong = len(wrong_marks) + len(wrong_codes)
-    # targets the pose puts in the frame, away from the border, that could have been matched
-    s_ = camera.sensor
-    margin = 0.5 * float(np.median(_prediction_spacing(uv[inside]))) if inside.sum() > 1 else 0.0
-    margin = min(margin, 0.1 * min(s_.width_px, s_.height_px))
-    well_inside = inside & (uv[:, 0] > margin) & (uv[:, 1] > margin) & \
-        (uv[:, 0] < s_.width_px - 1 - margin) & (uv[:, 1] < s_.height_px - 1 - margin)
-    expected = min(int(np.sum(well_inside & match_target)), len(disc_rows))
-    if n_id < min_identified:
-        reason = f"only {n_id} target(s) identified, at least {min_identified} needed"
-    elif not best["fits"]:
-        reason = (f"the identified points do not fit one pose (RMS {rms:.3g} px after the local "
-                  f"correction, spacing of the targets {best['spacing']:.3g} px): the start (marks, "
-                  "codes or nominal focal length) is probably wrong")
-    elif len(tm) < min_fraction * expected:
-        reason = (f"only {len(tm)} of about {expected} targets expected in the frame identified: the "
-                  "start (marks, codes or nominal focal length) is probably wrong")
-    elif n_seeds and init_pose is None and n_wrong > 0.5 * n_seeds:
-        reason = (f"{n_wrong} of the {n_seeds} seeds (marks and coded targets) disagree with the "
-                  "identification: the marks or codes are unreliable")
-    if reason and n_id >= min_identified:      # a wrong start: none of its identities is trusted
+    reason = _verdict(vm, best, n_id, rms, len(disc_rows), n_wrong, len(sd.t), init_pose, opt)
+    if reason and n_id >= opt.min_identified:      # a wrong start: none of its identities is trusted
         target[:] = -1
         residual[:] = np.nan
         n_id = 0
-    return ImageIdentification(target, R, C, n_id, len(coded_t), n_seeds, gate_med, rms, residual,
+    return ImageIdentification(target, R, C, n_id, len(sd.coded_t), len(sd.t), gate_med, rms, residual,
                                wrong_marks=np.asarray(wrong_marks, np.int64),
-                               wrong_codes=np.asarray(wrong_codes, np.int64), iterations=iterations,
+                               wrong_codes=np.asarray(wrong_codes, np.int64), iterations=best["iterations"],
                                reason=reason)
 
 
-def _correction_at(matcher, uv, tm, jm, t):
+def _verdict(vm: ViewMatcher, best, n_id, rms, n_discs, n_wrong, n_seeds, init_pose, opt: IdentifyOptions) -> str:
+    """Why the image is not usable ("" when it is): step 5's checks."""
+    uv, inside, tm = best["uv"], best["inside"], best["tm"]
+    # targets the pose puts in the frame, away from the border, that could have been matched
+    s_ = vm.camera.sensor
+    margin = 0.5 * best["spacing"] if inside.sum() > 1 else 0.0
+    margin = min(margin, 0.1 * min(s_.width_px, s_.height_px))
+    with np.errstate(invalid="ignore"):
+        well_inside = inside & (uv[:, 0] > margin) & (uv[:, 1] > margin) & \
+            (uv[:, 0] < s_.width_px - 1 - margin) & (uv[:, 1] < s_.height_px - 1 - margin)
+    expected = min(int(np.sum(well_inside & vm.match_target)), n_discs)
+    if n_id < opt.min_identified:
+        return f"only {n_id} target(s) identified, at least {opt.min_identified} needed"
+    if not best["fits"]:
+        return (f"the identified points do not fit one pose (RMS {rms:.3g} px after the local "
+                f"correction, spacing of the targets {best['spacing']:.3g} px): the start (marks, "
+                "codes or nominal focal length) is probably wrong")
+    if len(tm) < opt.min_fraction * expected:
+        return (f"only {len(tm)} of about {expected} targets expected in the frame identified: the "
+                "start (marks, codes or nominal focal length) is probably wrong")
+    if n_seeds and init_pose is None and n_wrong > 0.5 * n_seeds:
+        return (f"{n_wrong} of the {n_seeds} seeds (marks and coded targets) disagree with the "
+                "identification: the marks or codes are unreliable")
+    return ""
+
+
+def _correction_at(meas, best, t, opt: IdentifyOptions):
     """Local correction and spread at the predictions of targets ``t`` from the pairs."""
+    uv, tm, jm = best["uv"], best["tm"], best["jm"]
     if len(tm) < 4:
         return np.zeros((len(t), 2)), np.zeros(len(t))
-    res = matcher.meas[jm] - uv[tm]
-    self_index = np.full(len(t), -1)
-    pos = {int(a): k for k, a in enumerate(tm)}
-    self_index[:] = [pos.get(int(a), -1) for a in t]
+    res = meas[jm] - uv[tm]
+    pos = np.full(len(uv), -1)
+    pos[tm] = np.arange(len(tm))
     at = np.where(np.isfinite(uv[t]), uv[t], 0.0)
-    return local_correction(at, uv[tm], res, self_index, neighbours=matcher.neighbours)
-
-
-def _seed_tolerance(matcher, uv, t, gate):
-    """How far a seed may be from its target's prediction: 3 gates or a quarter spacing."""
-    finite = np.isfinite(uv).all(axis=1)
-    spacing = np.full(len(uv), np.inf)
-    k = np.flatnonzero(finite)
-    spacing[k] = _prediction_spacing(uv[k])
-    g = np.where(np.isfinite(gate[t]), gate[t], matcher.min_gate)
-    return np.maximum(3.0 * g, 0.25 * np.where(np.isfinite(spacing[t]), spacing[t], 0.0))
-
-
-def _seeds_agree(matcher, pose, sX, suv) -> bool:
-    """Do all seeds lie within a quarter spacing of their targets' projections?"""
-    uv, inside = matcher.project(*pose)
-    finite = np.isfinite(uv).all(axis=1)
-    k = np.flatnonzero(finite)
-    if len(k) < 2:
-        return False
-    tree = cKDTree(uv[k])
-    pred = matcher.camera.project(sX, *pose)
-    if not np.isfinite(pred).all():
-        return False
-    d_nb, _ = tree.query(pred, k=2)
-    return bool(np.all(np.hypot(*(suv - pred).T) <= 0.25 * d_nb[:, 1]))
+    return local_correction(at, uv[tm], res, pos[t], neighbours=opt.neighbours)

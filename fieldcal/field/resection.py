@@ -151,6 +151,74 @@ def _residuals(X, uv, camera, R, C):
     return res, np.where(np.isfinite(e), e, np.inf)
 
 
+def _candidates(X, uv, Xl, uvi, K, camera, origin, B, planar, ransac, init, need, threshold_px,
+                max_iterations, confidence, tol_rel):
+    """Candidate poses (OpenCV rvec, tvec of the local coordinates), each with the points it
+    is to be refined on: the global (or RANSAC) solution, and the given approximate pose."""
+    n = len(X)
+    candidates = []
+    if ransac:
+        # minimal sets by AP3P (EPnP minimal sets fail on planar targets in OpenCV 5)
+        ok, rvec, tvec, idx = cv2.solvePnPRansac(
+            _cv(Xl, 3), _cv(uvi, 2), K, None, iterationsCount=int(max_iterations),
+            reprojectionError=float(threshold_px), confidence=float(confidence), flags=cv2.SOLVEPNP_AP3P,
+        )
+        if ok and idx is not None and len(idx) >= need:
+            consensus = np.zeros(n, bool)
+            consensus[np.asarray(idx).ravel()] = True
+            candidates.append((rvec, tvec, consensus))
+            if not is_collinear(X[consensus], tol_rel):  # the global solver on the consensus set
+                candidates.append((*_solve(Xl[consensus], uvi[consensus], K, planar), consensus))
+    else:
+        candidates.append((*_solve(Xl, uvi, K, planar), np.ones(n, bool)))
+    if init is not None:
+        rvec, tvec = _from_fieldcal(init[0], init[1], origin, B)
+        near = np.ones(n, bool)
+        if ransac:  # the points the approximate pose already explains
+            near = _residuals(X, uv, camera, *_to_fieldcal(rvec, tvec, origin, B))[1] <= threshold_px
+        if near.sum() >= need:
+            candidates.append((rvec, tvec, near))
+    return candidates
+
+
+def _best_candidate(candidates, X, uv, Xl, uvi, K, camera, origin, B, refine, ransac, threshold_px):
+    """Each candidate refined on its points and scored: the truncated quadratic cost (MSAC) with
+    RANSAC, the median residual otherwise; the best as (rvec, tvec, R, C, residuals, |residuals|, used)."""
+    best = None
+    for rvec, tvec, use in candidates:
+        if refine:
+            rvec, tvec = _refine(Xl[use], uvi[use], K, rvec, tvec)
+        R, C = _to_fieldcal(rvec, tvec, origin, B)
+        res, e = _residuals(X, uv, camera, R, C)
+        score = np.sum(np.minimum(e, threshold_px) ** 2) if ransac else np.median(e)
+        if best is None or score < best[0]:
+            best = (score, rvec, tvec, R, C, res, e, use)
+    return best[1:]
+
+
+def _reselect(X, uv, Xl, uvi, K, camera, origin, B, rvec, tvec, e, inliers, need, threshold_px, tol_rel,
+              where):
+    """RANSAC's inliers re-selected in measured pixels and the pose refitted until stable."""
+    n = len(X)
+    R, C = _to_fieldcal(rvec, tvec, origin, B)
+    res = _residuals(X, uv, camera, R, C)[0]
+    for _ in range(10):
+        new = e <= threshold_px
+        if new.sum() < need:
+            raise GeometryError(
+                at(where, f"resection: only {new.sum()} of {n} points within {threshold_px} px of a common pose")
+            )
+        if is_collinear(X[new], tol_rel):
+            raise GeometryError(at(where, "resection: the inliers are collinear"))
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+        rvec, tvec = _refine(Xl[inliers], uvi[inliers], K, rvec, tvec)
+        R, C = _to_fieldcal(rvec, tvec, origin, B)
+        res, e = _residuals(X, uv, camera, R, C)
+    return R, C, res, e, inliers
+
+
 def resect(
     X_world_m,
     uv_px,
@@ -209,13 +277,8 @@ def resect(
     n = len(X)
     need = max(4, int(min_inliers)) if ransac else 4
     if n < need:
-        raise GeometryError(
-            at(
-                where,
-                f"resection{' with RANSAC' if ransac else ''} needs at least "
-                f"{need} points, got {n}",
-            )
-        )
+        raise GeometryError(at(where, f"resection{' with RANSAC' if ransac else ''} needs at least {need} points, "
+                                      f"got {n}"))
     if is_collinear(X, tol_rel):
         raise GeometryError(at(where, f"resection: the {n} world points are collinear"))
     planar = is_coplanar(X, tol_rel)
@@ -227,82 +290,16 @@ def resect(
     uvi = ideal_pixels(uv, camera)
 
     try:
-        # candidate poses, each with the points it is to be refined on
-        candidates = []
-        if ransac:
-            # minimal sets by AP3P (EPnP minimal sets fail on planar targets in OpenCV 5)
-            ok, rvec, tvec, idx = cv2.solvePnPRansac(
-                _cv(Xl, 3),
-                _cv(uvi, 2),
-                K,
-                None,
-                iterationsCount=int(max_iterations),
-                reprojectionError=float(threshold_px),
-                confidence=float(confidence),
-                flags=cv2.SOLVEPNP_AP3P,
-            )
-            if ok and idx is not None and len(idx) >= need:
-                consensus = np.zeros(n, bool)
-                consensus[np.asarray(idx).ravel()] = True
-                candidates.append((rvec, tvec, consensus))
-                if not is_collinear(
-                    X[consensus], tol_rel
-                ):  # the global solver on the consensus set
-                    candidates.append(
-                        (*_solve(Xl[consensus], uvi[consensus], K, planar), consensus)
-                    )
-        else:
-            candidates.append((*_solve(Xl, uvi, K, planar), np.ones(n, bool)))
-        if init is not None:
-            rvec, tvec = _from_fieldcal(init[0], init[1], origin, B)
-            near = np.ones(n, bool)
-            if ransac:  # the points the approximate pose already explains
-                near = (
-                    _residuals(X, uv, camera, *_to_fieldcal(rvec, tvec, origin, B))[1]
-                    <= threshold_px
-                )
-            if near.sum() >= need:
-                candidates.append((rvec, tvec, near))
+        candidates = _candidates(X, uv, Xl, uvi, K, camera, origin, B, planar, ransac, init, need,
+                                 threshold_px, max_iterations, confidence, tol_rel)
         if not candidates:
-            raise GeometryError(
-                at(
-                    where,
-                    "resection: RANSAC found no pose consistent with "
-                    f"{need} or more of the {n} points (threshold {threshold_px} px)",
-                )
-            )
-
-        best = None
-        for rvec, tvec, use in candidates:
-            if refine or ransac:
-                rvec, tvec = _refine(Xl[use], uvi[use], K, rvec, tvec)
-            R, C = _to_fieldcal(rvec, tvec, origin, B)
-            res, e = _residuals(X, uv, camera, R, C)
-            # truncated quadratic cost (MSAC) with RANSAC, the median residual otherwise
-            score = np.sum(np.minimum(e, threshold_px) ** 2) if ransac else np.median(e)
-            if best is None or score < best[0]:
-                best = (score, rvec, tvec, R, C, res, e, use)
-        _, rvec, tvec, R, C, res, e, inliers = best
-
+            raise GeometryError(at(where, f"resection: RANSAC found no pose consistent with {need} or more of "
+                                          f"the {n} points (threshold {threshold_px} px)"))
+        rvec, tvec, R, C, res, e, inliers = _best_candidate(candidates, X, uv, Xl, uvi, K, camera, origin, B,
+                                                            refine or ransac, ransac, threshold_px)
         if ransac:  # re-select the inliers in measured pixels and refit until stable
-            for _ in range(10):
-                new = e <= threshold_px
-                if new.sum() < need:
-                    raise GeometryError(
-                        at(
-                            where,
-                            f"resection: only {new.sum()} of {n} points within "
-                            f"{threshold_px} px of a common pose",
-                        )
-                    )
-                if is_collinear(X[new], tol_rel):
-                    raise GeometryError(at(where, "resection: the inliers are collinear"))
-                if np.array_equal(new, inliers):
-                    break
-                inliers = new
-                rvec, tvec = _refine(Xl[inliers], uvi[inliers], K, rvec, tvec)
-                R, C = _to_fieldcal(rvec, tvec, origin, B)
-                res, e = _residuals(X, uv, camera, R, C)
+            R, C, res, e, inliers = _reselect(X, uv, Xl, uvi, K, camera, origin, B, rvec, tvec, e, inliers,
+                                              need, threshold_px, tol_rel, where)
     except cv2.error as exc:
         raise GeometryError(
             at(where, f"resection: OpenCV failed: {str(exc).strip().splitlines()[-1]}")

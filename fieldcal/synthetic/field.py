@@ -31,7 +31,7 @@ from fieldcal.model.camera import Camera, Sensor
 
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
-    "add_blunders", "Blunders",
+    "add_blunders", "Blunders", "measurements_of", "target_plane_axes",
 ]
 
 IXU150_TABLE1 = {
@@ -81,6 +81,19 @@ class SyntheticField:
     target_diameter_mm: float
     marker_size_mm: float
     settings: dict = field(default_factory=dict)
+
+
+def target_plane_axes(normals):
+    """A target's plane axes: ``e1`` (world X projected into the plane; world Y for a plane
+    facing X), ``e2 = n x e1``; returns ``(n, e1, e2)``, each (k, 3). A marker is printed with its
+    top towards ``e2`` and its left towards ``-e1``."""
+    n = np.asarray(normals, float)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    ref = np.where((np.abs(n[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    e1 = ref - np.sum(ref * n, axis=1, keepdims=True) * n
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    return n, e1, e2
 
 
 def look_at(center_m, aim_m, roll_rad=0.0, up=(0.0, 0.0, 1.0)):
@@ -219,21 +232,25 @@ def paper_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: 
 
 
 def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 5.0,
-               camera: Camera | None = None) -> SyntheticField:
-    """A wide-angle non-metric camera in front of a wall with relief (see the module docstring)."""
+               camera: Camera | None = None, keep_fraction: float = 0.92,
+               relief: bool = True) -> SyntheticField:
+    """A wide-angle non-metric camera in front of a wall with relief (see the module docstring).
+
+    ``keep_fraction`` of the grid's plain targets are kept (at random; 1.0 gives a periodic
+    grid), and ``relief=False`` puts every target in the wall's plane."""
     rng = np.random.default_rng(seed)
     cam = camera or Camera.from_dict(Sensor(6000, 4000, 3.9), WIDE_ANGLE)
 
-    def relief(x, z):
+    def depth(x, z):
         pillar = (np.mod(x + 5.0, 2.5) < 0.8) * 0.5
         shelf = ((z > 1.2) & (z < 2.2) & (np.abs(x) < 3.0)) * 0.5
-        return -(pillar + shelf)
+        return -(pillar + shelf) * float(relief)
 
     def code_rule(ix, iz):
         return (ix % 4 == 2) & (iz % 3 == 1)
 
-    targets = _grid_targets(np.arange(-4.9, 5.0, 0.35), np.arange(0.2, 4.1, 0.35), relief,
-                            0.92, code_rule, rng, "W")
+    targets = _grid_targets(np.arange(-4.9, 5.0, 0.35), np.arange(0.2, 4.1, 0.35), depth,
+                            keep_fraction, code_rule, rng, "W")
     poses, names = [], []
     station_xy = [(-4.0, -5.5), (-1.5, -6.5), (1.5, -6.5), (4.0, -5.5),
                   (-3.0, -5.0), (0.0, -5.5), (3.0, -5.0), (0.0, -7.0)]
@@ -291,3 +308,78 @@ def add_blunders(sf: SyntheticField, *, fraction: float = 0.01, survey_offset_m:
     targets = replace(data.targets, xyz_m=xyz)
     new = replace(sf, data=replace(data, targets=targets, obs=obs))
     return new, Blunders(np.sort(bad_t), np.sort(np.array(swapped, dtype=np.int64)))
+
+
+def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True, max_markers=None,
+                    seed: int = 0, extra_blobs: int = 0, corners: bool = False):
+    """The detector's output for one image without the pixels: a ``measurements`` table.
+
+    One row per observation of the image in ``sf.data.obs`` (the exact image point plus the
+    problem's image noise): a disc, or with ``coded`` an ArUco marker (its code) for a coded
+    target. ``max_markers`` keeps that many markers (chosen at random, the others are not
+    in the table, as when they are out of view); ``extra_blobs`` adds false discs at random
+    positions; ``corners`` gives each marker its four outer corners (``corners_px``: the
+    marker's square of ``marker_size_mm``, printed as :func:`target_plane_axes` says, seen by
+    the true camera, with the image noise). Rows are shuffled, so their order tells nothing.
+
+    Returns
+    -------
+    table : pyarrow.Table
+        Schema ``measurements``.
+    truth : (n,) int ndarray
+        The target of every row (-1 for a false disc).
+    """
+    import pyarrow as pa
+
+    from fieldcal.session.schemas import arrow_schema
+
+    rng = np.random.default_rng([int(seed), int(image_index)])
+    k = np.flatnonzero(sf.data.obs.image == image_index)
+    t = sf.data.obs.target[k]
+    uv = sf.data.obs.uv_px[k]
+    code = np.asarray(sf.targets_true.codes, np.int64)[t] if coded else np.full(len(k), -1)
+    marker = code >= 0
+    if max_markers is not None and marker.sum() > max_markers:
+        drop = rng.choice(np.flatnonzero(marker), int(marker.sum()) - int(max_markers), replace=False)
+        keep = np.ones(len(k), bool)
+        keep[drop] = False
+        uv, code, marker, t = uv[keep], code[keep], marker[keep], t[keep]
+    if extra_blobs:
+        s = sf.camera.sensor
+        fake = rng.uniform([0, 0], [s.width_px - 1, s.height_px - 1], (int(extra_blobs), 2))
+        uv = np.concatenate([uv, fake])
+        code = np.concatenate([code, np.full(len(fake), -1)])
+        marker = np.concatenate([marker, np.zeros(len(fake), bool)])
+        t = np.concatenate([t, np.full(len(fake), -1)])
+    order = rng.permutation(len(uv))
+    uv, code, marker, t = uv[order], code[order], marker[order], t[order]
+    n = len(uv)
+    schema = arrow_schema("measurements")
+    sigma = float(sf.settings.get("image_noise_px", 0.1))
+    corner_col = None
+    if corners and marker.any():
+        corner_col = pa.array([_marker_corners(sf, image_index, int(tt), sigma, rng).tolist() if m else None
+                               for m, tt in zip(marker, t, strict=True)], pa.list_(pa.float64()))
+    cols = {"image": [""] * n, "blob": np.arange(n, dtype=np.int32), "kind": np.where(marker, "aruco", "disc"),
+            "code": pa.array(np.where(marker, code, 0).astype(np.int32), pa.int32(), mask=~marker),
+            "u_px": uv[:, 0], "v_px": uv[:, 1], "sigma_px": np.full(n, max(sigma, 1e-3)),
+            "diameter_px": np.full(n, 20.0), "contrast": np.full(n, 1000.0), "snr": np.full(n, 100.0),
+            "saturated": np.zeros(n, bool), "truncated": np.zeros(n, bool),
+            "method": np.where(marker, "aruco", "ellipse"), "corners_px": corner_col}
+    arrays = []
+    for f in schema:
+        v = cols.get(f.name)
+        arrays.append(pa.nulls(n, f.type) if v is None else v if isinstance(v, pa.Array) else pa.array(v, f.type))
+    return pa.table(arrays, schema=schema), t
+
+
+def _marker_corners(sf: SyntheticField, i: int, t: int, sigma_px: float, rng) -> np.ndarray:
+    """The four outer corners (8,) [px] of target ``t``'s marker in image ``i`` (OpenCV's order:
+    top-left, top-right, bottom-right, bottom-left of the printed marker), with noise."""
+    tt = sf.targets_true
+    normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
+    _, e1, e2 = target_plane_axes(normals[[t]])
+    h = sf.marker_size_mm / 2000.0
+    P = tt.xyz_m[t] + h * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]]) @ np.stack([e1[0], e2[0]])
+    uv = sf.camera.project(P, sf.R_world_to_camera[i], sf.center_m[i])
+    return (uv + rng.normal(0.0, sigma_px, uv.shape)).reshape(-1)

@@ -392,15 +392,68 @@ def write_session(folder, scenario: str = "canon5d2", *, seed: int = 0,
     sweeps = {"x": list(sc.x_angles_deg), "y": list(sc.y_angles_deg)}
     if "off_sensor" in faults:
         sweeps["x"].append(_off_sensor_angle(sc, cam, mis))
-    # which frame gets which single-frame fault: distinct angles on both sweeps
+    by_frame = _fault_frames(sc, faults, frames_per_angle)
+
+    rows, truth_faults = _render_sweeps(folder, sc, cam, mis, sweeps, by_frame, faults, rng,
+                                        frames_per_angle, noise, window_px, full_frame_noise)
+    _write_manifest(folder, sc, rows, camera_id, session_id)
+    frames = pa.Table.from_pylist(rows, schema=pa.schema([
+        ("file", pa.string()), ("axis", pa.string()), ("angle_deg", pa.float64()),
+        ("frame", pa.int32()), ("u_px", pa.float64()), ("v_px", pa.float64()),
+        ("u_rendered_px", pa.float64()), ("v_rendered_px", pa.float64()),
+        ("on_sensor", pa.bool_()), ("fault", pa.string())]))
+    return GonioTruth(sc, cam, folder, mis, frames, truth_faults)
+
+
+def _fault_frames(sc: Scenario, faults, frames_per_angle: int) -> dict:
+    """Which frame ``(axis, angle, k)`` gets which single-frame fault: distinct angles on both
+    sweeps."""
     nx, ny = len(sc.x_angles_deg), len(sc.y_angles_deg)
     targets = {"missing_file": ("x", sc.x_angles_deg[nx // 2 + 3], 0),
                "no_spot": ("x", sc.x_angles_deg[nx // 2 - 4], 1 % frames_per_angle),
                "saturated": ("y", sc.y_angles_deg[ny // 2 + 2], 0),
                "double": ("y", sc.y_angles_deg[ny // 2 - 3], 2 % frames_per_angle),
                "bad_axis": ("x", sc.x_angles_deg[nx // 2 + 5], 2 % frames_per_angle)}
-    by_frame = {targets[f]: f for f in faults if f in targets}
+    return {targets[f]: f for f in faults if f in targets}
 
+
+def _spots_of(spot: dict, fault, axis: str) -> list:
+    """The spots of one frame: the collimator's, changed by the frame's fault."""
+    if fault == "no_spot":
+        return []
+    if fault == "saturated":
+        return [dict(spot, flux_e=spot["flux_e"] * 40.0)]
+    if fault == "double":
+        ghost = dict(spot, flux_e=spot["flux_e"] * 0.5)
+        ghost["u_px" if axis == "y" else "v_px"] += 9.0
+        return [spot, ghost]
+    return [spot]
+
+
+def _write_manifest(folder: Path, sc: Scenario, rows, camera_id, session_id) -> None:
+    """frames.csv (a ``bad_axis`` frame gets the axis ``z``) and session.json."""
+    lines = ["file,axis,angle_deg"]
+    for r in rows:
+        axis = "z" if r["fault"] == "bad_axis" else r["axis"]
+        lines.append(f"{r['file']},{axis},{r['angle_deg']:.6f}")
+    (folder / "frames.csv").write_text("\n".join(lines) + "\n")
+    manifest = {
+        "schema": "fieldcal.session/1",
+        "method": "goniometer",
+        "camera_id": camera_id or f"{sc.name}-synthetic",
+        "session_id": session_id or folder.name,
+        "acquired": "2026-11-20T09:30:00Z",
+        "sensor": sc.sensor().to_dict(),
+        "lens": {"nominal_focal_mm": sc.nominal_focal_mm},
+        "frames": "frames.csv",
+        "images": "images/*.tif",
+    }
+    (folder / "session.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+
+def _render_sweeps(folder, sc, cam, mis, sweeps, by_frame, faults, rng, frames_per_angle, noise, window_px,
+                   full_frame_noise):
+    """Render and write every frame of both sweeps; returns the frames' rows and the faults."""
     rows = []
     truth_faults = []
     arcsec = np.radians(1.0 / 3600.0)
@@ -425,16 +478,7 @@ def write_session(folder, scenario: str = "canon5d2", *, seed: int = 0,
                 fault = by_frame.get((axis, float(a), k))
                 if axis == "x" and "off_sensor" in faults and a == sweeps["x"][-1]:
                     fault = "off_sensor"
-                spots = [spot]
-                if fault == "no_spot":
-                    spots = []
-                elif fault == "saturated":
-                    spots = [dict(spot, flux_e=spot["flux_e"] * 40.0)]
-                elif fault == "double":
-                    ghost = dict(spot, flux_e=spot["flux_e"] * 0.5)
-                    ghost["u_px" if axis == "y" else "v_px"] += 9.0
-                    spots = [spot, ghost]
-                frame = render_frame(sc, spots, rng, noise=noise, window_px=window_px,
+                frame = render_frame(sc, _spots_of(spot, fault, axis), rng, noise=noise, window_px=window_px,
                                      full_frame_noise=full_frame_noise)
                 path = folder / name
                 tifffile.imwrite(path, frame, tile=(256, 256), compression="zstd")
@@ -453,26 +497,4 @@ def write_session(folder, scenario: str = "canon5d2", *, seed: int = 0,
                              "files": [r["file"] for r in rows
                                        if r["axis"] == "x" and r["angle_deg"] == a]})
 
-    lines = ["file,axis,angle_deg"]
-    for r in rows:
-        axis = "z" if r["fault"] == "bad_axis" else r["axis"]
-        lines.append(f"{r['file']},{axis},{r['angle_deg']:.6f}")
-    (folder / "frames.csv").write_text("\n".join(lines) + "\n")
-    manifest = {
-        "schema": "fieldcal.session/1",
-        "method": "goniometer",
-        "camera_id": camera_id or f"{sc.name}-synthetic",
-        "session_id": session_id or folder.name,
-        "acquired": "2026-11-20T09:30:00Z",
-        "sensor": sc.sensor().to_dict(),
-        "lens": {"nominal_focal_mm": sc.nominal_focal_mm},
-        "frames": "frames.csv",
-        "images": "images/*.tif",
-    }
-    (folder / "session.json").write_text(json.dumps(manifest, indent=2) + "\n")
-    frames = pa.Table.from_pylist(rows, schema=pa.schema([
-        ("file", pa.string()), ("axis", pa.string()), ("angle_deg", pa.float64()),
-        ("frame", pa.int32()), ("u_px", pa.float64()), ("v_px", pa.float64()),
-        ("u_rendered_px", pa.float64()), ("v_rendered_px", pa.float64()),
-        ("on_sensor", pa.bool_()), ("fault", pa.string())]))
-    return GonioTruth(sc, cam, folder, mis, frames, truth_faults)
+    return rows, truth_faults

@@ -1,4 +1,4 @@
-"""Physically exact rendering of synthetic field sessions (images and the files around them).
+"""Physically exact rendering of synthetic field images (image formation).
 
 What is drawn
 -------------
@@ -65,36 +65,27 @@ same optics in millimetres, and scales the targets so that they cover about as m
 as in the full-size problem (paper scenario: discs ~28 px, wide: ~20 px). Tests render
 scale 0.1-0.25; benchmarks render the full-size problems directly.
 
-Files
------
-:func:`write_field_session` writes a complete session of docs/conventions.md section 3 (session.json,
-targets.csv with the *surveyed* coordinates, images/*.tif in a mix of TIFF layouts, and
-optionally observations.csv and marks.csv) and returns the truth of every image.
+Sessions on disk (session.json, targets.csv, the images, observations.csv, marks.csv) are
+written by :mod:`fieldcal.synthetic.session_writer`.
 """
 
 from __future__ import annotations
 
-import csv
 import functools
-import json
 import math
-import re
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import tifffile
 from scipy import ndimage
 
-from fieldcal import progress
 from fieldcal.errors import InputError
 from fieldcal.field.data import FieldObservations
 from fieldcal.model.camera import Camera, Sensor
-from fieldcal.synthetic.field import SyntheticField
+from fieldcal.synthetic.field import SyntheticField, target_plane_axes
 
 __all__ = [
-    "RenderedImage", "render_image", "write_field_session", "scaled_field", "coverage_window",
+    "RenderedImage", "render_image", "scaled_field", "coverage_window", "check_image_index",
     "aruco_cells", "TRUTH_SCHEMA", "FULL_WELL_E", "READ_NOISE_E", "ARUCO_DICTIONARY",
     "NOMINAL_FOCAL_MM",
 ]
@@ -210,17 +201,6 @@ def aruco_cells(code: int, dictionary: str = ARUCO_DICTIONARY) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # geometry
 # --------------------------------------------------------------------------------------
-def _plane_axes(normals):
-    """In-plane axes ``e1`` (world X projected into the plane), ``e2 = n x e1``; (n, 3) each."""
-    n = np.asarray(normals, float)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    ref = np.where((np.abs(n[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    e1 = ref - np.sum(ref * n, axis=1, keepdims=True) * n
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(n, e1)
-    return n, e1, e2
-
-
 @dataclass
 class _Targets:
     """Per-target geometry of one image, in the camera frame [m], and the figure's sizes."""
@@ -414,7 +394,7 @@ def _select_targets(sf: SyntheticField, i: int, targets, coded: bool, marker_siz
         if idx.size and (idx.min() < 0 or idx.max() >= len(tt)):
             raise InputError(f"targets: indices must be in 0..{len(tt) - 1}")
     normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
-    n_w, e1_w, e2_w = _plane_axes(normals[idx])
+    n_w, e1_w, e2_w = target_plane_axes(normals[idx])
     X = tt.xyz_m[idx]
     codes = tt.codes[idx] if coded else np.full(idx.size, -1)
     is_coded = codes >= 0
@@ -516,7 +496,7 @@ def coverage_window(sf: SyntheticField, image_index: int, target_index: int, *,
         Disc: the covered fraction of each pixel [0, 1]. Marker: the fraction of each pixel
         that is black ink.
     """
-    _check_image_index(sf, image_index)
+    check_image_index(sf, image_index)
     tg = _select_targets(sf, image_index, [target_index], coded,
                          sf.marker_size_mm if marker_size_mm is None else marker_size_mm,
                          quiet_zone_cells)
@@ -534,7 +514,7 @@ def coverage_window(sf: SyntheticField, image_index: int, target_index: int, *,
 # --------------------------------------------------------------------------------------
 # the image
 # --------------------------------------------------------------------------------------
-def _check_image_index(sf, image_index):
+def check_image_index(sf, image_index):
     n = len(sf.R_world_to_camera)
     if not (isinstance(image_index, (int, np.integer)) and 0 <= image_index < n):
         raise InputError(f"image_index must be an integer in 0..{n - 1}, got {image_index!r}")
@@ -606,7 +586,7 @@ def render_image(sf: SyntheticField, image_index: int, *, psf_sigma_px: float = 
     -------
     RenderedImage
     """
-    _check_image_index(sf, image_index)
+    check_image_index(sf, image_index)
     supersample = _check_supersample(supersample)
     if polarity not in ("dark", "bright"):
         raise InputError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
@@ -617,28 +597,37 @@ def render_image(sf: SyntheticField, image_index: int, *, psf_sigma_px: float = 
     if not (0 <= albedo_dark < albedo_light):
         raise InputError(f"albedos must satisfy 0 <= albedo_dark < albedo_light, got "
                          f"{albedo_dark}, {albedo_light}")
-    cam = sf.camera
-    s = cam.sensor
-    W, H = s.width_px, s.height_px
+    s = sf.camera.sensor
     rng = np.random.default_rng([int(seed), int(image_index)])
     phi = rng.uniform(0.0, 2 * np.pi)
     bg = albedo_light if polarity == "dark" else albedo_dark
     fig = albedo_dark if polarity == "dark" else albedo_light
     lut = np.array([bg, fig, albedo_dark, albedo_light, bg])
-    gain = 65535.0 / full_well_e
     meta = {
         "full_well_e": float(full_well_e), "read_noise_e": float(read_noise_e),
-        "gain_dn_per_e": gain, "black_level_dn": float(black_level_dn),
+        "gain_dn_per_e": 65535.0 / full_well_e, "black_level_dn": float(black_level_dn),
         "exposure": float(exposure), "polarity": polarity, "psf_sigma_px": float(psf_sigma_px),
         "supersample": supersample, "albedo_background": bg, "albedo_figure": fig,
         "albedo_dark": albedo_dark, "albedo_light": albedo_light, "noise": bool(noise),
         "illumination": {"gradient": float(illumination_gradient), "cos": float(np.cos(phi)),
-                         "sin": float(np.sin(phi)), "cu": (W - 1) / 2.0, "cv": (H - 1) / 2.0,
-                         "width": float(W), "height": float(H)},
+                         "sin": float(np.sin(phi)), "cu": (s.width_px - 1) / 2.0, "cv": (s.height_px - 1) / 2.0,
+                         "width": float(s.width_px), "height": float(s.height_px)},
         "seed": int(seed), "image_index": int(image_index),
     }
-
     tg = _select_targets(sf, image_index, targets, coded, sf.marker_size_mm, quiet_zone_cells)
+    windows, geo, cov_centroid = _draw_windows(sf.camera, tg, psf_sigma_px, supersample, lut, adaptive)
+    pixels = _compose(s.width_px, s.height_px, windows, meta, bg, rng, noise)
+    truth = _truth_table(sf, tg, geo, cov_centroid, geo["draw"], meta, lut)
+    return RenderedImage(pixels, truth, meta)
+
+
+def _draw_windows(cam: Camera, tg: _Targets, psf_sigma_px, supersample, lut, adaptive):
+    """The blurred albedo change of every target's window, with occlusion and isolation.
+
+    Returns the windows ``[(u0, v0, delta (h, w) float32)]``, the geometry of
+    :func:`_geometry` with ``visible`` and ``isolated`` added, and the first moments of the
+    discs' coverage (n, 2) [px] (NaN for markers)."""
+    bg = lut[_BG]
     margin = int(math.ceil(4.0 * psf_sigma_px)) + 2
     geo = _geometry(cam, tg, margin)
     u0s, v0s, ws, hs = geo["window"].T
@@ -658,7 +647,6 @@ def render_image(sf: SyntheticField, image_index: int, *, psf_sigma_px: float = 
     near = overlapping(1)
     windows, masks = [], {}
     cov_centroid = np.full((n, 2), np.nan)
-    covered = np.zeros(n)
     visible = np.zeros(n)
     # per target window (each one vectorised over its pixels and samples)
     for j in np.flatnonzero(draw):
@@ -667,22 +655,19 @@ def render_image(sf: SyntheticField, image_index: int, *, psf_sigma_px: float = 
         albedo, cover, hidden = _window_classes_mean(cam, tg, j, u0, v0, h, w, supersample, lut,
                                                      exact_adaptive, np.flatnonzero(near[j]))
         delta = albedo - bg
-        covered[j] = cover.sum()
-        visible[j] = covered[j] / (covered[j] + hidden.sum()) if covered[j] > 0 else 0.0
+        covered = cover.sum()
+        visible[j] = covered / (covered + hidden.sum()) if covered > 0 else 0.0
         masks[j] = cover > 0
-        if not tg.coded[j] and covered[j] > 0:    # first moments of the disc's coverage
-            cov_centroid[j] = [(cover.sum(axis=0) @ np.arange(u0, u0 + w)) / covered[j],
-                               (cover.sum(axis=1) @ np.arange(v0, v0 + h)) / covered[j]]
+        if not tg.coded[j] and covered > 0:    # first moments of the disc's coverage
+            cov_centroid[j] = [(cover.sum(axis=0) @ np.arange(u0, u0 + w)) / covered,
+                               (cover.sum(axis=1) @ np.arange(v0, v0 + h)) / covered]
         if psf_sigma_px > 0:
             delta = ndimage.gaussian_filter(delta, psf_sigma_px, mode="constant", cval=0.0,
                                             truncate=4.0)
         windows.append((u0, v0, delta.astype(np.float32)))
     geo["visible"] = visible
     geo["isolated"] = _isolated(masks, u0s, v0s, overlapping(margin), margin, n)
-
-    pixels = _compose(W, H, windows, meta, bg, rng, noise)
-    truth = _truth_table(sf, tg, geo, cov_centroid, draw, meta, lut)
-    return RenderedImage(pixels, truth, meta)
+    return windows, geo, cov_centroid
 
 
 def _isolated(masks, u0s, v0s, candidates, margin, n):
@@ -777,7 +762,7 @@ def _max_marker_mm(sf: SyntheticField, radius_m: float, quiet_zone_cells: float)
     if ci.size == 0:
         return np.inf
     normals = tt.normals if tt.normals is not None else np.tile([0.0, -1.0, 0.0], (len(tt), 1))
-    _, e1, e2 = _plane_axes(normals[ci])
+    _, e1, e2 = target_plane_axes(normals[ci])
     ncell = aruco_cells(0).shape[0]
     factor = 0.5 * (1.0 + 2.0 * quiet_zone_cells / ncell)     # quiet half-side / marker side
     d = tt.xyz_m[None, :, :] - tt.xyz_m[ci][:, None, :]       # (coded, all, 3)
@@ -845,208 +830,3 @@ def scaled_field(sf: SyntheticField, scale: float, *, target_scale: float | None
     return replace(sf, camera=camera, uv_true_px=uv[keep], data=data,
                    target_diameter_mm=float(diameter_mm), marker_size_mm=float(marker_size_mm),
                    settings=settings)
-
-
-# --------------------------------------------------------------------------------------
-# sessions on disk
-# --------------------------------------------------------------------------------------
-_TIFF_LAYOUTS = (
-    {"tile": (256, 256), "compression": "zstd", "bigtiff": False},
-    {"tile": None, "compression": None, "bigtiff": False},
-    {"tile": (256, 256), "compression": "adobe_deflate", "bigtiff": True},
-    {"tile": None, "compression": None, "bigtiff": True},
-)
-"""The alternation of TIFF layouts written with ``compression_mix`` (image k uses k mod 4)."""
-
-
-def _write_tiff(path: Path, pixels: np.ndarray, layout: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    kw = {"photometric": "minisblack", "bigtiff": layout["bigtiff"], "metadata": None}
-    if layout["tile"] is not None:
-        kw["tile"] = layout["tile"]
-    else:
-        kw["rowsperstrip"] = 64
-    if layout["compression"] is not None:
-        kw["compression"] = layout["compression"]
-    tifffile.imwrite(path, pixels, **kw)
-
-
-def _safe_id(name: str) -> str:
-    """A session id the schema accepts (``[A-Za-z0-9][A-Za-z0-9._-]*``) made from a folder name."""
-    out = re.sub(r"[^A-Za-z0-9._-]", "-", name).lstrip("._-")[:128]
-    return out or "session"
-
-
-def _fmt(x: float, digits: int) -> str:
-    return f"{x:.{digits}f}"
-
-
-def _write_csv(path: Path, header, rows) -> None:
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(header)
-        w.writerows(rows)
-
-
-def _spread_choice(uv, n, rng):
-    """``n`` indices of well-spread points of ``uv`` (K, 2): greedy farthest-point sampling."""
-    if len(uv) <= n:
-        return np.arange(len(uv))
-    first = int(np.argmax(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))
-    chosen = [first]
-    dmin = np.linalg.norm(uv - uv[first], axis=1)
-    for _ in range(n - 1):
-        nxt = int(np.argmax(dmin))
-        chosen.append(nxt)
-        dmin = np.minimum(dmin, np.linalg.norm(uv - uv[nxt], axis=1))
-    return np.array(chosen)
-
-
-def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
-                        observations_csv: bool = False, marks_csv: bool = False, coded: bool = True,
-                        psf_sigma_px: float = 0.8, seed: int = 0, compression_mix: bool = True,
-                        image_indices=None, polarity: str = "dark", camera_id: str | None = None,
-                        session_id: str | None = None, acquired: str = "2026-11-20T09:30:00Z",
-                        nominal_focal_mm: float | None = None, marks_error_px: float = 0.5,
-                        marks_per_image: tuple[int, int] = (4, 6), **render_kw) -> dict:
-    """Write a complete field session (docs/conventions.md section 3) of a synthetic problem.
-
-    Parameters
-    ----------
-    folder : path-like
-        The session folder (created; existing files of the same names are overwritten).
-    sf : SyntheticField
-        The problem (e.g. ``scaled_field(paper_field(), 0.25)``).
-    images : bool
-        Render and write ``images/*.tif``. ``False`` with ``observations_csv=True`` gives an
-        observation-only session (session.json, targets.csv, observations.csv).
-    observations_csv : bool
-        Write ``observations.csv`` from ``sf.data.obs`` (the noisy measurements).
-    marks_csv : bool
-        Write ``marks.csv``: for every image written (those with markers too), 4-6
-        well-spread plain targets (greedy farthest-point choice among the observed plain
-        targets at least two diameters from the border), at their exact image position plus
-        Gaussian noise of ``marks_error_px`` per axis, as a human would click them.
-    coded : bool
-        Draw coded targets as ArUco markers, write ``field.coded`` and the ``code`` column;
-        ``False`` draws them as plain discs and writes no codes.
-    psf_sigma_px, seed, polarity, **render_kw
-        Passed to :func:`render_image` (``seed`` also seeds the marks).
-    compression_mix : bool
-        Alternate the TIFF layouts of :data:`_TIFF_LAYOUTS` (tiled + zstd, striped
-        uncompressed, tiled + deflate BigTIFF, striped uncompressed BigTIFF); ``False``
-        writes every image striped and uncompressed.
-    image_indices : sequence of int, optional
-        The images to include (default all).
-    camera_id, session_id, acquired, nominal_focal_mm
-        Manifest fields; defaults ``synthetic-<scenario>``, the folder's name, a fixed date,
-        and the scenario's nominal focal length (paper 150 mm, wide 24 mm).
-
-    Returns
-    -------
-    dict
-        ``folder`` (str), ``session`` (the manifest written), ``images`` (list of image names
-        written or listed), ``truth`` ({image name: truth table of :func:`render_image`};
-        empty without images), ``layouts`` ({image name: TIFF layout}), ``marks`` (table
-        ``image, target_id, u, v, u_true, v_true`` or None).
-    """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    n_img = len(sf.data.images)
-    idx = np.arange(n_img) if image_indices is None else np.asarray(list(image_indices), np.int64)
-    for i in idx:
-        _check_image_index(sf, int(i))
-    if polarity not in ("dark", "bright"):
-        raise InputError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
-    scenario = sf.settings.get("scenario", sf.name)
-    if nominal_focal_mm is None:
-        nominal_focal_mm = (sf.data.nominal_focal_mm or NOMINAL_FOCAL_MM.get(scenario)
-                            or float(round(sf.camera.f_mm)))
-    names = [sf.data.images[int(i)].file for i in idx]
-    session = {
-        "schema": "fieldcal.session/1",
-        "method": "field",
-        "camera_id": camera_id or f"synthetic-{scenario}",
-        "session_id": session_id or _safe_id(folder.resolve().name),
-        "acquired": acquired,
-        "sensor": sf.camera.sensor.to_dict(),
-        "lens": {"nominal_focal_mm": float(nominal_focal_mm)},
-        "field": {"targets": "targets.csv", "target_diameter_mm": float(sf.target_diameter_mm),
-                  "target_polarity": polarity},
-        "images": [{"file": sf.data.images[int(i)].file, "station": sf.data.images[int(i)].station}
-                   if sf.data.images[int(i)].station else {"file": sf.data.images[int(i)].file}
-                   for i in idx],
-        "default_sigma_px": float(sf.data.default_sigma_px),
-    }
-    if coded:
-        session["field"]["coded"] = {"type": "aruco", "dictionary": ARUCO_DICTIONARY,
-                                     "marker_size_mm": float(sf.marker_size_mm)}
-    (folder / "session.json").write_text(json.dumps(session, indent=2) + "\n")
-
-    t = sf.data.targets
-    _write_csv(folder / "targets.csv", ["id", "X", "Y", "Z", "sigma_mm", "code"],
-               [[t.ids[k], _fmt(t.xyz_m[k, 0], 6), _fmt(t.xyz_m[k, 1], 6), _fmt(t.xyz_m[k, 2], 6),
-                 _fmt(t.sigma_mm[k], 3), str(int(t.codes[k])) if coded and t.codes[k] >= 0 else ""]
-                for k in range(len(t))])
-
-    obs = sf.data.obs
-    sel = np.isin(obs.image, idx)
-    if observations_csv:
-        k = np.flatnonzero(sel)
-        _write_csv(folder / "observations.csv", ["image", "target_id", "u", "v", "sigma_px"],
-                   [[sf.data.images[obs.image[m]].file, t.ids[obs.target[m]],
-                     _fmt(obs.uv_px[m, 0], 6), _fmt(obs.uv_px[m, 1], 6), _fmt(obs.sigma_px[m], 4)]
-                    for m in k])
-
-    marks = None
-    if marks_csv:
-        marks = _marks(sf, idx, coded, marks_error_px, marks_per_image, seed)
-        _write_csv(folder / "marks.csv", ["image", "target_id", "u", "v"],
-                   [[r["image"], r["target_id"], _fmt(r["u"], 3), _fmt(r["v"], 3)]
-                    for r in marks.to_pylist()])
-
-    truth, layouts = {}, {}
-    if images:
-        for k, i in enumerate(idx):
-            name = sf.data.images[int(i)].file
-            r = render_image(sf, int(i), psf_sigma_px=psf_sigma_px, seed=seed, polarity=polarity,
-                             coded=coded, **render_kw)
-            layout = _TIFF_LAYOUTS[k % len(_TIFF_LAYOUTS)] if compression_mix else _TIFF_LAYOUTS[1]
-            _write_tiff(folder / name, r.pixels, layout)
-            truth[name] = r.truth
-            layouts[name] = dict(layout)
-            del r
-            progress.emit("images", done=k + 1, total=len(idx), label="rendering images")
-    return {"folder": str(folder), "session": session, "images": names, "truth": truth,
-            "layouts": layouts, "marks": marks}
-
-
-def _marks(sf, idx, coded, error_px, per_image, seed):
-    """Hand marks: 4-6 well-spread plain targets per image at the exact image point + noise."""
-    rng = np.random.default_rng([int(seed), 7919])
-    s = sf.camera.sensor
-    obs = sf.data.obs
-    plain = (sf.targets_true.codes < 0) | (not coded)
-    d_px = sf.camera.f_mm * sf.target_diameter_mm / 1000.0 / s.pixel_mm
-    out = {"image": [], "target_id": [], "u": [], "v": [], "u_true": [], "v_true": []}
-    for i in idx:
-        k = np.flatnonzero((obs.image == i) & plain[obs.target])
-        uv = sf.uv_true_px[k]
-        dist = np.linalg.norm(sf.targets_true.xyz_m[obs.target[k]] - sf.center_m[i], axis=1)
-        border = np.minimum.reduce([uv[:, 0], uv[:, 1], s.width_px - 1 - uv[:, 0],
-                                    s.height_px - 1 - uv[:, 1]]) if len(k) else np.zeros(0)
-        k, uv = k[border > 2.0 * d_px / dist], uv[border > 2.0 * d_px / dist]
-        n = int(rng.integers(per_image[0], per_image[1] + 1))
-        pick = _spread_choice(uv, n, rng)
-        noisy = uv[pick] + rng.normal(0.0, error_px, (len(pick), 2))
-        out["image"] += [sf.data.images[int(i)].file] * len(pick)
-        out["target_id"] += list(sf.targets_true.ids[obs.target[k[pick]]])
-        out["u"] += noisy[:, 0].tolist()
-        out["v"] += noisy[:, 1].tolist()
-        out["u_true"] += uv[pick, 0].tolist()
-        out["v_true"] += uv[pick, 1].tolist()
-    return pa.table({"image": pa.array(out["image"], pa.string()),
-                     "target_id": pa.array(out["target_id"], pa.string()),
-                     "u": pa.array(out["u"], pa.float64()), "v": pa.array(out["v"], pa.float64()),
-                     "u_true": pa.array(out["u_true"], pa.float64()),
-                     "v_true": pa.array(out["v_true"], pa.float64())})

@@ -10,6 +10,7 @@ centroids (same points) and for the calibration (tests/realdata.py: dbat_field_d
 """
 
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -38,8 +39,32 @@ def _rows(path):
     return [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
 
 
+MARKED_IMAGES_FEW = (1, 8, 15)
+"""The images that keep their marks in the run with marks in only 3 of the 21 photos."""
+
+
 @pytest.fixture(scope="module")
 def dbat(tmp_path_factory):
+    return _dbat_run(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def dbat_few_marks(dbat, tmp_path_factory):
+    """The same photos and measurements, with the marks of only 3 of the 21 photos."""
+    folder = tmp_path_factory.mktemp("dbat-few")
+    rows = _rows(dbat["prepared"].session.marks_path)
+    keep = {dbat["names"][i] for i in MARKED_IMAGES_FEW}
+    (folder / "marks.csv").write_text("\n".join(["image,target_id,u,v"] + [r for r in rows[1:]
+                                                                           if r.split(",")[0] in keep]) + "\n")
+    session = replace(dbat["prepared"].session, marks_path=folder / "marks.csv")
+    lines = []
+    data, result, report = calibrate_from_measurements(session, dbat["measurements"], AdjustmentOptions(),
+                                                       progress=lines.append)
+    print("\n" + "\n".join(ln for ln in lines if not ln.startswith(("adjustment", "re-adj"))))
+    return dict(data=data, result=result, report=report)
+
+
+def _dbat_run(tmp_path_factory):
     require("dbat-camcal")                          # skips every test of the module without the data
     folder = tmp_path_factory.mktemp("dbat")
     (folder / "images").mkdir()
@@ -170,3 +195,35 @@ def test_calibration_agrees_with_the_one_from_photomodelers_marks(dbat):
         assert diff <= 3.0 * np.hypot(ours.sigma[n], ref.sigma[n])
     assert abs(ours.params[0] / ref.params[0] - 1.0) < 1e-3       # f to 0.1 %
     assert so["rmse_px"] < 0.2                                    # the JPEGs' centroid noise
+
+
+def test_marks_in_three_photos_give_the_same_calibration(dbat, dbat_few_marks):
+    """Hand marks in only 3 of the 21 photos: the others are identified from the calibrated
+    camera (pose-free search, the oriented images' centres; the sheet is a square grid that a
+    quarter turn maps onto itself, told apart by the fit), every identity is PhotoModeler's, and
+    the calibration stays within the full-marks run's bands."""
+    few, full = dbat_few_marks["result"], dbat["result"]
+    summary = dbat_few_marks["data"].meta["identification"]
+    print(f"\nmarks in 3 photos: {summary}")
+    ref = dbat["reference"]
+    wrong = same = 0
+    for name, ident in dbat_few_marks["data"].meta["identifications"].items():
+        table = dbat["measurements"][name]
+        uv = np.stack([table["u_px"].to_numpy(), table["v_px"].to_numpy()], axis=1)
+        k = ref.obs.image == [im.file for im in ref.images].index(name)
+        pm_uv, pm_id = ref.obs.uv_px[k], ref.targets.ids[ref.obs.target[k]]
+        for row in np.flatnonzero(ident.target >= 0):
+            d = np.linalg.norm(pm_uv - uv[row], axis=1)
+            if d.min() < 1.0:                       # a blob PhotoModeler marked: its id
+                same += 1
+                wrong += int(pm_id[np.argmin(d)] != dbat_few_marks["data"].targets.ids[ident.target[row]])
+    print(f"identities checked against PhotoModeler's marks: {same}, wrong {wrong}")
+    assert wrong == 0 and same > 1500
+    assert summary["used"] == 21                         # every photo (>= 99 % of those with >= 20 targets)
+    for j, n in enumerate(("f_mm", "xp_mm", "yp_mm")):
+        print(f"{n}: {few.params[j]:.6g} +- {few.sigma[n]:.2g} "
+              f"(full marks {full.params[j]:.6g} +- {full.sigma[n]:.2g})")
+        # the same bands as the full-marks run against PhotoModeler: 3 combined sigmas
+        assert abs(few.params[j] - full.params[j]) <= 3.0 * np.hypot(few.sigma[n], full.sigma[n])
+    assert abs(few.params[0] / full.params[0] - 1.0) < 1e-3
+    assert few.stats()["rmse_px"] < 0.2

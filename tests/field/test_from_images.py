@@ -22,7 +22,8 @@ from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.from_images import calibrate_from_measurements, target_normals_of
 from fieldcal.pipeline import measure, prepare, solve
 from fieldcal.synthetic.field import paper_field
-from fieldcal.synthetic.render import render_image, scaled_field, write_field_session
+from fieldcal.synthetic.render import render_image, scaled_field
+from fieldcal.synthetic.session_writer import write_field_session
 
 # two attitudes per station, rolled by different multiples of 90 degrees (image = 12 s + a)
 IMAGES = [12 * s + a for s in range(6) for a in (s % 4, 4 + (s + 1) % 4)]

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from fieldcal.errors import InputError
 from fieldcal.field.identify import (
+    IdentifyOptions,
     _grunert_distances,
     _p3p_poses,
     identify_image,
@@ -242,7 +243,7 @@ def test_bad_arguments_are_refused(scene):
     name, sf, nominal, shots = scene
     meas = next(iter(shots.values()))[0]
     with pytest.raises(InputError, match="min_identified must be at least 4"):
-        identify_image(meas, sf.data.targets, nominal, min_identified=3)
+        identify_image(meas, sf.data.targets, nominal, options=IdentifyOptions(min_identified=3))
     with pytest.raises(InputError, match="3 target indices but 2 points"):
         identify_image(meas, sf.data.targets, nominal, marks=(np.array([0, 1, 2]), np.zeros((2, 2))))
     with pytest.raises(InputError, match="lacks the column 'u_px'"):

@@ -20,7 +20,7 @@ import pytest
 from fieldcal.lake.store import Lake
 from fieldcal.progress import TerminalProgress, emit, listening
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 from flows import cli, cli_common, server
 
 ROOT = Path(__file__).resolve().parents[2]

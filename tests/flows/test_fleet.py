@@ -19,7 +19,7 @@ from fieldcal import pipeline
 from fieldcal.lake.store import Lake
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 from flows import cli, server
 from flows.fleet import recalibrate_fleet
 

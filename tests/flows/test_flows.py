@@ -28,7 +28,7 @@ from fieldcal.model.camera import INDEX, PARAM_NAMES
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 from flows.calibrate import calibrate_session
 from flows.fleet import fleet_deployment, recalibrate_fleet
 from flows.hashcache import HashCache, file_stamp

@@ -15,7 +15,7 @@ from fieldcal.lake.store import Lake
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 from flows.calibrate import calibrate_session
 from flows.fleet import recalibrate_fleet
 

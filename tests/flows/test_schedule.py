@@ -30,7 +30,7 @@ import pytest
 
 from fieldcal.lake.store import Lake
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 ROOT = Path(__file__).resolve().parents[2]
 FIELDCAL = str(Path(sys.executable).with_name("fieldcal"))

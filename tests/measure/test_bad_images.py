@@ -31,7 +31,8 @@ from fieldcal.measure.imageio import MAX_PIXELS, read_image
 from fieldcal.measure.targets import MAX_SATURATED_FRACTION
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import scaled_field, write_field_session
+from fieldcal.synthetic.render import scaled_field
+from fieldcal.synthetic.session_writer import write_field_session
 
 W, H = 900, 600          # the field session's sensor (wide scenario at raster scale 0.15)
 

@@ -38,7 +38,7 @@ from fieldcal.products.report import (
 from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import IXU150_TABLE1, add_blunders, paper_field
 from fieldcal.synthetic.goniometer import write_session
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 DRIFT = {"f_mm": 0.020, "k1_factor": 1.03}
 

@@ -27,7 +27,7 @@ from fieldcal.session.loader import (
     read_targets_csv,
 )
 from fieldcal.synthetic import field as syn
-from fieldcal.synthetic import render
+from fieldcal.synthetic import render, session_writer
 
 
 # ------------------------------------------------------------------------------------------
@@ -392,7 +392,7 @@ def read_csv(path):
 
 def test_observation_only_session(tmp_path):
     sf = syn.paper_field(seed=0)
-    out = render.write_field_session(tmp_path / "s1", sf, images=False, observations_csv=True)
+    out = session_writer.write_field_session(tmp_path / "s1", sf, images=False, observations_csv=True)
     folder = tmp_path / "s1"
     assert sorted(p.name for p in folder.iterdir()) == ["observations.csv", "session.json",
                                                          "targets.csv"]
@@ -429,7 +429,7 @@ def test_observation_only_session(tmp_path):
 
 def test_session_with_images_marks_and_the_tiff_mix(tmp_path, tiny_wide):
     folder = tmp_path / "wide-session"
-    out = render.write_field_session(folder, tiny_wide, image_indices=[0, 7, 12, 21],
+    out = session_writer.write_field_session(folder, tiny_wide, image_indices=[0, 7, 12, 21],
                                      marks_csv=True, seed=4, session_id="w1", camera_id="cam-7")
     doc = json.loads((folder / "session.json").read_text())
     assert doc["session_id"] == "w1" and doc["camera_id"] == "cam-7"
@@ -475,7 +475,7 @@ def test_session_with_images_marks_and_the_tiff_mix(tmp_path, tiny_wide):
 
 
 def test_uncoded_session_draws_discs_and_writes_no_codes(tmp_path, tiny_wide):
-    out = render.write_field_session(tmp_path / "u", tiny_wide, coded=False, image_indices=[3],
+    out = session_writer.write_field_session(tmp_path / "u", tiny_wide, coded=False, image_indices=[3],
                                      compression_mix=False)
     doc = out["session"]
     assert "coded" not in doc["field"]
