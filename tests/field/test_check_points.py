@@ -127,3 +127,29 @@ def test_a_session_names_its_check_points_and_the_document_carries_them(tmp_path
     (tmp_path / "session.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="is not of type 'string'"):
         pipeline.prepare(tmp_path)
+
+
+def test_the_report_and_the_certificate_show_check_points_and_the_cross_validation(tmp_path):
+    from fieldcal.products.certificate import acceptance, load_config
+    from fieldcal.products.report_sections import validation_section
+    from fieldcal.products.uncertainty import Calibration
+    from tests.products.test_report import check_html
+
+    sf = wide_field(seed=2)
+    write_field_session(tmp_path, sf, images=False, observations_csv=True)
+    settings = pipeline.Settings(check_fraction=0.1, cross_validate=True)
+    assert pipeline.Settings().to_dict() == {"targets_adjusted": True, "solver": "lmqn",
+                                             "rigorous_goniometer": False}     # other fingerprints stay
+    assert settings.to_dict()["check_fraction"] == 0.1 and settings.to_dict()["cross_validate"] is True
+    out = pipeline.solve(pipeline.prepare(tmp_path, settings), {}, fingerprint_=FP)
+    st = out.document["stats"]
+    assert [s["station"] for s in st["cross_validation"]["stations"]] == [f"S{i}" for i in range(1, 9)]
+    cal = Calibration.from_document(out.document)
+    rows = {r["criterion"]: r for r in acceptance(cal, None, load_config())["rows"]}
+    assert rows["check-point RMS (px)"]["value"] == pytest.approx(st["check_points"]["rms_px"])
+    assert rows["check-point RMS (mm)"]["value"] == pytest.approx(st["check_points"]["rms_mm"])
+    html = validation_section(cal)
+    c = check_html(html)
+    assert c.errors == [] and c.stack == []
+    assert 'id="check-points"' in html and 'id="cross-validation"' in html
+    assert f"{st['check_points']['rms_px']:.3g} px" in html
