@@ -41,15 +41,30 @@ __all__ = ["Settings", "Prepared", "Outcome", "prepare", "measure", "solve", "im
 
 @dataclass(frozen=True)
 class Settings:
-    """What a run may change besides the session (part of the inputs' fingerprint)."""
+    """What a run may change besides the session (part of the inputs' fingerprint).
+
+    ``check_fraction`` withholds a random, stratified fraction of the surveyed targets as
+    check points (seeded by ``check_seed``; :mod:`fieldcal.field.check_points`), besides
+    those the session names. ``cross_validate`` recalibrates without each station
+    (:mod:`fieldcal.field.cross_validation`; one warm re-adjustment per station) and stores
+    how far the correction field moves in ``stats.cross_validation``.
+    """
 
     targets_adjusted: bool = True
     solver: str = "lmqn"
     rigorous_goniometer: bool = False
+    check_fraction: float = 0.0
+    check_seed: int = 0
+    cross_validate: bool = False
 
     def to_dict(self) -> dict:
-        return {"targets_adjusted": self.targets_adjusted, "solver": self.solver,
-                "rigorous_goniometer": self.rigorous_goniometer}
+        out = {"targets_adjusted": self.targets_adjusted, "solver": self.solver,
+               "rigorous_goniometer": self.rigorous_goniometer}
+        if self.check_fraction > 0:           # only then: the fingerprints of other runs stay
+            out.update(check_fraction=self.check_fraction, check_seed=self.check_seed)
+        if self.cross_validate:
+            out["cross_validate"] = True
+        return out
 
 
 @dataclass
@@ -91,10 +106,16 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
     settings = settings or Settings()
     if settings.solver not in ("lmqn", "lm"):
         raise InputError(f"solver must be 'lmqn' or 'lm', got {settings.solver!r}", "settings")
+    if not (0.0 <= settings.check_fraction < 1.0):
+        raise InputError(f"check_fraction must lie in [0, 1), got {settings.check_fraction}", "settings")
     sess = load_session(folder)
     tables = {"session.json": (sess.folder / "session.json").read_bytes()}
     if sess.method == "field":
         targets = sess.targets()                                # validates now (read once)
+        unknown = sorted(set(sess.check_points) - set(targets.ids.tolist()))
+        if unknown:
+            raise InputError(f"check_points {unknown[:5]} are not in {sess.targets_path.name} (at /check_points)",
+                             str(sess.folder / "session.json"))
         tables[sess.targets_path.name] = sess.targets_path.read_bytes()
         field_data = None
         if sess.observations_path is not None:
@@ -205,7 +226,9 @@ def _field_result(prepared, measurements, progress, left_out):
 
     sess = prepared.session
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
-                                estimate=sess.estimate, method=prepared.settings.solver)
+                                estimate=sess.estimate, method=prepared.settings.solver,
+                                check_points=sess.check_points, check_fraction=prepared.settings.check_fraction,
+                                check_seed=prepared.settings.check_seed)
     if sess.observations_path is not None:
         data, left = drop_sparse_images(prepared.field_data or field_data_from_observations(sess))
         if left and len(data.images) < MIN_IMAGES:
@@ -231,6 +254,10 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
     stats["left_out"] = [{"image": r.get("image"), "reason": r.get("reason")} for r in left_out]
     if "identification" in data.meta:
         stats["identification"] = data.meta["identification"]
+    if prepared.settings.cross_validate:
+        from fieldcal.field.cross_validation import cross_validate_by_station
+
+        stats["cross_validation"] = cross_validate_by_station(res, progress=progress).to_dict()
     doc = calibration_document(
         camera_id=sess.camera_id, session_id=sess.session_id, version="", method="field",
         sensor=sess.sensor, parameters=res.params, sigma=res.sigma, stats=stats,
@@ -246,6 +273,12 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
         attrs["targets/xyz_m"] = {"ids": [str(t) for t in data.targets.ids]}
         arrays["targets/survey_residual_mm"] = res.survey_residual_mm        # surveyed - adjusted
         arrays["targets/survey_used"] = res.survey_used.astype("int8")
+    cp = res.check_points
+    if cp is not None and len(cp.ids):
+        arrays["check_points/error_mm"] = cp.error_mm                         # intersected - surveyed
+        arrays["check_points/sigma_mm"] = np.sqrt(np.einsum("kii->ki", cp.cov_mm2))
+        attrs["check_points/error_mm"] = {"ids": [str(t) for t in cp.ids],
+                                          "what": "intersected minus surveyed coordinates [mm]"}
     summary = _field_summary(sess, res)
     return Outcome(doc, arrays, attrs, res.residual_table(), summary, left_out, res)
 
@@ -260,6 +293,11 @@ def _field_summary(sess, res: FieldResult) -> list[str]:
         lines.append(f"  {n:6s} {res.params[j]: .6e}" + (f"  +- {s:.2e}" if s is not None else "  (fixed)"))
     if res.fixed_parameters:
         lines.append("held fixed: " + ", ".join(f"{k} ({v})" for k, v in res.fixed_parameters.items()))
+    cp = st.get("check_points")
+    if cp and cp.get("n"):
+        lines.append(f"check points: {cp['n']} in object space, RMS {cp['rms_mm']:.3g} mm (predicted "
+                     f"{cp['rms_mm_predicted']:.3g}); {cp['n_observations']} image points, RMS "
+                     f"{cp['rms_px']:.3g} px (predicted {cp['rms_px_predicted']:.3g})")
     return lines
 
 

@@ -20,8 +20,20 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
 4. **Parameter selection** (when the session gives no ``estimate``): an additional
    parameter (``k1 .. a2``) is held fixed at 0 when the data cannot determine it: its
    correlation with another interior parameter exceeds ``max_correlation`` (the weaker
-   of the pair is fixed) or it is not significant (``|value| < min_t * sigma``). One
+   of the pair is fixed), or f is undetermined and it inflates f's sigma most. One
    parameter per round, the worst first, each reason reported (``stats.fixed_parameters``).
+   A parameter that is merely *not significant* is kept, with its sigma: holding it at 0
+   would move its correlated partners by its (unknown) true value while the covariance,
+   conditional on the 0, shrinks (docs/uncertainty.md; the issue's draw where holding
+   p1 cut the sigma of xp from 2.77 px to 0.50 px and left a 3.3-sigma error). The old
+   rule is still there for who asks for it (``min_t > 0``), with that caveat.
+4b. **Variance components** (:mod:`fieldcal.field.variance_components`; ``variance_components``):
+   with adjusted targets, a floor added in quadrature to the image points' sigmas and a
+   factor of the surveys' sigmas are estimated from the residuals and their redundancy
+   numbers, and the adjustment re-weighted (warm) until they settle; with fixed targets the
+   survey errors, which the image residuals then carry identically in every image of a
+   target, are propagated into the covariance. ``stats.sigma0`` stays the factor of the
+   session's own a-priori sigmas; ``stats.variance_components`` says what was used.
 5. **Diagnoses instead of calibrations** (:class:`~fieldcal.errors.GeometryError`): fewer
    than :data:`MIN_IMAGES` images or :data:`MIN_POINTS_PER_IMAGE` points in an image; a
    network that cannot determine f even with every additional parameter held fixed (checked
@@ -44,8 +56,19 @@ from scipy.stats import chi2
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
+from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
+from fieldcal.field.variance_components import (
+    MIN_GROUP_REDUNDANCY,
+    WEIGHT_TOLERANCE,
+    VarianceComponents,
+    fixed_target_covariance,
+    group_factor,
+    image_floor_px,
+    survey_consider_matrix,
+    weight_change,
+)
 from fieldcal.model.camera import FIELD_PARAMS, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.solver.blocksparse import (
@@ -65,6 +88,10 @@ __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", 
 MIN_POINTS_PER_IMAGE = 6
 MIN_IMAGES = 3
 """The field method needs at least this many images (as a session measured from images does)."""
+CHECK_POINT = "check point"
+"""The residual table's ``reason`` of an image point of a check point."""
+MAX_COMPONENT_ROUNDS = 4
+"""At most this many re-weighted re-solutions for the variance components (step 4b)."""
 
 
 @dataclass
@@ -93,7 +120,18 @@ class AdjustmentOptions:
     max_correlation : float
         Correlation above which the weaker of two interior parameters is fixed.
     min_t : float
-        An additional parameter with ``|value| / sigma`` below this is fixed.
+        An additional parameter with ``|value| / sigma`` below this is fixed. Default 0:
+        no parameter is held for being insignificant (module docstring, step 4): a held
+        parameter biases its partners by its true value while their covariance shrinks.
+    variance_components : bool
+        Estimate an image-point floor and a survey factor and re-weight (adjusted targets),
+        or propagate the survey errors of fixed targets (module docstring, step 4b).
+    check_points : tuple of str
+        Ids of surveyed targets to withhold as independent check points
+        (:mod:`fieldcal.field.check_points`; ``session.json`` ``check_points``).
+    check_fraction : float
+        Withhold also this fraction of the targets, drawn at random and stratified over the
+        field (seeded by ``check_seed``).
     max_rel_sigma_f : float
         When the principal distance is determined worse than this (relative sigma), the
         additional parameter that inflates the sigma of f, xp, yp most is fixed first.
@@ -111,8 +149,12 @@ class AdjustmentOptions:
     snoop_alpha: float = 1e-6
     max_rounds: int = 20
     max_correlation: float = 0.995
-    min_t: float = 1.0
+    min_t: float = 0.0
     max_rel_sigma_f: float = 0.02
+    variance_components: bool = True
+    check_points: tuple[str, ...] = ()
+    check_fraction: float = 0.0
+    check_seed: int = 0
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
@@ -122,7 +164,9 @@ class AdjustmentOptions:
                 "robust_k": self.robust_k,
                 "snoop_alpha": self.snoop_alpha, "max_rounds": self.max_rounds,
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
-                "max_rel_sigma_f": self.max_rel_sigma_f}
+                "max_rel_sigma_f": self.max_rel_sigma_f, "variance_components": self.variance_components,
+                "check_points": list(self.check_points), "check_fraction": self.check_fraction,
+                "check_seed": self.check_seed}
 
 
 # ---------------------------------------------------------------------------- validation
@@ -240,6 +284,8 @@ class FieldResult:
     iterations_total: int
     initial: InitialValues
     rounds: list = field(default_factory=list)
+    variance_components: VarianceComponents = field(default_factory=VarianceComponents)
+    check_points: CheckPoints | None = None
 
     @property
     def camera(self) -> Camera:
@@ -268,10 +314,12 @@ class FieldResult:
             "n_surveys_rejected": int((~self.survey_used[observed]).sum()) if self.options.targets_adjusted else 0,
             "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][~self.survey_used[observed]]]
             if self.options.targets_adjusted else [],
-            "n_left_out": int(((~used) & (self.obs_reason != "blunder")).sum()),
+            "n_left_out": int(((~used) & (self.obs_reason != "blunder") & (self.obs_reason != CHECK_POINT)).sum()),
             "iterations_total": int(self.iterations_total),
             "lsq_status": self.lsq.message,
             "initial_values": self.initial.how,
+            "variance_components": self.variance_components.to_dict(),
+            **({"check_points": self.check_points.to_stats()} if self.check_points is not None else {}),
         }
 
     def images_section(self) -> list[dict]:
@@ -321,6 +369,19 @@ class _Solver:
         self.iterations = 0
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
+        self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
+        self.sigma_mm0 = data.targets.sigma_mm.copy()
+        self.vc = VarianceComponents()
+
+    def reweight(self, floor_px: float, survey_factor: float):
+        """Weight the next solves with the variance components (step 4b): image sigmas
+        ``sqrt(sigma^2 + floor^2)``, survey sigmas times ``survey_factor``."""
+        d = self.data
+        obs = replace(d.obs, sigma_px=np.sqrt(self.sigma_px0**2 + floor_px**2))
+        targets = replace(d.targets, sigma_mm=self.sigma_mm0 * survey_factor)
+        self.data = replace(d, obs=obs, targets=targets)
+        self.vc.image_floor_px, self.vc.survey_factor = float(floor_px), float(survey_factor)
+        self.vc.rounds += 1
 
     def run(self, estimate, obs_active, survey_active, label, before=None):
         """One adjustment from the current state; ``before(model, x0, J0)`` sees its start."""
@@ -485,12 +546,17 @@ def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o
     return n
 
 
-def _snooping(model, result, obs_active, survey_active, reason, test, o):
-    """Data snooping with redundancy (module docstring, step 3); returns how many rejected."""
+def _snooping(model, result, flags: _Flags, o):
+    """Data snooping with redundancy (module docstring, step 3); returns how many rejected.
+
+    Records every tested observation's redundancy (the trace of its ``Q_vv`` block) in
+    ``flags`` for the variance components."""
+    obs_active, survey_active, reason, test = flags.obs_active, flags.survey_active, flags.reason, flags.test
     ne = result.jac.normal_equations()
     sigma0 = max(result.sigma0, 1e-12)
     n = 0
     Qi = np.eye(2) - ne.group_covariance(0)
+    flags.red_img[model.k] = Qi[:, 0, 0] + Qi[:, 1, 1]
     ri = result.r[: model.n_rows_image].reshape(-1, 2)
     Ti = _quadratic_form(Qi, ri) / sigma0**2
     test[model.k] = Ti
@@ -505,6 +571,7 @@ def _snooping(model, result, obs_active, survey_active, reason, test, o):
         n += int(worst.sum())
     if model.targets_adjusted and len(model.survey_k):
         Qs = np.eye(3) - ne.group_covariance(1)
+        flags.red_sur[model.survey_k] = np.einsum("kii->k", Qs)
         rs = result.r[model.n_rows_image:].reshape(-1, 3)
         Ts = _quadratic_form(Qs, rs) / sigma0**2
         bad_s = Ts > chi2.isf(o.snoop_alpha, 3)
@@ -546,6 +613,24 @@ def _interior_stats(model, result):
     s = np.sqrt(np.diag(ci))
     corr = ci / np.outer(s, s)
     return cov, s, corr
+
+
+def _final_stats(model, result, solver, o):
+    """:func:`_interior_stats` of the final adjustment; with fixed targets (and
+    ``variance_components``) the survey errors are propagated (step 4b)."""
+    if model.targets_adjusted or not o.variance_components:
+        solver.vc.unit_sigma = float(result.sigma0)
+        return _interior_stats(model, result)
+    _, jb, _ = model.residuals_and_blocks(result.x, True)
+    M, trace_q = survey_consider_matrix(jb.d_int, jb.d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
+                                        model.n_images)
+    m, n = result.jac.shape
+    unit = _reduced_covariance(model, result.jac.normal_equations())
+    cov, factor = fixed_target_covariance(unit, M, float(result.r @ result.r), m - n, trace_q)
+    solver.vc.survey_consider, solver.vc.error_model_factor, solver.vc.unit_sigma = True, factor, factor
+    ci = cov[: model.n_int, : model.n_int]
+    s = np.sqrt(np.diag(ci))
+    return cov, s, ci / np.outer(s, s)
 
 
 def _select_parameter(model, result, estimate, o):
@@ -760,6 +845,46 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
     o = options or AdjustmentOptions()
     _check_options(o)
     validate_field_data(data)
+    check = check_point_mask(data.targets, ids=o.check_points, fraction=o.check_fraction, seed=o.check_seed)
+    if not check.any():
+        return _adjust(data, o, progress, initial, initial_targets_m)
+    keep = ~check[data.obs.target]
+    if progress:
+        progress(f"{int(check.sum())} check point(s) withheld ({int((~keep).sum())} image points)")
+    if initial is not None:
+        initial = replace(initial, outliers=np.asarray(initial.outliers)[keep])
+    res = _adjust(data.with_obs(data.obs.take(keep)), o, progress, initial, initial_targets_m)
+    return _with_check_points(res, data, check, keep, o)
+
+
+def _with_check_points(res: FieldResult, data: FieldData, check, keep, o) -> FieldResult:
+    """The result over all of ``data``, the check points evaluated (:mod:`fieldcal.field.check_points`)."""
+    vc = res.variance_components
+    how = [f"session ({len(o.check_points)})"] if o.check_points else []
+    if o.check_fraction > 0:
+        how.append(f"stratified random fraction {o.check_fraction:g} (seed {o.check_seed})")
+    cp = evaluate_check_points(
+        data, check, res.params, res.estimate, res.R_world_to_camera, res.center_m, res.covariance,
+        image_sigma_px=np.sqrt(data.obs.sigma_px**2 + vc.image_floor_px**2) * vc.unit_sigma,
+        survey_sigma_mm=data.targets.sigma_mm * vc.survey_factor * vc.unit_sigma,
+        snoop_alpha=o.snoop_alpha, selection=" and ".join(how))
+
+    def expand(a, fill):
+        out = np.full((len(keep), *np.shape(a)[1:]), fill, dtype=np.asarray(a).dtype)
+        out[keep] = a
+        return out
+
+    residual, test = expand(res.residual_px, np.nan), expand(res.obs_test, np.nan)
+    residual[cp.obs_index], test[cp.obs_index] = cp.residual_px, cp.statistic
+    reason = expand(res.obs_reason.astype(object), CHECK_POINT).astype(str)
+    initial = replace(res.initial, outliers=expand(res.initial.outliers, False))
+    return replace(res, data=data, residual_px=residual, obs_used=expand(res.obs_used, False), obs_reason=reason,
+                   obs_test=test, survey_used=res.survey_used & ~check, initial=initial, check_points=cp)
+
+
+def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_targets_m) -> FieldResult:
+    """:func:`adjust_field` of the data without check points."""
+    validate_field_data(data)
     local, origin = centred(data)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
@@ -787,7 +912,7 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
                 progress(f"holding {name} fixed at 0: {why}")
             model, result = _solve_clean(solver, flags, estimate, o, "re-adjustment")
         try:
-            cov, s, corr = _interior_stats(model, result)
+            cov, s, corr = _final_stats(model, result, solver, o)
         except SingularSystemError as err:
             raise GeometryError(f"the interior orientation is not determined: {err}") from None
         _check_core_determined(model, result, corr, s, o)
@@ -801,6 +926,8 @@ def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
 def _check_options(o: AdjustmentOptions) -> None:
     if o.method not in ("lmqn", "lm"):
         raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
+    if not (np.isfinite(o.check_fraction) and 0.0 <= o.check_fraction < 1.0):
+        raise InputError(f"check_fraction must lie in [0, 1), got {o.check_fraction}", "adjustment options")
     if o.estimate is not None:
         bad = [p for p in o.estimate if p not in FIELD_PARAMS]
         if bad:
@@ -830,12 +957,16 @@ class _Flags:
     reason: np.ndarray            # (m,) object: '' or why the point is not used
     test: np.ndarray              # (m,) snooping statistic
     survey_active: np.ndarray     # (n_targets,) bool
+    red_img: np.ndarray           # (m,) redundancy of each image point (sum of its two numbers)
+    red_sur: np.ndarray           # (n_targets,) redundancy of each survey (sum of its three)
 
     def __init__(self, data: FieldData, init: InitialValues):
         self.obs_active = ~init.outliers
         self.reason = np.where(init.outliers, "initial outlier", "").astype(object)
         self.test = np.full(len(data.obs), np.nan)
         self.survey_active = np.ones(len(data.targets), bool)
+        self.red_img = np.full(len(data.obs), np.nan)
+        self.red_sur = np.full(len(data.targets), np.nan)
 
 
 def _solve_clean(solver, flags: _Flags, estimate, o, label):
@@ -849,7 +980,7 @@ def _solve_clean(solver, flags: _Flags, estimate, o, label):
                                    before=check)
         n = _gross_rejection(solver, model, result, flags.obs_active, flags.survey_active, flags.reason, o)
         if n == 0:
-            n = _snooping(model, result, flags.obs_active, flags.survey_active, flags.reason, flags.test, o)
+            n = _snooping(model, result, flags, o)
         # readmit initial outliers that now fit (they were only suspects)
         res = solver.residuals_all()
         s = data.obs.sigma_px * max(result.sigma0, 1.0)
@@ -860,9 +991,38 @@ def _solve_clean(solver, flags: _Flags, estimate, o, label):
         if o.targets_adjusted:
             n += _blame_the_survey(solver, flags.obs_active, flags.survey_active, flags.reason,
                                    max(result.sigma0, 1.0))
-        if n == 0 and not fits.any():
+        if n == 0 and not fits.any() and not _update_components(solver, model, result, flags, o):
             return model, result
     return model, result
+
+
+def _update_components(solver, model, result, flags: _Flags, o) -> bool:
+    """Step 4b with adjusted targets: estimate the image floor and the survey factor at a clean
+    solution and re-weight when they moved (True: solve again)."""
+    vc = solver.vc
+    if not (o.variance_components and o.targets_adjusted):
+        return False
+    k = model.k
+    v_px = result.r[: model.n_rows_image].reshape(-1, 2) * model.sigma_px[:, None]
+    rho = flags.red_img[k]
+    vc.image_redundancy = float(np.nansum(rho))
+    floor = vc.image_floor_px
+    if vc.image_redundancy >= MIN_GROUP_REDUNDANCY and np.all(np.isfinite(rho)):
+        floor = image_floor_px(v_px, solver.sigma_px0[k], rho, vc.image_floor_px)
+    factor = vc.survey_factor
+    if len(model.survey_k):
+        red_s = flags.red_sur[model.survey_k]
+        vc.survey_redundancy = float(np.nansum(red_s))
+        rel = group_factor(result.r[model.n_rows_image:], red_s)
+        factor = vc.survey_factor * rel if np.isfinite(rel) else vc.survey_factor
+    change = max(weight_change(solver.sigma_px0[k], vc.image_floor_px, floor), abs(factor / vc.survey_factor - 1.0))
+    if change <= WEIGHT_TOLERANCE or vc.rounds >= MAX_COMPONENT_ROUNDS:
+        return False
+    solver.reweight(floor, factor)
+    if solver.progress:
+        solver.progress(f"variance components: image floor {floor:.4g} px, survey sigmas x {factor:.3g}; "
+                        "re-weighted")
+    return True
 
 
 def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
@@ -879,12 +1039,20 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
     targets_m = solver.X + origin
     survey_res = (solver.data.targets.xyz_m - solver.X) * 1000.0
+    residual_px = solver.residuals_all()
+    sigma0 = result.sigma0
+    if solver.vc.rounds:           # re-weighted: sigma0 of the session's own a-priori sigmas
+        used = flags.obs_active
+        ss = np.sum((residual_px[used] / solver.sigma_px0[used, None]) ** 2)
+        ss += np.sum((survey_res[model.survey_k] / solver.sigma_mm0[model.survey_k, None]) ** 2)
+        m, n = result.jac.shape
+        sigma0 = float(np.sqrt(ss / (m - n))) if m > n else float("nan")
     init = replace(init, center_m=init.center_m + origin)
     return FieldResult(
         data=data, options=o, params=params, estimate=tuple(estimate), fixed_parameters=fixed,
-        sigma=sigma, sigma0=result.sigma0, covariance=cov, covariance_names=model.column_names()[: model.n_reduced],
+        sigma=sigma, sigma0=sigma0, covariance=cov, covariance_names=model.column_names()[: model.n_reduced],
         correlation_interior=corr, R_world_to_camera=R, center_m=C + origin, sigma_center_m=sigma_C,
-        targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=solver.residuals_all(),
+        targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=residual_px,
         obs_used=flags.obs_active.copy(), obs_reason=flags.reason.astype(str), obs_test=flags.test,
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
-        iterations_total=solver.iterations, initial=init, rounds=solver.rounds)
+        iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc)

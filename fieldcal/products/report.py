@@ -550,6 +550,7 @@ def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captio
     if cal.method == "field":
         out.append(sections.exterior_table(cal, image_table(cal, residuals)))
         out.append(sections.targets_section(cal))
+        out.append(sections.validation_section(cal))
     out.append(sections.previous_section(cal, previous, change))
     out += _figures_section(figures_png, captions)
     out.append(f"<p><small>Written by fieldcal {e(str(doc.get('code_version', '')))} on "

@@ -19,7 +19,7 @@ from fieldcal.products import content
 from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["interior_px", "model_equations", "exterior_table", "targets_section", "previous_section",
-           "table"]
+           "table", "validation_section"]
 
 
 def _num(x, fmt: str = ".4g") -> str:
@@ -168,4 +168,49 @@ def previous_section(cal: Calibration, previous: Calibration | None, change) -> 
         out.append('<ul class="compact">' + "".join(f"<li>{html.escape(t.line())}</li>" for t in change.tests)
                    + "".join(f"<li>not tested: {html.escape(x)}</li>" for x in change.left_out) + "</ul>")
         out.append(f"<p><b>Verdict:</b> {html.escape(change.verdict)}</p>")
+    return "\n".join(out)
+
+
+def validation_section(cal: Calibration) -> str:
+    """Variance components, independent check points and the cross-validation by station
+    (``stats.variance_components``, ``stats.check_points``, ``stats.cross_validation``;
+    docs/uncertainty.md)."""
+    st = cal.document.get("stats") or {}
+    out = ['<h2 id="validation">How far the uncertainty can be trusted</h2>']
+    vc = st.get("variance_components") or {}
+    if vc:
+        if vc.get("survey_consider"):
+            out.append("<p>Targets held fixed: their survey errors are propagated into the covariance "
+                       f"(error-model factor {_num(vc.get('error_model_factor'), '.3g')}).</p>")
+        else:
+            out.append(f"<p>Variance components: {_num(vc.get('image_floor_px'), '.3g')} px added in quadrature "
+                       f"to every image point's a-priori sigma, survey sigmas times "
+                       f"{_num(vc.get('survey_factor'), '.3g')} ({vc.get('rounds', 0)} re-weighted "
+                       "adjustments).</p>")
+    cp = st.get("check_points")
+    if cp:
+        rows = [["<td>object space (intersected &minus; surveyed)</td>", str(cp.get("n")),
+                 _num(cp.get("rms_mm"), ".3g") + " mm", _num(cp.get("rms_mm_predicted"), ".3g") + " mm",
+                 f"{_num(cp.get('chi2_mm'), '.4g')} / {cp.get('dof_mm')}", _num(cp.get("p_value_mm"), ".3g")],
+                ["<td>image space (measured &minus; projected survey)</td>", str(cp.get("n_observations")),
+                 _num(cp.get("rms_px"), ".3g") + " px", _num(cp.get("rms_px_predicted"), ".3g") + " px", "", ""]]
+        out.append(f"<h3>Independent check points</h3><p>{cp.get('n_withheld')} surveyed targets withheld "
+                   f"from the adjustment ({html.escape(str(cp.get('selection') or ''))}); "
+                   f"{cp.get('n_rejected', 0)} of their image points rejected as blunders.</p>")
+        out.append(table(["", "n", "RMS", "predicted RMS", "chi2 / dof", "p"], rows, table_id="check-points"))
+    else:
+        out.append("<p>No check points: this calibration withheld no surveyed targets.</p>")
+    cv = st.get("cross_validation")
+    if cv:
+        rows = [[f"<td>{html.escape(str(s['station']))}</td>", str(s["n_images"]),
+                 _num(s.get("rms_px"), ".3g"), _num(s.get("max_px"), ".3g"), _num(s.get("sigma_rms_px"), ".3g"),
+                 f"{_num(s.get('chi2'), '.3g')} / {s.get('dof')}", _num(s.get("p_value"), ".3g"),
+                 f"<td>{html.escape(s.get('error') or '')}</td>"] for s in cv.get("stations", [])]
+        out.append("<h3>Cross-validation by station</h3><p>The calibration without each station's images, "
+                   "compared with the calibration from all: how far the correction field moves over the "
+                   "sensor [px], against the 1-sigma its covariance predicts for that difference "
+                   "(the two calibrations share data: the covariance of the difference is the "
+                   "difference of the covariances).</p>")
+        out.append(table(["station", "images", "RMS move [px]", "max move [px]", "predicted RMS [px]",
+                          "chi2 / dof", "p", ""], rows, table_id="cross-validation"))
     return "\n".join(out)

@@ -42,6 +42,17 @@ fields no common rotation explains (least squares over the grid). With
 projected field: what is left is the calibration's *shape* uncertainty, which shows where
 the data were thin.
 
+Does the region cover the truth?
+--------------------------------
+:func:`within_region` says whether landing errors lie inside the ``n_sigma`` region of
+their 2 x 2 covariances: the ellipse ``e^T C^-1 e <= k^2`` that holds the probability of
+``+-n_sigma`` in one dimension (95.45 % for 2 sigma: ``k = 2.486``, the 0.9545 quantile of
+chi-square with 2 degrees of freedom). (The circle of radius ``n_sigma`` times the
+semi-major axis, which the maps draw, holds between 86.5 % (a round ellipse) and 95.45 % (a
+flat one); ``what="circle"`` tests that.) :func:`coverage_fraction` is the fraction of a
+grid where the true error of a calibration lies inside its region: the issue's measure of
+honest uncertainty (docs/uncertainty.md).
+
 Distortion curves
 -----------------
 :func:`radial_curve` and :func:`decentering_curve` give Brown's radial correction
@@ -54,13 +65,30 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2, norm
 
 from fieldcal.errors import InputError, LakeError
-from fieldcal.model.camera import INDEX, K0, K1, K2, K3, P1, P2, PARAM_NAMES, Camera, F, Sensor, correct_jacobian
+from fieldcal.model.camera import (
+    INDEX,
+    K0,
+    K1,
+    K2,
+    K3,
+    P1,
+    P2,
+    PARAM_NAMES,
+    Camera,
+    F,
+    Sensor,
+    correct_jacobian,
+    project,
+    unproject,
+)
 
 __all__ = ["Calibration", "interior_covariance", "landing_jacobian", "rotation_jacobian",
            "remove_rotation_part", "landing_covariance", "summarise_2x2", "projection_uncertainty_px",
-           "uncertainty_map", "radial_curve", "decentering_curve", "UNCERTAINTY_WHAT"]
+           "uncertainty_map", "radial_curve", "decentering_curve", "UNCERTAINTY_WHAT", "within_region",
+           "coverage_fraction"]
 
 UNCERTAINTY_WHAT = ("worst", "rms")
 """How a 2 x 2 landing covariance is summarised: semi-major axis, or sqrt of the trace."""
@@ -343,6 +371,58 @@ def uncertainty_map(calibration: Calibration, grid: tuple[int, int] = (41, 31), 
         C = np.einsum("nip,pq,njq->nij", Jp, calibration.covariance, Jp)
         sig = summarise_2x2(C, what)
     return uv[:nx, 0].copy(), uv[::nx, 1].copy(), sig.reshape(ny, nx)
+
+
+# --------------------------------------------------------------------------------------
+# does the region cover the truth?
+# --------------------------------------------------------------------------------------
+def within_region(error_px, C, n_sigma: float = 2.0, *, what: str = "ellipse"):
+    """Whether each 2-D error lies in the ``n_sigma`` region of its covariance (module docstring).
+
+    Parameters
+    ----------
+    error_px : (n, 2) array_like
+        Errors [px].
+    C : (n, 2, 2) array_like
+        Their covariances [px^2].
+    n_sigma : float
+    what : {"ellipse", "circle"}
+        The ellipse holding the one-dimensional ``+-n_sigma`` probability, or the circle of
+        radius ``n_sigma`` semi-major axes.
+
+    Returns
+    -------
+    (n,) bool ndarray
+    """
+    e = np.asarray(error_px, float).reshape(-1, 2)
+    C = np.asarray(C, float).reshape(-1, 2, 2)
+    if what == "circle":
+        return np.hypot(e[:, 0], e[:, 1]) <= n_sigma * summarise_2x2(C, "worst")
+    if what != "ellipse":
+        raise InputError(f"what must be 'ellipse' or 'circle', got {what!r}", "within_region")
+    k2 = chi2.ppf(1.0 - 2.0 * norm.sf(n_sigma), 2)
+    a, b, c = C[:, 0, 0], 0.5 * (C[:, 0, 1] + C[:, 1, 0]), C[:, 1, 1]
+    det = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m2 = (c * e[:, 0] ** 2 - 2 * b * e[:, 0] * e[:, 1] + a * e[:, 1] ** 2) / det
+    return np.where(det > 0, m2 <= k2, np.hypot(e[:, 0], e[:, 1]) == 0)
+
+
+def coverage_fraction(calibration: Calibration, truth: Camera, grid: tuple[int, int] = (21, 15), *,
+                      n_sigma: float = 2.0, what: str = "ellipse") -> float:
+    """Fraction of a sensor grid where the true landing error lies in its ``n_sigma`` region.
+
+    The error at pixel ``uv`` is where the calibration lands the ray that the ``truth``
+    camera sees at ``uv``, minus ``uv`` (a ray fixed in the camera frame; both cameras of
+    one sensor); the region is that of :func:`landing_covariance` at ``uv``
+    (:func:`within_region`).
+    """
+    s = calibration.sensor
+    uv = s.grid_px(*grid)
+    rays = unproject(uv, truth)
+    e = project(rays, np.eye(3), np.zeros(3), calibration.camera) - uv
+    C = landing_covariance(calibration.camera, uv, calibration.names, calibration.covariance)
+    return float(np.mean(within_region(e, C, n_sigma, what=what)))
 
 
 # --------------------------------------------------------------------------------------

