@@ -234,15 +234,27 @@ class Tables:
         schema evolution); its old rows read them as null.
         """
         from deltalake import write_deltalake
+        from deltalake.exceptions import CommitFailedError
 
         target = self.create(name)
         schema = table_schema(name)
-        # schema evolution only when needed: a metadata change conflicts with concurrent appends
-        have = set(pa.schema(target.schema().to_arrow()).names)
-        evolve = "merge" if set(schema.names) - have else None
-        write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
-                        commit_properties=self._commit_properties(info))
-        self._maintain(name, target)
+        for attempt in range(COMMIT_RETRIES):
+            # schema evolution only when needed: a metadata change conflicts with concurrent appends
+            have = set(pa.schema(target.schema().to_arrow()).names)
+            evolve = "merge" if set(schema.names) - have else None
+            try:
+                write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
+                                commit_properties=self._commit_properties(info))
+            except CommitFailedError:
+                # a concurrent metadata commit (a racing create or schema evolution on an
+                # object store): the data files are in no commit; write again on the new state
+                time.sleep(0.02 * (1 + random.random()) * min(attempt + 1, 10))
+                target = self._load(name)
+                continue
+            self._maintain(name, target)
+            return
+        raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent "
+                        "commits in a row")
 
     def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
                       *, poll_s: float = 0.02) -> bool:
