@@ -11,7 +11,7 @@ from fieldcal.errors import InputError
 from fieldcal.field.adjustment import CHECK_POINT, AdjustmentOptions, adjust_field
 from fieldcal.field.check_points import check_point_mask, stratified_check_points
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import write_field_session
+from fieldcal.synthetic.session_writer import write_field_session
 
 FP = "sha256:" + "0" * 64
 

@@ -23,7 +23,8 @@ from fieldcal.model.camera import INDEX
 from fieldcal.pipeline import measure, prepare
 from fieldcal.products.uncertainty import Calibration, coverage_fraction
 from fieldcal.synthetic.field import wide_field
-from fieldcal.synthetic.render import FULL_WELL_E, READ_NOISE_E, scaled_field, write_field_session
+from fieldcal.synthetic.render import FULL_WELL_E, READ_NOISE_E, scaled_field
+from fieldcal.synthetic.session_writer import write_field_session
 
 IMAGES = list(range(0, 24, 3)) + [1, 7, 13, 19]      # every station (roll 0) and four rolled by 90 deg
 RUNS = 8
