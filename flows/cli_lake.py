@@ -135,10 +135,18 @@ def _check(args) -> int:
 
 @_run
 def _migrate(args) -> int:
+    from fieldcal.errors import LakeError
     from fieldcal.lake.migrate import OldLake, migrate
 
-    lake = _open(args)
-    report = migrate(OldLake(args.old, lake.storage.storage_options), lake)
+    from fieldcal.lake.store import Lake
+    from flows.cli_common import lake_arguments
+
+    url, options = lake_arguments(args)
+    old = OldLake(args.old, options)
+    if OldLake(url, options).url.rstrip("/") == old.url.rstrip("/"):
+        raise LakeError(f"migrate into a new lake, not into {old.url} itself")
+    lake = Lake(url, options)
+    report = migrate(old, lake)
     for line in report.lines():
         print(line)
     print(f"verified: every version, residual row and observation of {args.old} is in {lake.url}")

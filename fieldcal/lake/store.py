@@ -122,6 +122,18 @@ def _sql_str(text: str) -> str:
     return "'" + text.replace("'", "''") + "'"
 
 
+def _refuse_first_layout(store: Storage, url: str) -> None:
+    """A lake of the first layout (``catalog/V.parquet``, no Delta log) is not read as an
+    empty lake: its history would look lost and a commit would start a second catalog
+    beside it. It is moved with ``fieldcal lake migrate`` (:mod:`fieldcal.lake.migrate`)."""
+    names = store.listdir("catalog")
+    if "_delta_log" in names:
+        return
+    if any(n.endswith(".parquet") and VERSION_PATTERN.fullmatch(n[:-8]) for n in names):
+        raise LakeError(f"{url} is a lake of the first layout (one file per version); move it once "
+                        f"with `fieldcal lake migrate {url} --lake NEW` and use NEW")
+
+
 class Lake:
     """A versioned calibration lake at a local path or an fsspec URL.
 
@@ -142,6 +154,7 @@ class Lake:
         self.tables = Tables(self._store, maintain_every)
         self.url = self._store.uri("")
         self._obs_cache: dict[tuple, dict] = {}
+        _refuse_first_layout(self._store, self.url)
 
     def __repr__(self) -> str:
         return f"Lake({self.url!r})"

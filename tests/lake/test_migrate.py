@@ -101,3 +101,19 @@ def test_migrate_command(old_lake, tmp_path):
                           str(root)], capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
     assert out.returncode == 1 and "into a new lake" in out.stderr
+
+
+def test_a_lake_of_the_first_layout_is_refused_not_read_as_empty(old_lake, tmp_path):
+    root, _ = old_lake
+    with pytest.raises(LakeError, match="first layout.*fieldcal lake migrate"):
+        Lake(root)
+    out = subprocess.run([sys.executable, "-m", "flows.cli", "history", "--lake", str(root), "--camera", "cam-a"],
+                         capture_output=True, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                         timeout=300)
+    assert out.returncode == 1 and len(out.stderr.strip().splitlines()) == 1
+    assert "first layout" in out.stderr and "lake migrate" in out.stderr
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    migrated = tmp_path / "new"
+    migrate(OldLake(root), Lake(migrated))
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before      # the old lake untouched
+    assert len(Lake(migrated).catalog()) == 4
