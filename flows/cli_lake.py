@@ -137,7 +137,6 @@ def _check(args) -> int:
 def _migrate(args) -> int:
     from fieldcal.errors import LakeError
     from fieldcal.lake.migrate import OldLake, migrate
-
     from fieldcal.lake.store import Lake
     from flows.cli_common import lake_arguments
 
