@@ -413,6 +413,10 @@ class _Run:
         self.session = session
         self.measurements = measurements
         self.options = options
+        # the adjustments that only orient images for the identification hold what the
+        # data cannot determine (min_t 1) and skip the variance components: a camera that
+        # predicts well from a few images matters there, its honest sigma only at the end
+        self.working_options = replace(options, min_t=max(options.min_t, 1.0), variance_components=False)
         self.say = say
         self.progress = None if say is None else say
         self.identify = identify
@@ -440,7 +444,7 @@ def _first_pass(run: _Run):
     _check_enough(keep1, run.names, first, run.measurements, "nominal camera")
     run.say(f"identification with the nominal camera (f {run.nominal.f_mm:g} mm): {len(keep1)} of "
             f"{len(run.names)} images, {len(data1.obs)} points")
-    res1 = adjust_field(data1, run.options, progress=run.progress)
+    res1 = adjust_field(data1, run.working_options, progress=run.progress)
     run.say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
     return first, keep1, marker1, res1
 
@@ -501,7 +505,7 @@ class _Oriented:
         def attempt(images, group):
             data, _, keep, _ = _build(run, sorted(images), self.idents, single_view=not run.options.targets_adjusted)
             try:
-                res = adjust_field(data, run.options, initial=self.warm_start(data, keep),
+                res = adjust_field(data, run.working_options, initial=self.warm_start(data, keep),
                                    initial_targets_m=self.res.targets_m)
             except GeometryError as err:
                 return {i: f"{REASON_MISFIT}: the adjustment with it failed ({one_line(err)})" for i in group}, None
