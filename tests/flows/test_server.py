@@ -112,7 +112,7 @@ def test_kill_9_of_a_run_leaves_no_process_behind(world):
     run = subprocess.Popen([FIELDCAL, "run", tmp / "lab", "--lake", lake, "--batch-size", "2"], env=env, cwd=tmp,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     # the run is measuring: its server is up and frames' observations are being written
-    wait_for(lambda: any(lake.glob("observations/*/*/*.parquet")), 300, "the run to measure frames")
+    wait_for(lambda: any(lake.glob("observations_goniometer/**/*.parquet")), 300, "the run to measure frames")
     state = json.loads((home / "fieldcal-server.json").read_text())
     assert alive(state["pid"]) and run.poll() is None
     os.killpg(run.pid, signal.SIGKILL)
