@@ -112,7 +112,12 @@ def known_cameras(lake) -> list[str]:
 
 
 def require_camera(lake, camera: str) -> None:
-    """Raise :class:`UsageError` naming the closest known ids when ``camera`` has no version."""
+    """Raise :class:`UsageError` naming the closest known ids when ``camera`` has no version.
+
+    The camera's own rows are looked up first (a filtered read: damaged files that hold
+    other cameras' rows are not opened); the whole catalog only when there are none."""
+    if lake.catalog(equal={"camera_id": camera}).num_rows:
+        return
     cameras = known_cameras(lake)
     if camera not in cameras:
         raise UsageError(f"camera {camera!r} has no calibration in {lake.url}; "

@@ -29,12 +29,12 @@ def test_without_the_data_the_real_data_tests_skip_with_the_reason(tmp_path):
     proc = run_real_data_tests(tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:]
     last = proc.stdout.strip().splitlines()[-1]
-    assert "5 skipped" in last and "passed" not in last and "failed" not in last and "error" not in last, last
+    assert "6 skipped" in last and "passed" not in last and "failed" not in last and "error" not in last, last
     reasons = [line for line in proc.stdout.splitlines() if line.startswith("SKIPPED")]
-    assert len(reasons) == 5
+    assert len(reasons) == 6
     for line in reasons:
         assert f"not found in {tmp_path} (missing " in line and "FIELDCAL_SHARED_DATA" in line, line
-    assert sum("real data dbat-camcal" in r for r in reasons) == 4
+    assert sum("real data dbat-camcal" in r for r in reasons) == 5
     assert sum("real data opencv-calib1" in r for r in reasons) == 1
 
 
