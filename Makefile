@@ -22,11 +22,12 @@ $(STAMP): requirements.lock pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/fieldcal demo
 
+# two workers, one test file each at a time (tests/conftest.py: the longest files first)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 check: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not heavy"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow and not heavy"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -6,13 +6,13 @@ Hypothesis runs derandomised (the profile ``ci``, the default): the same commit 
 same examples on every machine, so a verdict never depends on chance. To search further
 (new examples every run, many more of them), run with ``HYPOTHESIS_PROFILE=explore``.
 
-Two tiers: ``make test`` runs everything; ``make check`` (daily work, under 2 minutes of
-CPU here) leaves out the tests marked ``slow`` (end-to-end runs of flows and servers) and
-``heavy``: the tests listed in :data:`HEAVY`, chosen with ``pytest --durations=0 -m "not
-slow"`` as the ones that take most of the rest (the paper-sized adjustments and their Monte
-Carlo, real photographs, rendered image sessions and reports, the S3 server, concurrent
-commits, subprocesses). Measured on this 2-core machine (CPU time, which the other jobs on
-it do not inflate): the not-slow tests 326 s, ``make check`` 79 s (565 tests).
+Two tiers: ``make test`` runs everything, on two pytest-xdist workers (one test file per
+worker at a time, so module fixtures are made once; the longest files first, :data:`FIRST`).
+``make check`` (daily work, under 2 minutes of CPU here) leaves out the tests marked
+``slow`` (end-to-end runs of flows and servers) and ``heavy``: the tests listed in
+:data:`HEAVY`, chosen with ``pytest --durations=0 -m "not slow"`` as the ones that take most
+of the rest (the paper-sized adjustments and their Monte Carlo, real photographs, rendered
+image sessions and reports, the S3 server, concurrent commits, subprocesses).
 """
 
 import os
@@ -59,7 +59,27 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "heavy: a test ``make check`` leaves out (tests/conftest.py HEAVY)")
 
 
+FIRST = (
+    "tests/flows/test_readme.py",
+    "tests/flows/test_readme_demo.py",
+    "tests/flows/test_schedule.py",
+    "tests/flows/test_flows_dask.py",
+    "tests/flows/test_faults.py",
+    "tests/flows/test_flows_s3.py",
+    "tests/flows/test_flows.py",
+    "tests/field/test_honest_uncertainty.py",
+    "tests/field/test_honest_uncertainty_images.py",
+    "tests/flows/test_fleet.py",
+    "tests/flows/test_server.py",
+)
+"""Test files that take longest (``--durations``), run first: ``make test`` spreads files over
+two pytest-xdist workers in collection order, and a long file started last would leave one
+worker idle while the other finishes it."""
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.startswith(HEAVY):
             item.add_marker(pytest.mark.heavy)
+    rank = {name: k for k, name in enumerate(FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(FIRST)))   # stable
