@@ -24,10 +24,10 @@ demo: $(STAMP)
 
 # two workers, one test file each at a time (tests/conftest.py: the longest files first)
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 check: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow and not heavy"
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not slow and not heavy"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -539,5 +539,27 @@ def main(argv=None) -> int:
         return status
 
 
+def console() -> None:
+    """The ``fieldcal`` console script: :func:`main`, then leave without the native teardown.
+
+    The Python exit handlers run (Prefect drains its log queue) and the streams are
+    flushed; then the process ends with ``os._exit``, skipping the C++ static destructors of
+    the native libraries. delta-rs with Arrow's thread pools can abort the process there
+    ("terminate called without an active exception", exit status -6, delta-io/delta-rs#2184)
+    after a command has done its work and printed its result: seen once in ~1000
+    ``fieldcal`` processes of the test suite, a `fieldcal gc` on a loaded machine.
+    """
+    import atexit
+
+    status = main()
+    atexit._run_exitfuncs()  # noqa: SLF001 - the documented exit handlers, run as at a normal exit
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more can be said
+            pass
+    os._exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
