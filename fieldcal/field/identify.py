@@ -67,6 +67,7 @@ from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.data import TargetField
 from fieldcal.field.geometry import is_collinear
 from fieldcal.field.matching import ViewMatcher, local_correction, mutual_nearest
+from fieldcal.field.pose_search import grunert_distances
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
@@ -169,35 +170,11 @@ def _opencv_inputs(X, uv, camera):
 
 
 def _grunert_distances(X, rays):
-    """Distances ``(s1, s2, s3)`` along unit ``rays`` (3, 3) to world points ``X`` (3, 3).
-
-    Grunert's P3P solution (as reviewed by Haralick et al., IJCV 13(3), 1994): with
-    ``s2 = u s1``, ``s3 = v s1`` the law of cosines in the three triangles through the
-    centre gives a quartic in ``v``. Near the "danger cylinder" two of its real roots merge
-    and a little noise turns them into a complex pair; OpenCV's P3P then drops both and
-    with them the right pose. Here every root contributes its real part (the pose is then
-    refined by least squares), so the candidate survives. Returns an (k, 3) array.
-    """
-    a2 = np.sum((X[1] - X[2]) ** 2)
-    b2 = np.sum((X[0] - X[2]) ** 2)
-    c2 = np.sum((X[0] - X[1]) ** 2)
-    ca, cb, cg = rays[1] @ rays[2], rays[0] @ rays[2], rays[0] @ rays[1]
-    p, q = (a2 - c2) / b2, (a2 + c2) / b2
-    A4 = (p - 1) ** 2 - 4 * c2 / b2 * ca**2
-    A3 = 4 * (p * (1 - p) * cb - (1 - q) * ca * cg + 2 * c2 / b2 * ca**2 * cb)
-    A2 = 2 * (p**2 - 1 + 2 * p**2 * cb**2 + 2 * (b2 - c2) / b2 * ca**2 - 4 * q * ca * cb * cg
-              + 2 * (b2 - a2) / b2 * cg**2)
-    A1 = 4 * (-p * (1 + p) * cb + 2 * a2 / b2 * cg**2 * cb - (1 - q) * ca * cg)
-    A0 = (1 + p) ** 2 - 4 * a2 / b2 * cg**2
-    coef = np.array([A4, A3, A2, A1, A0])
-    if not np.all(np.isfinite(coef)) or np.all(coef == 0):
-        return np.zeros((0, 3))
-    v = np.roots(coef).real
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = ((p - 1) * v**2 - 2 * p * cb * v + 1 + p) / (2 * (cg - v * ca))
-        s1 = np.sqrt(b2 / (1 + v**2 - 2 * v * cb))
-    s = np.stack([s1, u * s1, v * s1], axis=1)
-    return s[np.isfinite(s).all(axis=1) & (s > 0).all(axis=1)]
+    """Distances ``(s1, s2, s3)`` along unit ``rays`` (3, 3) to world points ``X`` (3, 3): the
+    finite, positive ones of :func:`fieldcal.field.pose_search.grunert_distances` (every root's
+    real part). Returns an (k, 3) array."""
+    s, good = grunert_distances(np.asarray(X, float)[None], np.asarray(rays, float)[None])
+    return s[0][good[0]]
 
 
 def _p3p_poses(X, uv, camera):

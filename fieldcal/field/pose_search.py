@@ -102,30 +102,26 @@ def rotations_from_directions(a_cam, b_world, weights=None):
     return U @ Vt
 
 
-def p3p_batch(X, rays):
-    """Poses of many point triples by Grunert's P3P (every real part of the quartic's roots).
+def grunert_distances(X, rays):
+    """Distances along unit ``rays`` (H, 3, 3) to the world points ``X`` (H, 3, 3) of many triples.
 
-    Parameters
-    ----------
-    X : (H, 3, 3) ndarray
-        World points [m] of each triple.
-    rays : (H, 3, 3) ndarray
-        Unit rays of their images in the camera frame (:meth:`Camera.unproject`).
+    Grunert's P3P solution (as reviewed by Haralick et al., IJCV 13(3), 1994): with
+    ``s2 = u s1``, ``s3 = v s1`` the law of cosines in the three triangles through the
+    centre gives a quartic in ``v``. Near the "danger cylinder" two of its real roots merge
+    and a little noise turns them into a complex pair; OpenCV's P3P then drops both and with
+    them the right pose. Here every root contributes its real part (the pose is refined
+    afterwards), so the candidate survives.
 
     Returns
     -------
-    R : (N, 3, 3) ndarray
-        World-to-camera rotations.
-    C : (N, 3) ndarray
-        Camera centres [m].
-    source : (N,) int ndarray
-        The triple each pose comes from (up to four per triple).
+    s : (H, 4, 3) ndarray
+        ``(s1, s2, s3)`` of each of the quartic's four roots.
+    good : (H, 4) bool ndarray
+        Finite, positive distances.
     """
     X = np.asarray(X, float)
     rays = np.asarray(rays, float)
     H = len(X)
-    if H == 0:
-        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     a2 = np.sum((X[:, 1] - X[:, 2]) ** 2, axis=1)
     b2 = np.sum((X[:, 0] - X[:, 2]) ** 2, axis=1)
     c2 = np.sum((X[:, 0] - X[:, 1]) ** 2, axis=1)
@@ -152,6 +148,34 @@ def p3p_batch(X, rays):
         s1 = np.sqrt(b2[:, None] / (1 + v**2 - 2 * v * cb[:, None]))
     s = np.stack([s1, u * s1, v * s1], axis=2)                         # (H, 4, 3)
     good = ok[:, None] & np.isfinite(s).all(axis=2) & (s > 0).all(axis=2)
+    return s, good
+
+
+def p3p_batch(X, rays):
+    """Poses of many point triples by Grunert's P3P (every real part of the quartic's roots).
+
+    Parameters
+    ----------
+    X : (H, 3, 3) ndarray
+        World points [m] of each triple.
+    rays : (H, 3, 3) ndarray
+        Unit rays of their images in the camera frame (:meth:`Camera.unproject`).
+
+    Returns
+    -------
+    R : (N, 3, 3) ndarray
+        World-to-camera rotations.
+    C : (N, 3) ndarray
+        Camera centres [m].
+    source : (N,) int ndarray
+        The triple each pose comes from (up to four per triple).
+    """
+    X = np.asarray(X, float)
+    rays = np.asarray(rays, float)
+    H = len(X)
+    if H == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    s, good = grunert_distances(X, rays)
     h, r = np.nonzero(good)
     Pc = rays[h] * s[h, r][:, :, None]                                 # (N, 3, 3) camera frame
     Xw = X[h]
