@@ -24,7 +24,7 @@ from fieldcal.errors import InputError
 from fieldcal.lake.ids import check_image_name
 from fieldcal.lake.tables import table_schema
 
-__all__ = ["kind_of", "rows_for", "strip", "load_session", "KINDS"]
+__all__ = ["kind_of", "rows_for", "strip", "load_session", "has_key", "KINDS"]
 
 KINDS = ("observations_field", "observations_goniometer")
 _EXTRA = ("camera_id", "session_id", "image", "key", "image_sha256", "measure_settings", "row")
@@ -103,6 +103,15 @@ def strip(kind: str, rows: pa.Table) -> pa.Table:
     rows = rows.filter(pa.compute.greater_equal(rows["row"], 0)).sort_by("row")
     schema = _own_schema(kind)
     return pa.Table.from_arrays([rows[f.name].cast(f.type) for f in schema], schema=schema)
+
+
+def has_key(tables, camera_id: str, session_id: str, image: str, key: str) -> bool:
+    """Whether an image's observations under ``key`` are cached: a key-only probe (the
+    ``key`` column of the camera's files whose statistics may hold the session and key),
+    not a read of the session's observations as :func:`load_session` does."""
+    f = (ds.field("session_id") == session_id) & (ds.field("image") == image) & (ds.field("key") == key)
+    return any(tables.scan(kind, filter=f, columns=["key"], partition={"camera_id": camera_id},
+                           equal={"session_id": session_id, "key": key}).num_rows for kind in KINDS)
 
 
 def load_session(tables, camera_id: str, session_id: str) -> dict:

@@ -531,25 +531,15 @@ class Lake:
 
     def has_observations(self, camera_id: str, session_id: str, image_name: str,
                          content_sha256: str) -> bool:
-        """Whether observations of this image content are cached.
-
-        A key-only probe (the ``key`` column of the camera's files whose statistics may hold
-        the session and key), not a read of the session's observations: the flow asks once
-        per image, and re-reading a growing session for every image made the 72-image
-        benchmark spend ~18 s in lookups (bench/README_flow.md)."""
+        """Whether observations of this image content are cached (:func:`obs.has_key`: the
+        flow asks once per image; re-reading a growing session for every image made the
+        72-image benchmark spend ~18 s in lookups, bench/README_flow.md)."""
         observations_key(image_name, content_sha256)
         if (image_name, content_sha256) in self._obs_cache.get((camera_id, session_id), {}):
             return True
         check_id(camera_id, "camera_id")
         check_id(session_id, "session_id")
-        f = ((ds.field("session_id") == session_id) & (ds.field("image") == image_name)
-             & (ds.field("key") == content_sha256))
-        for kind in obs.KINDS:
-            rows = self.tables.scan(kind, filter=f, columns=["key"], partition={"camera_id": camera_id},
-                                    equal={"session_id": session_id, "key": content_sha256})
-            if rows.num_rows:
-                return True
-        return False
+        return obs.has_key(self.tables, camera_id, session_id, image_name, content_sha256)
 
     def write_observations(self, camera_id: str, session_id: str, image_name: str,
                            content_sha256: str, table: pa.Table) -> str:

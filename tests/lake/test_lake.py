@@ -647,6 +647,15 @@ def test_observations_cache_round_trip_and_rerun_reads_no_image(tmp_path):
     assert lake.has_observations("cam-a", "s1", "images/IMG_0.tif",
                                  sha256_file(images["images/IMG_0.tif"]))
     assert not lake.has_observations("cam-a", "s1", "images/IMG_0.tif", "f" * 64)
+    # a new instance has nothing memoised: the key-only probe answers
+    sha0 = sha256_file(images["images/IMG_0.tif"])
+    probe = Lake(tmp_path)
+    assert probe.has_observations("cam-a", "s1", "images/IMG_0.tif", sha0)
+    assert not probe.has_observations("cam-a", "s1", "images/IMG_0.tif", "f" * 64)     # another content
+    assert not probe.has_observations("cam-a", "s1", "images/IMG_1.tif", sha0)         # another image
+    assert not probe.has_observations("cam-a", "s2", "images/IMG_0.tif", sha0)         # another session
+    assert not probe.has_observations("cam-b", "s1", "images/IMG_0.tif", sha0)         # another camera
+    assert probe._obs_cache == {}                                                       # no session was read
 
 
 def test_goniometer_spots_have_their_own_table(tmp_path):
