@@ -62,6 +62,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
+from fieldcal.field import consider_kernel
+
 __all__ = ["VarianceComponents", "WEIGHT_TOLERANCE", "MIN_GROUP_REDUNDANCY", "image_floor_px",
            "group_factor", "weight_change", "survey_consider_matrix", "fixed_target_covariance"]
 
@@ -167,7 +169,8 @@ def weight_change(sigma_px, floor_old_px: float, floor_new_px: float) -> float:
     return float(np.max(np.abs(ratio - 1.0)))
 
 
-def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int):
+def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int, *,
+                           implementation: str = "auto"):
     """``M = B S B^T`` and ``tr(J_X S J_X^T)`` of fixed targets' survey errors (module docstring).
 
     Parameters
@@ -182,6 +185,9 @@ def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int):
     sigma_m : (m,) ndarray
         The survey sigma of each point's target [m].
     n_images : int
+    implementation : {"auto", "numba", "numpy"}
+        The compiled kernel of :mod:`fieldcal.field.consider_kernel` (``"auto"``: where it
+        compiles) or the NumPy reference (a sparse ``B`` and ``B @ B.T``).
 
     Returns
     -------
@@ -197,6 +203,16 @@ def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int):
     JX = -d_ext[:, :, 3:] * np.asarray(sigma_m, float)[:, None, None]        # (m, 2, 3), S^(1/2) in
     D = np.concatenate([d_int, d_ext], axis=2)                               # (m, 2, p + 6)
     P = np.einsum("kai,kaj->kij", D, JX)                                     # (m, p + 6, 3)
+    kern = None if implementation == "numpy" else consider_kernel.kernel()
+    if implementation == "numba" and kern is None:
+        raise RuntimeError(consider_kernel.status())
+    if kern is not None and m:
+        order = np.argsort(np.asarray(target), kind="stable")
+        ptr = np.flatnonzero(np.r_[True, np.diff(np.asarray(target)[order]) != 0, True])
+        M = np.zeros((n_r, n_r))
+        kern(np.ascontiguousarray(P), p, np.asarray(image, np.int64), order.astype(np.int64),
+             ptr.astype(np.int64), M)
+        return 0.5 * (M + M.T), float(np.sum(JX**2))
     rows = np.concatenate([np.broadcast_to(np.arange(p), (m, p)),
                            p + 6 * np.asarray(image)[:, None] + np.arange(6)], axis=1)  # (m, p + 6)
     _, tpos = np.unique(np.asarray(target), return_inverse=True)

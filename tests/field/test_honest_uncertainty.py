@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, centred
+from fieldcal.field import consider_kernel
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.variance_components import (
     fixed_target_covariance,
@@ -172,10 +173,14 @@ def fixed_wide():
     return sf, res, model, r, J.to_csr().toarray(), jb
 
 
-def test_survey_consider_matrix_is_the_dense_product(fixed_wide):
+@pytest.mark.parametrize("implementation", ["numpy", "numba"])
+def test_survey_consider_matrix_is_the_dense_product(fixed_wide, implementation):
+    """Both implementations (the sparse product and the compiled kernel) against J^T J_X J_X^T J."""
+    if implementation == "numba" and consider_kernel.kernel() is None:
+        pytest.skip(consider_kernel.status())
     _, _, model, _, A, jb = fixed_wide
     M, trace_q = survey_consider_matrix(jb.d_int, jb.d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
-                                        model.n_images)
+                                        model.n_images, implementation=implementation)
     # J_X column by column: a point's residual depends on its target as on minus its camera centre
     ut, tpos = np.unique(model.tgt, return_inverse=True)
     JX = np.zeros((A.shape[0], 3 * len(ut)))
@@ -184,6 +189,23 @@ def test_survey_consider_matrix_is_the_dense_product(fixed_wide):
     dense = A.T @ JX @ JX.T @ A
     np.testing.assert_allclose(M, dense, atol=1e-9 * np.abs(dense).max())
     assert trace_q == pytest.approx(np.sum(JX**2), rel=1e-12)
+
+
+def test_survey_consider_kernel_and_reference_agree_on_repeated_points(fixed_wide):
+    """The contract of the two implementations where a target is seen twice in one image and
+    the points are not sorted by target (the kernel's accumulation order differs)."""
+    if consider_kernel.kernel() is None:
+        pytest.skip(consider_kernel.status())
+    _, _, model, _, _, jb = fixed_wide
+    rng = np.random.default_rng(5)
+    k = np.r_[rng.permutation(len(model.k)), 0, 7, 7]          # points 0 and 7 twice (same image)
+    args = (jb.d_int[k], jb.d_ext[k], model.img[k], model.tgt[k], model.sigma_m[model.tgt[k]], model.n_images)
+    a = survey_consider_matrix(*args, implementation="numpy")
+    b = survey_consider_matrix(*args, implementation="numba")
+    assert np.abs(a[0] - b[0]).max() <= 1e-12 * np.abs(a[0]).max()     # round-off of sums of ~10^3 terms
+    assert a[1] == b[1]
+    without = survey_consider_matrix(*[x[:-3] for x in args[:5]], model.n_images, implementation="numba")
+    assert np.abs(without[0] - b[0]).max() > 1e-6 * np.abs(b[0]).max()  # the repeated points count
 
 
 def test_fixed_target_covariance_matches_a_linear_monte_carlo(fixed_wide):
