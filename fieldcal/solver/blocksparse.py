@@ -758,8 +758,11 @@ class NormalEquations:
         if kern is not None:                       # W_s V*_e^-1 per slot, S -= W V*^-1 W^T
             Y = np.empty_like(self.W_slots)
             if st.n_slots:
+                T = np.zeros((nr, nr))             # one triangle of W V*^-1 W^T (each pair once)
                 kern(np.ascontiguousarray(self.W_slots), st.slot_col.astype(np.intp), st.slot_ptr,
-                     np.ascontiguousarray(Vinv), S, Y)
+                     np.ascontiguousarray(Vinv), T, Y)
+                S -= T + T.T
+                S[np.diag_indices(nr)] += np.diag(T)
             return 0.5 * (S + S.T), None, Y
         Ys = []
         if st.buckets:

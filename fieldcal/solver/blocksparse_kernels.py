@@ -84,8 +84,10 @@ def _matvec(v, rows, cols, h, out):
             out[rows[g, q]] = s
 
 
-def _schur(W, slot_col, slot_ptr, Vinv, S, Y):
-    """``S -= sum_e W_e V*_e^-1 W_e^T`` over the slots of each block; ``Y[s] = W[s] V*_e^-1``."""
+def _schur(W, slot_col, slot_ptr, Vinv, T, Y):
+    """``T[slot_col[s], slot_col[t]] += W_s V*_e^-1 W_t^T`` for the slots ``s <= t`` of each
+    block (one triangle: each pair once, written along a row of ``T``), and ``Y[s] = W[s] V*_e^-1``.
+    ``W V*^-1 W^T = T + T^T - diag(T)`` (the caller symmetrises)."""
     nb, b = Vinv.shape[0], Vinv.shape[1]
     for e in range(nb):
         s0, s1 = slot_ptr[e], slot_ptr[e + 1]
@@ -101,9 +103,7 @@ def _schur(W, slot_col, slot_ptr, Vinv, S, Y):
                 acc = 0.0
                 for j in range(b):
                     acc += Y[s, j] * W[t, j]
-                S[cs, slot_col[t]] -= acc
-                if t != s:
-                    S[slot_col[t], cs] -= acc
+                T[cs, slot_col[t]] += acc
 
 
 def _elim_covariances(Y, slot_col, slot_ptr, Cr, Cee, cross):
@@ -114,12 +114,13 @@ def _elim_covariances(Y, slot_col, slot_ptr, Cr, Cee, cross):
         s0, s1 = slot_ptr[e], slot_ptr[e + 1]
         for s in range(s0, s1):
             cs = slot_col[s]
+            x[:] = 0.0
+            for t in range(s0, s1):               # along row cs of Cr, each entry read once
+                c = Cr[cs, slot_col[t]]
+                for j in range(b):
+                    x[j] += c * Y[t, j]
             for j in range(b):
-                acc = 0.0
-                for t in range(s0, s1):
-                    acc += Cr[cs, slot_col[t]] * Y[t, j]
-                x[j] = acc
-                cross[s, j] = -acc
+                cross[s, j] = -x[j]
             for i in range(b):
                 for j in range(b):
                     Cee[e, i, j] += Y[s, i] * x[j]
@@ -189,9 +190,10 @@ def _smoke_schur(ks):
     sc, ec = ks[3], ks[4]
     W = np.array([[1.0, 2.0], [3.0, 4.0]])
     Vinv = np.array([[[2.0, 0.0], [0.0, 0.5]]])
-    S, Y = np.zeros((2, 2)), np.empty((2, 2))
-    sc(W, np.array([0, 1]), np.array([0, 2]), Vinv, S, Y)
+    T, Y = np.zeros((2, 2)), np.empty((2, 2))
+    sc(W, np.array([0, 1]), np.array([0, 2]), Vinv, T, Y)
     ref = W @ Vinv[0] @ W.T
+    S = -(T + T.T - np.diag(np.diag(T)))
     Cee, cross = Vinv.copy(), np.zeros((2, 2))
     ec(Y, np.array([0, 1]), np.array([0, 2]), np.eye(2), Cee, cross)
     if not (np.allclose(S, -ref) and np.allclose(Cee[0], Vinv[0] + Y.T @ Y) and np.allclose(cross, -Y)):
@@ -223,7 +225,7 @@ def matvec():
 
 
 def schur():
-    """The compiled Schur complement ``S -= W V*^-1 W^T`` (and ``Y = W V*^-1`` per slot), or None."""
+    """The compiled ``W V*^-1 W^T`` as one triangle ``T`` (and ``Y = W V*^-1`` per slot), or None."""
     ks = _get()
     return None if ks is None else ks[3]
 
