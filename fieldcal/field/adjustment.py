@@ -372,6 +372,7 @@ class _Solver:
         self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
         self.sigma_mm0 = data.targets.sigma_mm.copy()
         self.vc = VarianceComponents()
+        self.tau = options.tau          # LM's damping, carried from solve to solve (warm starts)
 
     def reweight(self, floor_px: float, survey_factor: float):
         """Weight the next solves with the variance components (step 4b): image sigmas
@@ -397,7 +398,7 @@ class _Solver:
             if np.all(np.isfinite(r0)) and J0.all_finite():
                 before(model, x0, J0)
         try:
-            result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=o.tau,
+            result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=self.tau,
                            eps2=o.eps2, ftol=o.ftol, sigma_tol=o.sigma_tol)
         except InputError as err:          # not finite at x0: the previous round went astray
             raise GeometryError(f"the adjustment diverged before {label} ({err.reason}); the "
@@ -407,6 +408,10 @@ class _Solver:
         self.params, self.R, self.C, X = model.unpack(result.x)
         if o.targets_adjusted:
             self.X = X
+        # the next solve starts at this one's solution, a few points or a weight away from its
+        # own: it continues with the damping this one ended with (never above the option's)
+        if np.isfinite(result.mu) and result.mu > 0:
+            self.tau = min(self.tau, result.mu)
         self.iterations += result.iterations
         self.rounds.append({"round": label, "iterations": result.iterations,
                             "sigma0": result.sigma0, "status": result.message,

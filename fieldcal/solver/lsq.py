@@ -189,6 +189,7 @@ class LsqResult:
     message: str
     method: str
     history: list[IterationRecord] = field(default_factory=list)
+    mu: float = float("nan")
 
     @property
     def success(self) -> bool:
@@ -292,7 +293,7 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
         At most this many iterations (default 200); each costs one evaluation.
     tau : float
         ``mu0 = tau max(diag(J^T J))`` in scaled variables (default 1e-3, the book's for a
-        good starting point).
+        good starting point; a warm start may pass the previous result's ``mu``).
     memory : int
         The most (s, y) pairs kept for the BFGS matrix (default 50); below it the
         quasi-Newton matrix is exactly the book's dense B.
@@ -351,7 +352,7 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
         status = 0
     return LsqResult(x=st.x, r=st.r, jac=st.J, cost=st.F, gradient=st.g, grad_inf=st.ginf,
                      scale=st.d, iterations=k, evaluations=st.nfev, status=status,
-                     message=STATUS_MESSAGES[status], method=method, history=history)
+                     message=STATUS_MESSAGES[status], method=method, history=history, mu=st.mu)
 
 
 class _State:

@@ -346,3 +346,31 @@ def test_a_warm_start_in_a_national_grid_is_translated_like_the_data(local_and_f
         assert abs(c.params[INDEX[n]] - d.params[INDEX[n]]) < 1e-3 * c.sigma[n], n
     assert np.abs((d.center_m - offset) - c.center_m).max() < 1e-3 * c.sigma_center_m.min()
     assert c.iterations_total < a.iterations_total          # it started next to the solution
+
+
+@pytest.mark.parametrize("adjusted", [True, False])
+def test_blunder_rounds_with_the_damping_carried_over_end_where_cold_rounds_end(monkeypatch, adjusted):
+    """Each blunder round starts at the previous solution and continues with the damping the
+    previous solve ended with; restarting every round with the option's ``tau`` (cold damping)
+    gives the same calibration and the same rejections, near the synthetic truth."""
+    import fieldcal.field.adjustment as adjustment
+
+    bad, _ = add_blunders(wide_field(seed=1), fraction=0.01, seed=1)
+    o = AdjustmentOptions(targets_adjusted=adjusted)
+    warm = adjust_field(bad.data, o)
+    assert len(warm.rounds) >= 2                        # the blunders make several rounds
+    taus = []
+
+    def cold_solve(*args, **kw):
+        taus.append(kw["tau"])
+        return solve(*args, **{**kw, "tau": o.tau})
+
+    monkeypatch.setattr(adjustment, "solve", cold_solve)
+    cold = adjust_field(bad.data, o)
+    assert taus[0] == o.tau and min(taus[1:]) < o.tau     # the warm rounds did carry a smaller damping
+    np.testing.assert_array_equal(warm.obs_used, cold.obs_used)
+    for n in CORE:
+        j = INDEX[n]
+        # both stop within sigma_tol (1e-3 sigma) of the same optimum
+        assert abs(warm.params[j] - cold.params[j]) < 5e-3 * warm.sigma[n], n
+        assert abs(warm.params[j] - bad.camera.params[j]) < 4.0 * warm.sigma[n], n

@@ -327,3 +327,18 @@ def test_bad_arguments_are_rejected():
         lsq.solve(ROSENBROCK, [np.nan, 0.0])
     with pytest.raises(InputError, match="eps1 must be"):
         lsq.solve(ROSENBROCK, [0.0, 0.0], eps1=-1.0)
+
+
+def test_a_warm_start_with_the_returned_damping_reaches_the_cold_solution():
+    """A solve that starts at a previous solution with that solution's ``mu`` as ``tau`` (the
+    adjustment's blunder rounds) ends where a cold start from far away ends."""
+    net = Network(noise=0.05)
+    x0 = net.x_true + 0.5 * np.random.default_rng(2).standard_normal(net.n)
+    cold = lsq.solve(net, x0, tau=1e-6, sigma_tol=1e-6)
+    assert cold.success and 0.0 < cold.mu < 1e-6          # LM lowered its damping on the way
+    start = cold.x + 1e-3 * np.random.default_rng(4).standard_normal(net.n)   # a nearby start
+    warm = lsq.solve(net, start, tau=cold.mu, sigma_tol=1e-6)
+    ref = lsq.scipy_reference(net, x0)
+    assert warm.success, warm.message
+    assert rel_diff(warm.x, ref.x) < 1e-6 and rel_diff(cold.x, ref.x) < 1e-6
+    assert warm.cost == pytest.approx(ref.cost, rel=1e-10)
