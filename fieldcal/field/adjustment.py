@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pyarrow as pa
 import scipy.linalg
-from scipy.stats import chi2
+from scipy.special import chdtri   # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel
@@ -565,7 +565,7 @@ def _snooping(model, result, flags: _Flags, o):
     ri = result.r[: model.n_rows_image].reshape(-1, 2)
     Ti = _quadratic_form(Qi, ri) / sigma0**2
     test[model.k] = Ti
-    lim2 = chi2.isf(o.snoop_alpha, 2)
+    lim2 = chdtri(2, o.snoop_alpha)
     bad = Ti > lim2
     if bad.any():
         # reject the clearly worst ones only: a blunder inflates its neighbours' statistics
@@ -579,7 +579,7 @@ def _snooping(model, result, flags: _Flags, o):
         flags.red_sur[model.survey_k] = np.einsum("kii->k", Qs)
         rs = result.r[model.n_rows_image:].reshape(-1, 3)
         Ts = _quadratic_form(Qs, rs) / sigma0**2
-        bad_s = Ts > chi2.isf(o.snoop_alpha, 3)
+        bad_s = Ts > chdtri(3, o.snoop_alpha)
         if bad_s.any():
             worst = bad_s & (Ts > 0.25 * Ts.max())
             survey_active[model.survey_k[worst]] = False

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtrc   # chi2.sf(x, k) = chdtrc(k, x), without scipy.stats' import
 
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import FieldResult, InitialValues, adjust_field
@@ -116,7 +116,7 @@ def _move(full: FieldResult, sub: FieldResult, J, uv, remove_rotation, min_sigma
     z = (U[:, keep].T @ d.ravel()) / S[keep]
     c, r = float(z @ z), int(keep.sum())
     return (float(np.sqrt(np.mean(norm**2))), float(norm.max()), sig, c, r,
-            float(chi2.sf(c, r)) if r else None)
+            float(chdtrc(r, c)) if r else None)
 
 
 def cross_validate_by_station(result: FieldResult, *, grid: tuple[int, int] = (21, 15),
