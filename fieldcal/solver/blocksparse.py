@@ -811,7 +811,10 @@ class NormalEquations:
         g_r, g_e = g[:nr], g[nr:].reshape(nb, b)
         Vg = np.einsum("eij,ej->ei", f.Vinv, g_e)                       # V*^-1 g_e
         WT = self._coupling_transposed() if st.n_slots else None
-        rhs = -g_r if WT is None else -g_r + Vg.reshape(-1) @ WT          # -g_r + W V*^-1 g_e
+        rhs = -g_r
+        if WT is not None:                # -g_r + W V*^-1 g_e, slot by slot (no transposed copy of W^T)
+            rhs = rhs + np.bincount(st.slot_col, np.einsum("sj,sj->s", self.W_slots, Vg[st.slot_e]),
+                                    minlength=nr)
         h_r = _cho_solve(f, rhs)
         h = np.empty(n)
         h[:nr] = h_r
