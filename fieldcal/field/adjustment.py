@@ -502,7 +502,7 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
             img = data.obs.image[k]
             rays = np.einsum("kba,kb->ka", solver.R[img], cam.unproject(data.obs.uv_px[k]))
             X = _intersect(rays, solver.C[img])
-            uv = np.stack([cam.project(X, solver.R[i], solver.C[i]) for i in img])
+            uv = cam.project(X, solver.R[img], solver.C[img])          # (k, 2): one call, all images
             err = np.hypot(*(uv - data.obs.uv_px[k]).T)
             ok = np.isfinite(err) & (err < np.maximum(1.0, 5.0 * sigma0 * data.obs.sigma_px[k]))
             if ok.all():
