@@ -373,6 +373,8 @@ class _Solver:
         self.sigma_mm0 = data.targets.sigma_mm.copy()
         self.vc = VarianceComponents()
         self.tau = options.tau          # LM's damping, carried from solve to solve (warm starts)
+        if init.lm_tau is not None and np.isfinite(init.lm_tau) and init.lm_tau > 0:
+            self.tau = min(self.tau, float(init.lm_tau))
 
     def reweight(self, floor_px: float, survey_factor: float):
         """Weight the next solves with the variance components (step 4b): image sigmas

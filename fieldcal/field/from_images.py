@@ -328,6 +328,14 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
 
 
 REASON_MISFIT = "does not fit the other images"
+WORKING_SIGMA_TOL = 0.01
+"""The working adjustments (they orient images for the identification) stop when a step is
+below this many sigmas: a hundredth of the noise, far below the identification's gates."""
+WORKING_TAU = 1e-9
+"""LM's initial damping of the working adjustments. With adjusted targets the datum is held
+only by the survey (mm) against the images (microns): in scaled variables the normal
+matrix's weakest directions are ~1e-6 of its diagonal, and the default damping (1e-6) slows
+LM along them for several iterations; the final adjustment keeps the session's ``tau``."""
 
 
 def _misfits(result: FieldResult, keep, probation) -> dict:
@@ -415,8 +423,12 @@ class _Run:
         self.options = options
         # the adjustments that only orient images for the identification hold what the
         # data cannot determine (min_t 1) and skip the variance components: a camera that
-        # predicts well from a few images matters there, its honest sigma only at the end
-        self.working_options = replace(options, min_t=max(options.min_t, 1.0), variance_components=False)
+        # predicts well from a few images matters there, its honest sigma only at the end.
+        # They stop within WORKING_SIGMA_TOL sigmas of their optimum (far inside the gates)
+        # and start LM with little damping (WORKING_TAU, module docstring)
+        self.working_options = replace(options, min_t=max(options.min_t, 1.0), variance_components=False,
+                                       sigma_tol=max(options.sigma_tol, WORKING_SIGMA_TOL),
+                                       tau=min(options.tau, WORKING_TAU))
         self.say = say
         self.progress = None if say is None else say
         self.identify = identify
@@ -493,7 +505,8 @@ class _Oriented:
         outliers = np.array([(data.images[m].file, int(t)) in rejected
                              for m, t in zip(data.obs.image, data.obs.target, strict=True)], bool)
         return InitialValues(np.asarray(self.res.params, float).copy(), R, C, outliers,
-                             np.full(len(keep), np.nan), "the previous adjustment (warm start)")
+                             np.full(len(keep), np.nan), "the previous adjustment (warm start)",
+                             lm_tau=self.res.lsq.mu)
 
     def readjust(self, found) -> bool:
         """Adjust again with the images ``found`` added (warm start), each admitted only by an

@@ -49,6 +49,7 @@ class InitialValues:
     outliers: np.ndarray          # (m,) observations flagged by the robust initialisers
     dlt_f_mm: np.ndarray          # per image (NaN where no DLT)
     how: str
+    lm_tau: float | None = None   # a warm start: the LM damping the adjustment it comes from ended with
 
 
 def per_image(data: FieldData) -> list[np.ndarray]:

@@ -374,3 +374,32 @@ def test_blunder_rounds_with_the_damping_carried_over_end_where_cold_rounds_end(
         # both stop within sigma_tol (1e-3 sigma) of the same optimum
         assert abs(warm.params[j] - cold.params[j]) < 5e-3 * warm.sigma[n], n
         assert abs(warm.params[j] - bad.camera.params[j]) < 4.0 * warm.sigma[n], n
+
+
+def test_a_warm_start_with_the_previous_damping_reaches_the_cold_warm_start_solution(monkeypatch):
+    """A warm start (``initial`` from a previous adjustment) that carries that adjustment's
+    final LM damping (``lm_tau``) starts LM with it and ends where the same warm start with
+    the option's ``tau`` ends."""
+    import fieldcal.field.adjustment as adjustment
+
+    taus = []
+
+    def recording_solve(*args, **kw):
+        taus.append(kw["tau"])
+        return solve(*args, **kw)
+
+    monkeypatch.setattr(adjustment, "solve", recording_solve)
+    sf = wide_field(seed=3)
+    first = adjust_field(sf.data)
+    start = InitialValues(first.params.copy(), first.R_world_to_camera, first.center_m,
+                          ~first.obs_used, np.full(len(sf.data.images), np.nan), "warm start")
+    assert 0.0 < first.lsq.mu < AdjustmentOptions().tau
+    plain = adjust_field(sf.data, initial=start, initial_targets_m=first.targets_m)
+    assert taus[-len(plain.rounds)] == AdjustmentOptions().tau
+    carried = adjust_field(sf.data, initial=replace(start, lm_tau=first.lsq.mu),
+                           initial_targets_m=first.targets_m)
+    assert taus[-len(carried.rounds)] == first.lsq.mu
+    np.testing.assert_array_equal(plain.obs_used, carried.obs_used)
+    for n in CORE:
+        assert abs(plain.params[INDEX[n]] - carried.params[INDEX[n]]) < 5e-3 * plain.sigma[n], n
+        assert abs(carried.params[INDEX[n]] - sf.camera.params[INDEX[n]]) < 4.0 * carried.sigma[n], n
