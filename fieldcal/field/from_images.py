@@ -425,7 +425,7 @@ class _Run:
         # data cannot determine (min_t 1) and skip the variance components: a camera that
         # predicts well from a few images matters there, its honest sigma only at the end.
         # They stop within WORKING_SIGMA_TOL sigmas of their optimum (far inside the gates)
-        # and start LM with little damping (WORKING_TAU, module docstring)
+        # and start LM with little damping (WORKING_TAU: why)
         self.working_options = replace(options, min_t=max(options.min_t, 1.0), variance_components=False,
                                        sigma_tol=max(options.sigma_tol, WORKING_SIGMA_TOL),
                                        tau=min(options.tau, WORKING_TAU))
