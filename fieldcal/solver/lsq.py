@@ -61,7 +61,9 @@ scale-free yardstick. Optionally (``ftol``, ``sigma_tol``) a step whose predicte
 is negligible ends the iteration (status 5): ``L(0) - L(h) <= ftol F``, or
 ``<= sigma_tol^2 F / (m - n)``, i.e. (``L(0) - L(h) ~ 1/2 ||J h||^2``) the step is below
 ``sigma_tol`` a-posteriori standard deviations in the metric of the normal matrix: a
-statistical tolerance that depends neither on units nor on origins. A trial point whose
+statistical tolerance that depends neither on units nor on origins. An LM step found
+negligible is not taken (nor evaluated: the result is the point where it was computed, within
+the tolerance of the optimum); a QN step is tested once it has been accepted. A trial point whose
 residuals or Jacobian are not finite is a rejected step (like SciPy), as is an LM system
 the Cholesky factorisation finds singular (the damping grows).
 
@@ -437,7 +439,9 @@ def _step_lm(st: _State, eps2: float, method: str, switch_ratio: float, ftol: fl
         out.status = 2
         return out
     dL = 0.5 * float(hz @ (st.mu * hz - st.gz))          # L(0) - L(h)
-    negligible = dL <= ftol * st.F
+    if dL <= ftol * st.F:
+        out.status = 5            # converged: not even the model expects a decrease worth having;
+        return out                # the step is not taken (nor evaluated: a Jacobian saved per solve)
     new = st.trial(h)
     if new is None:
         out.status = st.lm_fail()
@@ -457,8 +461,6 @@ def _step_lm(st: _State, eps2: float, method: str, switch_ratio: float, ftol: fl
         st._set(x_new, r_new, J_new, g_new)
     else:
         out.status = st.lm_fail()
-    if negligible and out.status is None:
-        out.status = 5            # converged: not even the model expects a decrease worth having
     return out
 
 

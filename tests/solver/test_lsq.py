@@ -342,3 +342,19 @@ def test_a_warm_start_with_the_returned_damping_reaches_the_cold_solution():
     assert warm.success, warm.message
     assert rel_diff(warm.x, ref.x) < 1e-6 and rel_diff(cold.x, ref.x) < 1e-6
     assert warm.cost == pytest.approx(ref.cost, rel=1e-10)
+
+
+def test_a_negligible_lm_step_ends_the_solve_without_being_evaluated():
+    """Status 5 (sigma_tol): the last LM step is below the tolerance and is neither evaluated nor
+    taken; the point returned is within sigma_tol standard deviations of the optimum."""
+    net = Network(noise=0.05)
+    x0 = net.x_true + 0.5 * np.random.default_rng(2).standard_normal(net.n)
+    res = lsq.solve(net, x0, method="lm", sigma_tol=1e-3)
+    assert res.status == 5, res.message
+    last = res.history[-1]
+    assert not last.accepted and np.isnan(last.F_trial)
+    assert res.evaluations == res.iterations                # x0, then one per iteration but the last
+    ref = lsq.scipy_reference(net, x0)
+    cov = lsq.covariance(res)
+    sigma = np.sqrt(np.r_[np.diag(cov.reduced), np.einsum("kii->ki", cov.elim_blocks).ravel()]) * res.sigma0
+    assert np.max(np.abs(res.x - ref.x) / sigma) < 1e-3
