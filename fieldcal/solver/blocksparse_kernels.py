@@ -107,43 +107,91 @@ def _schur(W, slot_col, slot_ptr, Vinv, T, Y):
 
 
 def _elim_covariances(Y, slot_col, slot_ptr, Cr, Cee, cross):
-    """``Cee[e] += Y_e^T Cr_ee Y_e`` (in place on ``V*^-1``) and ``cross[s] = -(Cr Y_e)[s]``."""
+    """``Cee[e] += Y_e^T Cr_ee Y_e`` (in place on ``V*^-1``) and ``cross[s] = -(Cr Y_e)[s]``.
+
+    ``X_e = Cr_ee Y_e`` over the slots of block e, each pair of slots once (``Cr`` is
+    symmetric): an entry of ``Cr`` is read once, along its row, and used twice."""
     nb, b = Cee.shape[0], Cee.shape[1]
-    x = np.empty(b)
+    n_max = 0
+    for e in range(nb):
+        n_max = max(n_max, slot_ptr[e + 1] - slot_ptr[e])
+    X = np.empty((n_max, b))
     for e in range(nb):
         s0, s1 = slot_ptr[e], slot_ptr[e + 1]
-        for s in range(s0, s1):
-            cs = slot_col[s]
-            x[:] = 0.0
-            for t in range(s0, s1):               # along row cs of Cr, each entry read once
-                c = Cr[cs, slot_col[t]]
+        X[: s1 - s0, :] = 0.0
+        if b == 3:
+            _cr_times_y3(Y, slot_col, s0, s1, Cr, X)
+        else:
+            for s in range(s0, s1):
+                cs = slot_col[s]
+                c = Cr[cs, cs]
                 for j in range(b):
-                    x[j] += c * Y[t, j]
+                    X[s - s0, j] += c * Y[s, j]
+                for t in range(s + 1, s1):
+                    c = Cr[cs, slot_col[t]]
+                    for j in range(b):
+                        X[s - s0, j] += c * Y[t, j]
+                        X[t - s0, j] += c * Y[s, j]
+        for s in range(s0, s1):
             for j in range(b):
-                cross[s, j] = -x[j]
+                cross[s, j] = -X[s - s0, j]
             for i in range(b):
                 for j in range(b):
-                    Cee[e, i, j] += Y[s, i] * x[j]
+                    Cee[e, i, j] += Y[s, i] * X[s - s0, j]
+
+
+def _cr_times_y3(Y, slot_col, s0, s1, Cr, X):
+    """``X += Cr_ee Y_e`` for blocks of 3 (targets), as in :func:`_elim_covariances` with the
+    row being summed held in registers (the same arithmetic in the same order)."""
+    for s in range(s0, s1):
+        cs = slot_col[s]
+        y0, y1, y2 = Y[s, 0], Y[s, 1], Y[s, 2]
+        c = Cr[cs, cs]
+        x0, x1, x2 = X[s - s0, 0] + c * y0, X[s - s0, 1] + c * y1, X[s - s0, 2] + c * y2
+        for t in range(s + 1, s1):
+            c = Cr[cs, slot_col[t]]
+            x0 += c * Y[t, 0]
+            x1 += c * Y[t, 1]
+            x2 += c * Y[t, 2]
+            X[t - s0, 0] += c * y0
+            X[t - s0, 1] += c * y1
+            X[t - s0, 2] += c * y2
+        X[s - s0, 0], X[s - s0, 1], X[s - s0, 2] = x0, x1, x2
 
 
 def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, Cr, Cee, cross, Q):
     """``Q[g] = J_g N^-1 J_g^T`` from the reduced block ``Cr``, the eliminated diagonal blocks
-    ``Cee`` and the cross blocks per slot ``cross`` (see ``NormalEquations.group_covariance``)."""
+    ``Cee`` and the cross blocks per slot ``cross`` (see ``NormalEquations.group_covariance``).
+    The reduced part as ``A (Cr_g A^T)``: ``u = Cr_g A^T`` first, each entry of ``Cr`` read once."""
     k, r = v.shape[0], v.shape[1]
     c_r, c_e = red_pos.shape[0], elim_pos.shape[0]
+    u, vr = np.empty((r, max(c_r, 1))), np.empty((r, max(c_r, 1)))
     for g in range(k):
+        if c_r:
+            kc = key_cols[key_id[g]]
+            for q in range(r):
+                for jj in range(c_r):
+                    vr[q, jj] = v[g, q, red_pos[jj]]
+            for ii in range(c_r):
+                row = kc[ii]
+                if r == 2:            # image points: both rows at once, in registers
+                    u0, u1 = 0.0, 0.0
+                    for jj in range(c_r):
+                        c = Cr[row, kc[jj]]
+                        u0 += c * vr[0, jj]
+                        u1 += c * vr[1, jj]
+                    u[0, ii], u[1, ii] = u0, u1
+                else:
+                    for q in range(r):
+                        acc = 0.0
+                        for jj in range(c_r):
+                            acc += Cr[row, kc[jj]] * vr[q, jj]
+                        u[q, ii] = acc
         for p in range(r):
             for q in range(p, r):
                 acc = 0.0
-                if c_r:
-                    kc = key_cols[key_id[g]]
-                    for ii in range(c_r):
-                        a = v[g, p, red_pos[ii]]
-                        if a != 0.0:
-                            row = 0.0
-                            for jj in range(c_r):
-                                row += Cr[kc[ii], kc[jj]] * v[g, q, red_pos[jj]]
-                            acc += a * row
+                for ii in range(c_r):
+                    acc += vr[p, ii] * u[q, ii]
                 if c_e:
                     eg = e[g]
                     for ii in range(c_e):
@@ -164,6 +212,7 @@ def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx
 
 if compiled.numba is not None:
     _jit = compiled.numba.njit(cache=True, nogil=True)
+    _cr_times_y3 = _jit(_cr_times_y3)
     _kernels = (_jit(_assemble), _jit(_gradient), _jit(_matvec), _jit(_schur), _jit(_elim_covariances),
                 _jit(_group_covariance))
 else:  # pragma: no cover

@@ -240,3 +240,29 @@ def test_bad_structures_are_rejected_with_the_reason():
     with pytest.raises(InputError, match="damping must be"):
         BlockSparseJacobian(4, 3, 3, 0, [ResidualBlock(rows, [[0, 1, 2]] * 2, v)]
                             ).normal_equations().solve(np.zeros(3), -1.0)
+
+
+def test_covariances_match_the_dense_inverse_with_blocks_of_six():
+    """Eliminated blocks of 6 (the exterior orientations when a bundle holds its targets fixed):
+    the kernels' general block size, against the dense inverse."""
+    rng = np.random.default_rng(11)
+    n_red, b, n_blk, k = 4, 6, 5, 60
+    n = n_red + b * n_blk
+    blk_of = np.concatenate([np.arange(n_blk), rng.integers(0, n_blk, k - n_blk)])
+    cols = np.concatenate([np.broadcast_to(np.arange(n_red), (k, n_red)),
+                           n_red + b * blk_of[:, None] + np.arange(b)], axis=1)
+    J = BlockSparseJacobian(2 * k, n, n_red, b,
+                            [ResidualBlock(np.arange(2 * k).reshape(k, 2), cols, rng.standard_normal((k, 2, n_red + b)))])
+    D = dense_from_blocks(J)
+    Ninv = np.linalg.inv(D.T @ D)
+    ne = J.normal_equations()
+    tol = 1e-8 * np.abs(Ninv).max()
+    assert np.allclose(ne.covariance_reduced(), Ninv[:n_red, :n_red], atol=tol)
+    Cee = ne.covariance_elim_blocks()
+    for e in range(n_blk):
+        s = slice(n_red + b * e, n_red + b * (e + 1))
+        assert np.allclose(Cee[e], Ninv[s, s], atol=tol)
+    Q = ne.group_covariance(0)
+    for g in range(k):
+        Jg = D[2 * g:2 * g + 2]
+        assert np.allclose(Q[g], Jg @ Ninv @ Jg.T, atol=tol), g
