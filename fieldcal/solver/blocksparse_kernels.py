@@ -91,6 +91,9 @@ def _schur(W, slot_col, slot_ptr, Vinv, T, Y):
     nb, b = Vinv.shape[0], Vinv.shape[1]
     for e in range(nb):
         s0, s1 = slot_ptr[e], slot_ptr[e + 1]
+        if b == 3:
+            _schur_block3(W, slot_col, s0, s1, Vinv[e], T, Y)
+            continue
         for s in range(s0, s1):
             for j in range(b):
                 acc = 0.0
@@ -104,6 +107,24 @@ def _schur(W, slot_col, slot_ptr, Vinv, T, Y):
                 for j in range(b):
                     acc += Y[s, j] * W[t, j]
                 T[cs, slot_col[t]] += acc
+
+
+def _schur_block3(W, slot_col, s0, s1, Vi, T, Y):
+    """One block of 3 (a target) of :func:`_schur`, ``V*_e^-1`` and the row's ``Y`` in
+    registers (the same arithmetic in the same order)."""
+    v00, v01, v02 = Vi[0, 0], Vi[0, 1], Vi[0, 2]
+    v10, v11, v12 = Vi[1, 0], Vi[1, 1], Vi[1, 2]
+    v20, v21, v22 = Vi[2, 0], Vi[2, 1], Vi[2, 2]
+    for s in range(s0, s1):
+        w0, w1, w2 = W[s, 0], W[s, 1], W[s, 2]
+        Y[s, 0] = w0 * v00 + w1 * v10 + w2 * v20
+        Y[s, 1] = w0 * v01 + w1 * v11 + w2 * v21
+        Y[s, 2] = w0 * v02 + w1 * v12 + w2 * v22
+    for s in range(s0, s1):
+        cs = slot_col[s]
+        y0, y1, y2 = Y[s, 0], Y[s, 1], Y[s, 2]
+        for t in range(s, s1):
+            T[cs, slot_col[t]] += y0 * W[t, 0] + y1 * W[t, 1] + y2 * W[t, 2]
 
 
 def _elim_covariances(Y, slot_col, slot_ptr, Cr, Cee, cross):
@@ -212,7 +233,7 @@ def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx
 
 if compiled.numba is not None:
     _jit = compiled.numba.njit(cache=True, nogil=True)
-    _cr_times_y3 = _jit(_cr_times_y3)
+    _cr_times_y3, _schur_block3 = _jit(_cr_times_y3), _jit(_schur_block3)
     _kernels = (_jit(_assemble), _jit(_gradient), _jit(_matvec), _jit(_schur), _jit(_elim_covariances),
                 _jit(_group_covariance))
 else:  # pragma: no cover
