@@ -7,7 +7,8 @@ block ``t`` of ``B S^(1/2)`` is the sum of the (p + 6, 3) products ``P_k`` of ta
 docstring of :mod:`fieldcal.field.variance_components`). The NumPy reference there builds
 ``B`` as a sparse matrix and multiplies (SciPy's ``csr_matmat``: three passes, index
 sorting, ~60 ms on the 72-image paper field). This kernel adds each target's contribution
-in place: with ``S_t = sum_k P_k[:p]`` (the interior rows, shared by all its points) and
+in place, forming each ``P_k`` from the derivative blocks as it goes (no (m, p + 6, 3)
+array): with ``S_t = sum_k P_k[:p]`` (the interior rows, shared by all its points) and
 ``E_k = P_k[p:]`` (the 6 rows of the image of point k)::
 
     M[int, int]          += S_t S_t^T
@@ -29,36 +30,50 @@ __all__ = ["kernel", "status"]
 _NAME = "survey consider matrix"
 
 
-def _consider(P, p, image, order, ptr, M):
-    """Add ``B B^T`` into ``M`` (n_r, n_r) from ``P`` (m, p + 6, 3); ``order[ptr[t]:ptr[t+1]]``
-    are the points of target t, ``image`` (m,) their images (exterior rows ``p + 6 i``)."""
+def _consider(d_int, d_ext, sigma_m, image, order, ptr, M):
+    """Add ``B S B^T`` into ``M`` (n_r, n_r). ``d_int`` (m, 2, p), ``d_ext`` (m, 2, 6): the image
+    residuals' derivatives; ``sigma_m`` (m,) the survey sigma of each point's target;
+    ``order[ptr[t]:ptr[t+1]]`` the points of target t; ``image`` (m,) their images (exterior
+    rows ``p + 6 i``). ``P_k = [d_int_k | d_ext_k]^T J_X,k`` with ``J_X,k = -sigma_k
+    d_ext_k[:, 3:]`` (the derivative by the target is minus that by the centre) is formed
+    point by point."""
+    p = d_int.shape[2]
+    n_max = 0
+    for t in range(ptr.shape[0] - 1):
+        n_max = max(n_max, ptr[t + 1] - ptr[t])
+    P = np.empty((n_max, p + 6, 3))
     S = np.empty((p, 3))
     for t in range(ptr.shape[0] - 1):
         a0, a1 = ptr[t], ptr[t + 1]
-        S[:, :] = 0.0
         for a in range(a0, a1):
             k = order[a]
+            for c in range(3):
+                x0, x1 = -sigma_m[k] * d_ext[k, 0, 3 + c], -sigma_m[k] * d_ext[k, 1, 3 + c]
+                for r in range(p):
+                    P[a - a0, r, c] = d_int[k, 0, r] * x0 + d_int[k, 1, r] * x1
+                for r in range(6):
+                    P[a - a0, p + r, c] = d_ext[k, 0, r] * x0 + d_ext[k, 1, r] * x1
+        S[:, :] = 0.0
+        for a in range(a1 - a0):
             for r in range(p):
                 for c in range(3):
-                    S[r, c] += P[k, r, c]
+                    S[r, c] += P[a, r, c]
         for r in range(p):
             for s in range(p):
                 M[r, s] += S[r, 0] * S[s, 0] + S[r, 1] * S[s, 1] + S[r, 2] * S[s, 2]
-        for a in range(a0, a1):
-            k = order[a]
-            ok = p + 6 * image[k]
+        for a in range(a1 - a0):
+            ok = p + 6 * image[order[a0 + a]]
             for r in range(p):
                 for e in range(6):
-                    v = S[r, 0] * P[k, p + e, 0] + S[r, 1] * P[k, p + e, 1] + S[r, 2] * P[k, p + e, 2]
+                    v = S[r, 0] * P[a, p + e, 0] + S[r, 1] * P[a, p + e, 1] + S[r, 2] * P[a, p + e, 2]
                     M[r, ok + e] += v
                     M[ok + e, r] += v
-            for b in range(a0, a1):
-                ll = order[b]
-                ol = p + 6 * image[ll]
+            for b in range(a1 - a0):
+                ol = p + 6 * image[order[a0 + b]]
                 for e in range(6):
                     for f in range(6):
-                        M[ok + e, ol + f] += (P[k, p + e, 0] * P[ll, p + f, 0] + P[k, p + e, 1] * P[ll, p + f, 1]
-                                              + P[k, p + e, 2] * P[ll, p + f, 2])
+                        M[ok + e, ol + f] += (P[a, p + e, 0] * P[b, p + f, 0] + P[a, p + e, 1] * P[b, p + f, 1]
+                                              + P[a, p + e, 2] * P[b, p + f, 2])
 
 
 if compiled.numba is not None:
@@ -68,9 +83,11 @@ else:  # pragma: no cover
 
 
 def _smoke(k):
-    P = np.arange(2 * 7 * 3, dtype=float).reshape(2, 7, 3) / 10.0
+    rng = np.random.default_rng(0)
+    d_int, d_ext, sigma = rng.standard_normal((2, 2, 1)), rng.standard_normal((2, 2, 6)), np.array([0.5, 2.0])
     M = np.zeros((13, 13))
-    k(P, 1, np.array([0, 1], np.int64), np.array([0, 1], np.int64), np.array([0, 2], np.int64), M)
+    k(d_int, d_ext, sigma, np.array([0, 1], np.int64), np.array([0, 1], np.int64), np.array([0, 2], np.int64), M)
+    P = np.einsum("kai,kaj->kij", np.concatenate([d_int, d_ext], axis=2), -d_ext[:, :, 3:] * sigma[:, None, None])
     B = np.zeros((13, 3))
     B[0] = P[0, 0] + P[1, 0]
     B[1:7], B[7:13] = P[0, 1:], P[1, 1:]

@@ -200,9 +200,8 @@ def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int, 
     d_int, d_ext = np.asarray(d_int, float), np.asarray(d_ext, float)
     m, _, p = d_int.shape
     n_r = p + 6 * n_images
-    JX = -d_ext[:, :, 3:] * np.asarray(sigma_m, float)[:, None, None]        # (m, 2, 3), S^(1/2) in
-    D = np.concatenate([d_int, d_ext], axis=2)                               # (m, 2, p + 6)
-    P = np.einsum("kai,kaj->kij", D, JX)                                     # (m, p + 6, 3)
+    sigma_m = np.asarray(sigma_m, float)
+    trace_q = float(np.einsum("kab,kab,k->", d_ext[:, :, 3:], d_ext[:, :, 3:], sigma_m**2))   # |J_X S^(1/2)|^2
     kern = None if implementation == "numpy" else consider_kernel.kernel()
     if implementation == "numba" and kern is None:
         raise RuntimeError(consider_kernel.status())
@@ -210,9 +209,12 @@ def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int, 
         order = np.argsort(np.asarray(target), kind="stable")
         ptr = np.flatnonzero(np.r_[True, np.diff(np.asarray(target)[order]) != 0, True])
         M = np.zeros((n_r, n_r))
-        kern(np.ascontiguousarray(P), p, np.asarray(image, np.int64), order.astype(np.int64),
-             ptr.astype(np.int64), M)
-        return 0.5 * (M + M.T), float(np.sum(JX**2))
+        kern(np.ascontiguousarray(d_int), np.ascontiguousarray(d_ext), np.ascontiguousarray(sigma_m),
+             np.asarray(image, np.int64), order.astype(np.int64), ptr.astype(np.int64), M)
+        return 0.5 * (M + M.T), trace_q
+    JX = -d_ext[:, :, 3:] * sigma_m[:, None, None]                           # (m, 2, 3), S^(1/2) in
+    D = np.concatenate([d_int, d_ext], axis=2)                               # (m, 2, p + 6)
+    P = np.einsum("kai,kaj->kij", D, JX)                                     # (m, p + 6, 3)
     rows = np.concatenate([np.broadcast_to(np.arange(p), (m, p)),
                            p + 6 * np.asarray(image)[:, None] + np.arange(6)], axis=1)  # (m, p + 6)
     _, tpos = np.unique(np.asarray(target), return_inverse=True)
@@ -222,7 +224,7 @@ def survey_consider_matrix(d_int, d_ext, image, target, sigma_m, n_images: int, 
                      np.broadcast_to(cols[:, None, :], P.shape).ravel())),
         shape=(n_r, 3 * (int(tpos.max()) + 1) if m else 0))
     M = (B @ B.T).toarray()
-    return 0.5 * (M + M.T), float(np.sum(JX**2))
+    return 0.5 * (M + M.T), trace_q
 
 
 def fixed_target_covariance(cov_unit, M, residual_ss: float, dof: int, trace_q: float):
