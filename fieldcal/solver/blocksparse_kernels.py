@@ -28,6 +28,9 @@ _NAME = "block-sparse normal equations"
 def _assemble(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, U, V, Ws, with_U):
     k, r = v.shape[0], v.shape[1]
     c_r, c_e = red_pos.shape[0], elim_pos.shape[0]
+    if r == 2 and c_e and not with_U:
+        _assemble_rows2(v, red_pos, elim_pos, e, local, slot_idx, V, Ws)
+        return
     for g in range(k):
         if c_r and with_U:
             kc = key_cols[key_id[g]]
@@ -62,6 +65,32 @@ def _assemble(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, U, V, 
                     for q in range(r):
                         s += v[g, q, a] * v[g, q, b]
                     Ws[sl, local[g, jj]] += s
+
+
+def _assemble_rows2(v, red_pos, elim_pos, e, local, slot_idx, V, Ws):
+    """V and W_slots of :func:`_assemble` for groups of two rows (image points), each group's
+    values gathered once (the same arithmetic in the same order)."""
+    k = v.shape[0]
+    c_r, c_e = red_pos.shape[0], elim_pos.shape[0]
+    ar, ae = np.empty((2, max(c_r, 1))), np.empty((2, c_e))
+    for g in range(k):
+        for jj in range(c_r):
+            ar[0, jj], ar[1, jj] = v[g, 0, red_pos[jj]], v[g, 1, red_pos[jj]]
+        for jj in range(c_e):
+            ae[0, jj], ae[1, jj] = v[g, 0, elim_pos[jj]], v[g, 1, elim_pos[jj]]
+        eg = e[g]
+        for ii in range(c_e):
+            a0, a1, li = ae[0, ii], ae[1, ii], local[g, ii]
+            for jj in range(ii, c_e):
+                s = a0 * ae[0, jj] + a1 * ae[1, jj]
+                lj = local[g, jj]
+                V[eg, li, lj] += s
+                if jj != ii:
+                    V[eg, lj, li] += s
+        for ii in range(c_r):
+            a0, a1, sl = ar[0, ii], ar[1, ii], slot_idx[g, ii]
+            for jj in range(c_e):
+                Ws[sl, local[g, jj]] += a0 * ae[0, jj] + a1 * ae[1, jj]
 
 
 def _gradient(v, rows, cols, res, out):
@@ -233,7 +262,7 @@ def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx
 
 if compiled.numba is not None:
     _jit = compiled.numba.njit(cache=True, nogil=True)
-    _cr_times_y3, _schur_block3 = _jit(_cr_times_y3), _jit(_schur_block3)
+    _cr_times_y3, _schur_block3, _assemble_rows2 = _jit(_cr_times_y3), _jit(_schur_block3), _jit(_assemble_rows2)
     _kernels = (_jit(_assemble), _jit(_gradient), _jit(_matvec), _jit(_schur), _jit(_elim_covariances),
                 _jit(_group_covariance))
 else:  # pragma: no cover
