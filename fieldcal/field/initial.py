@@ -110,7 +110,8 @@ def _segment_sums(a, starts, counts):
     return out
 
 
-def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, tol: float = 1e-10):
+def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, tol: float = 1e-10,
+                 mu0: float = 1e-6):
     """Poses of all images with the camera ``params`` and the targets held fixed.
 
     A Levenberg-Marquardt iteration per image (its own damping and step acceptance),
@@ -136,6 +137,12 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         of squared weighted residuals) by at most ``tol`` times it: in units of the image
         noise the step is then below ``sqrt(2 tol cost)`` (1e-10: about 3e-4 sigma for
         200 points).
+    mu0 : float
+        Each image's initial damping, relative to the diagonal of its normal matrix. Small:
+        the starts (DLT poses) are close, and with a long lens rotation and position are
+        strongly correlated (weak directions ~1e-4 of the diagonal), along which a damping of
+        1e-3 halves the step for several iterations (19 evaluations instead of 11 on the paper
+        field; the same poses).
 
     Returns
     -------
@@ -151,7 +158,7 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
     x = model.pack(params, C)
     r, jb, _ = model.residuals_and_blocks(x)
     cost = _segment_sums(r.reshape(-1, 2) ** 2, starts, counts).sum(axis=1)
-    mu = np.full(n, 1e-3)
+    mu = np.full(n, float(mu0))
     done = counts == 0
     eye = np.eye(6)
     for _ in range(max_iter):
