@@ -178,7 +178,7 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     """
     worker, nthreads = _worker_info()
     _warm(prepared.method, nthreads)
-    t_task = time.perf_counter()
+    t_task, start_unix = time.perf_counter(), time.time()
     stamps = {name: file_stamp(prepared.session.image_path(name)) for name in names if name not in known}
     # the plan's view of the lake, unless this is a retry that may find its first try's rows
     rows = batch.measure_many_into_lake(prepared, names, Lake(lake, storage_options), known,
@@ -186,7 +186,7 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     for row in rows:
         row["stamp"] = stamps.get(row["image"])
     return {"rows": rows, "task_s": time.perf_counter() - t_task, "worker": worker, "pid": os.getpid(),
-            "rss_peak_mb": _peak_rss_mb()}
+            "rss_peak_mb": _peak_rss_mb(), "start_unix": start_unix, "end_unix": time.time()}
 
 
 @task(name="solve", cache_policy=NO_CACHE, persist_result=False)
@@ -266,7 +266,8 @@ class _Collector:
         self.rows.extend(res["rows"])
         self.tasks.append({"n": len(names), "wall_s": time.perf_counter() - t0, "task_s": res["task_s"],
                            "submit_s": submit_s, "worker": res["worker"], "pid": res["pid"],
-                           "rss_peak_mb": res["rss_peak_mb"]})
+                           "rss_peak_mb": res["rss_peak_mb"], "start_unix": res["start_unix"],
+                           "end_unix": res["end_unix"]})
         self.counts["done"] += len(names)
         for r in res["rows"]:
             if r["status"] in ("cached", "bad"):
@@ -286,10 +287,12 @@ def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str]
     one image per worker (probes) and the rest follows :func:`fieldcal.batch.plan_batches`
     from the first probe's figures. Call it inside a flow. Returns ``rows`` (per image, in
     ``names`` order), ``tasks`` (per task: ``n``, ``wall_s``, ``task_s``, ``submit_s``,
-    ``worker``, ``pid``, ``rss_peak_mb``), ``batches`` (the sizes planned after the probes),
-    ``batch_size`` (the largest) and ``estimate`` (``image_s``, ``overhead_s``, or None).
+    ``worker``, ``pid``, ``rss_peak_mb``, ``start_unix``, ``end_unix``), ``batches`` (the
+    sizes planned after the probes), ``batch_size`` (the largest), ``estimate``
+    (``image_s``, ``overhead_s``, or None) and ``start_unix`` / ``end_unix`` of the fan-out.
     """
     logger = get_run_logger()
+    start_unix = time.time()
     c = _Collector(len(names), logger)
     queue, first, sizes, estimate = list(names), [], [], None
     if batch_size:
@@ -318,7 +321,7 @@ def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str]
     order = {n: k for k, n in enumerate(names)}
     c.rows.sort(key=lambda r: order[r["image"]])
     return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),
-            "estimate": estimate}
+            "estimate": estimate, "start_unix": start_unix, "end_unix": time.time()}
 
 
 def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size,
