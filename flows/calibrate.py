@@ -49,6 +49,7 @@ from __future__ import annotations
 import os
 import resource
 import statistics
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,15 +111,23 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # Linux: KiB
 
 
-def _warm(method: str, nthreads: int | None) -> None:
-    """Import the measuring code (and load the compiled disc kernel) before the work is timed;
-    one OpenCV thread and one codec thread per Dask thread."""
-    if method == "goniometer":
-        import fieldcal.goniometer.method  # noqa: F401
-    else:
-        from fieldcal.measure import disc_kernel
+_WARM_LOCK = threading.Lock()
+_WARMED: set[str] = set()
 
-        disc_kernel.warm_up()
+
+def _warm(method: str, nthreads: int | None) -> None:
+    """Import the measuring code (and load the compiled disc kernel) before the work is timed,
+    once per process (threads wait for a warm-up in progress instead of repeating it); one
+    OpenCV thread and one codec thread per Dask thread."""
+    with _WARM_LOCK:
+        if method not in _WARMED:
+            if method == "goniometer":
+                import fieldcal.goniometer.method  # noqa: F401
+            else:
+                from fieldcal.measure import disc_kernel
+
+                disc_kernel.warm_up()
+            _WARMED.add(method)
     if nthreads:
         import cv2
 
@@ -127,6 +136,15 @@ def _warm(method: str, nthreads: int | None) -> None:
         set_decode_threads(nthreads)
         if cv2.getNumThreads() != nthreads:
             cv2.setNumThreads(nthreads)
+
+
+def warm_in_background(method: str) -> threading.Thread:
+    """Start :func:`_warm` in a thread of this process: with in-process Dask workers (the
+    default), the imports and the kernel load (~0.5 s) then overlap the cluster's and the
+    sub-flow's start instead of delaying the first measuring task."""
+    thread = threading.Thread(target=_warm, args=(method, None), name="fieldcal-warm-up", daemon=True)
+    thread.start()
+    return thread
 
 
 def _transient(task_, task_run, state) -> bool:
@@ -402,6 +420,8 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     mine = set(todo)
     present = sorted(p for p in plan.present if p[0] in mine)   # cached under another content, maybe this one
     runner = _dask_runner()
+    if runner is None and todo and cluster.in_process(dask_address, cluster_kwargs):
+        warm_in_background(run.prepared.method)
     if runner is not None:
         run.on_cluster = True
         run.measured = _measure_on(runner, run.prepared, todo, known, run.lake, run.storage_options, batch_size,
