@@ -531,9 +531,10 @@ class Lake:
 
     def has_observations(self, camera_id: str, session_id: str, image_name: str,
                          content_sha256: str) -> bool:
-        """Whether observations of this image content are cached (:func:`obs.has_key`: the
-        flow asks once per image; re-reading a growing session for every image made the
-        72-image benchmark spend ~18 s in lookups, bench/README_flow.md)."""
+        """Whether observations of this image content are cached (:func:`obs.has_key`, a
+        key-only probe: re-reading a growing session for every image made the 72-image
+        benchmark spend ~18 s in lookups, bench/README_flow.md; the flow now looks its
+        images up once, in the plan, :attr:`fieldcal.batch.SessionPlan.present`)."""
         observations_key(image_name, content_sha256)
         if (image_name, content_sha256) in self._obs_cache.get((camera_id, session_id), {}):
             return True
