@@ -7,7 +7,10 @@ Usage::
 The session is the field paper's geometry at full size (Phase One iXU150-like camera,
 8208 x 6280 px 16-bit TIFFs in the renderer's mix of layouts: tiled zstd, striped
 uncompressed, tiled deflate BigTIFF, striped uncompressed BigTIFF; coded targets), rendered
-once into ``bench/out/flow/paper72`` (about 10 minutes on two processes, ~5 GB) and reused.
+once into ``bench/out/flow/paper72`` (about 10 minutes on two processes, ~6 GB) and reused.
+``--images N`` above 72 (e.g. 300, ~27 GB): the 72 views once as rendered, then repeated
+exposures from the same poses with fresh sensor noise (:func:`repeat_session`), written
+once into ``bench/out/flow/paperN`` and reused.
 
 Runs, each through :func:`flows.calibrate.calibrate_session` on one Prefect server that is
 started first (its start is timed and reported separately):
@@ -48,6 +51,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+VIEWS = 72
+"""Views of the field scene (``paper_field``); larger sessions repeat them (:func:`repeat_session`)."""
 
 
 def _render_chunk(args):
@@ -89,6 +94,59 @@ def render_session(folder: Path, n_images: int, procs: int, seed: int = 0) -> fl
     return time.perf_counter() - t
 
 
+def _repeat_chunk(args):
+    """Write some repeated exposures (one process of the pool): the base view's pixels with
+    fresh sensor noise (+-1 DN, uniform), in the renderer's TIFF layout of its position."""
+    import numpy as np
+    import tifffile
+
+    from fieldcal.synthetic.session_writer import TIFF_LAYOUTS
+
+    base, folder, jobs = args
+    for k, source, seed in jobs:
+        pixels = tifffile.imread(base / source)
+        noise = np.random.default_rng(seed).integers(-1, 2, pixels.shape, dtype=np.int32)
+        pixels = np.clip(pixels.astype(np.int32) + noise, 0, np.iinfo(pixels.dtype).max).astype(pixels.dtype)
+        layout = TIFF_LAYOUTS[k % len(TIFF_LAYOUTS)]
+        kw = {"tile": layout["tile"]} if layout["tile"] else {"rowsperstrip": 64}
+        tifffile.imwrite(folder / f"images/repeat_{k:04d}.tif", pixels, photometric="minisblack",
+                         bigtiff=layout["bigtiff"], metadata=None, compression=layout["compression"], **kw)
+    return len(jobs)
+
+
+def repeat_session(base: Path, folder: Path, n_images: int, procs: int) -> float:
+    """A session of ``n_images`` frames from the rendered views of ``base``: every view once as
+    rendered (hard links), then again as repeated exposures from the same pose with fresh
+    sensor noise (new pixel content, so each frame is hashed and measured), in the
+    renderer's mix of TIFF layouts. Rendering 300 new views would take ~40 min of both
+    cores here (6.9-9.8 s per frame); a repeat takes ~1 s. Returns seconds."""
+    import multiprocessing
+
+    t = time.perf_counter()
+    manifest = json.loads((base / "session.json").read_text())
+    views = manifest["images"]
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    shutil.copy2(base / "targets.csv", folder / "targets.csv")
+    entries, jobs = [], []
+    for k in range(n_images):
+        view = views[k % len(views)]
+        if k < len(views):
+            dst = folder / view["file"]
+            if not dst.exists():
+                os.link(base / view["file"], dst)
+            entries.append(dict(view))
+        else:
+            entries.append({**view, "file": f"images/repeat_{k:04d}.tif"})
+            if not (folder / entries[-1]["file"]).exists():
+                jobs.append((k, view["file"], 1000 + k))
+    with multiprocessing.get_context("spawn").Pool(procs) as pool:
+        for done in pool.imap_unordered(_repeat_chunk, [(base, folder, jobs[i::procs]) for i in range(procs)]):
+            print(f"  wrote {done} repeated exposures", flush=True)
+    manifest.update(images=entries, session_id=f"paper{n_images}")
+    (folder / "session.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return time.perf_counter() - t
+
+
 def analyse(result: dict, wall_s: float) -> dict:
     """Wall time, throughput, memory and the share outside reading / extraction / solving."""
     m = result["measure"]
@@ -106,6 +164,7 @@ def analyse(result: dict, wall_s: float) -> dict:
     hash_s = sum(r["hash_s"] for r in rows)
     measure_s = sum(r["measure_s"] for r in rows)
     write_s = sum(r["write_s"] for r in rows)
+    task_s = sum(task["task_s"] for task in m["tasks"])
     useful = (hash_s + measure_s) / w + solver
     per_worker = {}
     for task in m["tasks"]:
@@ -119,16 +178,37 @@ def analyse(result: dict, wall_s: float) -> dict:
         peak_rss_mb_per_worker=per_worker,
         outside_items={
             "cluster start": m["cluster_s"],
-            "Parquet writes (per worker)": write_s / w,
+            "Delta appends of observations (per worker)": write_s / w,
             "observations read back (Parquet)": t.get("read_observations_s", 0.0),
             "commit (Zarr, Parquet, JSON)": t.get("commit_s", 0.0),
             "validate + lookup": t.get("validate_s", 0.0) + t.get("lookup_s", 0.0),
             "flow run start + end": wall_s - t.get("total_s", wall_s),
             "sub-flow start + end, cluster shutdown": t.get("measure_s", 0.0) - m.get("body_s", 0.0),
+            "in tasks, besides hashing / measuring / writing (per worker)": (task_s - hash_s - measure_s - write_s) / w,
+            **_waiting(m, w),
         })
+    out["timeline"] = sorted((str(task["worker"]), round(task["start_unix"] - m["start_unix"], 3),
+                              round(task["end_unix"] - m["start_unix"], 3), task["n"], round(task["submit_s"], 3))
+                             for task in m["tasks"])
     known = sum(out["outside_items"].values())
-    out["outside_items"]["Prefect tasks / Dask / idle workers (rest)"] = out["outside_s"] - known
+    out["outside_items"]["the rest (flow bookkeeping)"] = out["outside_s"] - known
     return out
+
+
+def _waiting(m: dict, w: int) -> dict:
+    """Per worker [s]: the gaps before and between its tasks (Prefect's task runs, Dask's
+    dispatch), and its tail (idle from its last task's end to the end of the fan-out)."""
+    by_worker: dict = {}
+    for task in m["tasks"]:
+        by_worker.setdefault(task["worker"], []).append((task["start_unix"], task["end_unix"]))
+    gaps = tail = 0.0
+    for spans in by_worker.values():
+        spans.sort()
+        ends = [m["start_unix"]] + [end for _, end in spans[:-1]]
+        gaps += sum(max(0.0, start - end) for (start, _), end in zip(spans, ends, strict=True))
+        tail += max(0.0, m["end_unix"] - spans[-1][1])
+    return {"workers waiting before / between tasks (per worker)": gaps / w,
+            "workers idle after their last task (per worker)": tail / w}
 
 
 def _sizes(d: dict) -> str:
@@ -160,8 +240,11 @@ def table(results: dict) -> str:
     row("outside reading / extraction / solving [s]", lambda d: f"{d['outside_s']:.1f}")
     row("**share outside**", lambda d: f"**{d['outside_share']:.1%}**" if d.get("measure_s_sum") else None)
     for key in ("cluster start", "sub-flow start + end, cluster shutdown", "flow run start + end",
-                "Parquet writes (per worker)", "observations read back (Parquet)", "commit (Zarr, Parquet, JSON)",
-                "validate + lookup", "Prefect tasks / Dask / idle workers (rest)"):
+                "Delta appends of observations (per worker)", "observations read back (Parquet)", "commit (Zarr, Parquet, JSON)",
+                "validate + lookup", "in tasks, besides hashing / measuring / writing (per worker)",
+                "workers waiting before / between tasks (per worker)",
+                "workers idle after their last task (per worker)",
+                "the rest (flow bookkeeping)"):
         row(f"&nbsp;&nbsp;{key} [s]", lambda d, key=key: f"{d['outside_items'][key]:.2f}")
     row("tasks (images per task)", lambda d: f"{d['n_tasks']} (probes 1, 1; then {_sizes(d)})")
     row("peak RSS per worker process [MiB] (threads: of the whole flow process, solver included)",
@@ -184,7 +267,13 @@ def main() -> int:
     results: dict = {"images": args.images, "workers": args.workers}
 
     n_have = len(list((session / "images").glob("*.tif"))) if (session / "images").is_dir() else 0
-    if not (session / "session.json").is_file() or n_have < args.images:
+    if args.images > VIEWS and (not (session / "session.json").is_file() or n_have < args.images):
+        base = out / f"paper{VIEWS}"
+        if not (base / "session.json").is_file():
+            results["render_s"] = render_session(base, VIEWS, args.render_procs)
+        print(f"writing {args.images} frames into {session} from the {VIEWS} views ...", flush=True)
+        results["repeat_s"] = repeat_session(base, session, args.images, args.render_procs)
+    elif not (session / "session.json").is_file() or n_have < args.images:
         print(f"rendering {args.images} full-size images into {session} ...", flush=True)
         shutil.rmtree(session, ignore_errors=True)
         results["render_s"] = render_session(session, args.images, args.render_procs)

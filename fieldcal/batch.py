@@ -14,13 +14,14 @@ the Prefect flows (``flows/``) and the command line make them the same way:
   a version with the same fingerprint of inputs and settings is committed already).
 - :func:`measure_into_lake`: hash (when unknown), look up and measure one image, and write
   its observations into the lake; a bad image is a row with status ``"bad"``, not an
-  exception.
+  exception. :func:`measure_many_into_lake`: the same for a batch of images, with one lake
+  append for all of them.
 - :func:`read_observations`: the cached observations of the measured images, for the solve.
 - :func:`plan_batches`: how many images each measuring task takes (guided
   self-scheduling, from the measured cost per image and per task).
 
 The lake is used through its public methods only (``find_committed``, ``cached_keys``,
-``has_observations``, ``write_observations``, ``read_observations``).
+``has_observations``, ``write_observations_many``, ``read_observations``).
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ from fieldcal.measure.imageio import read_file
 from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 
 __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
-           "unchanged_version", "cached_observations", "measure_into_lake", "read_observations",
+           "unchanged_version", "cached_observations", "measure_into_lake", "measure_many_into_lake",
+           "read_observations",
            "plan_batches", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
 
 TASKS_PER_WORKER = 2
@@ -98,6 +100,10 @@ class SessionPlan:
         ``{image: reason}`` of listed images whose file is absent (left out).
     cached : dict
         ``{image: key}`` of images whose observations are in the lake already.
+    present : set
+        ``(image, key)`` of every image of the session with observations in the lake, read
+        once by the plan: a measuring task that learns an image's hash by reading it finds
+        out from this set whether it is cached, without asking the lake per image.
     todo : list of str
         Images to hash and/or measure, in the session's order.
     fingerprint : str or None
@@ -109,6 +115,7 @@ class SessionPlan:
     hashes: dict[str, str]
     missing: dict[str, str]
     cached: dict[str, str] = field(default_factory=dict)
+    present: set[tuple[str, str]] = field(default_factory=set)
     todo: list[str] = field(default_factory=list)
     fingerprint: str | None = None
     unchanged: str | None = None
@@ -141,11 +148,11 @@ def unchanged_version(prepared: pipeline.Prepared, lake, hashes: dict[str, str])
 
 
 def cached_observations(prepared: pipeline.Prepared, lake, hashes: dict[str, str],
-                        names=None) -> dict[str, str]:
+                        names=None, present: set[tuple[str, str]] | None = None) -> dict[str, str]:
     """``{image: key}`` of the images (default: all with a known hash) cached in the lake.
 
     One read of the session's cached observation keys (:meth:`Lake.cached_keys`), whatever
-    the number of images.
+    the number of images, unless they are given (``present``).
     """
     sess = prepared.session
     msettings = measure_settings(prepared)
@@ -153,7 +160,8 @@ def cached_observations(prepared: pipeline.Prepared, lake, hashes: dict[str, str
             if hashes.get(n) not in (None, MISSING, UNREADABLE)}
     if not keys:
         return {}
-    present = lake.cached_keys(sess.camera_id, sess.session_id)
+    if present is None:
+        present = lake.cached_keys(sess.camera_id, sess.session_id)
     return {name: key for name, key in keys.items() if (name, key) in present}
 
 
@@ -184,7 +192,8 @@ def plan_session(prepared: pipeline.Prepared, lake, known: dict[str, str] | None
             plan.unchanged = found
     if plan.unchanged is not None or not find_cached:
         return plan
-    plan.cached = cached_observations(prepared, lake, hashes)
+    plan.present = lake.cached_keys(prepared.session.camera_id, prepared.session.session_id)
+    plan.cached = cached_observations(prepared, lake, hashes, present=plan.present)
     plan.todo = [n for n in prepared.to_measure if n not in missing and n not in plan.cached]
     return plan
 
@@ -205,6 +214,45 @@ def measure_into_lake(prepared: pipeline.Prepared, name: str, lake, sha256: str 
         ``image, sha256, key, status ("measured" | "cached" | "bad"), reason, n_rows,
         hash_s, measure_s, write_s`` (times [s]).
     """
+    return measure_many_into_lake(prepared, [name], lake, {name: sha256} if sha256 else None)[0]
+
+
+def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
+                           known: dict[str, str] | None = None, *,
+                           present: set[tuple[str, str]] | None = None) -> list[dict]:
+    """:func:`measure_into_lake` for several images, their observations in one lake append.
+
+    Parameters
+    ----------
+    names : list of str
+        Images to hash (unless their hash is in ``known``), look up and measure, in order.
+    present : set, optional
+        ``(image, key)`` cached in the lake, as read by :func:`plan_session`
+        (:attr:`SessionPlan.present`): an image is looked up there instead of in the lake
+        (one Delta scan per image). None: ask the lake for each image. An image measured by
+        two runs at once is stored twice and read once (:mod:`fieldcal.lake.observations`).
+
+    The observations measured so far are written (one append per table,
+    :meth:`Lake.write_observations_many`) when the list is done, and also when measuring
+    stops on an exception, so that nothing measured is lost. Returns one row per image
+    (see :func:`measure_into_lake`); ``write_s`` is the append's time shared by the
+    images written.
+    """
+    rows, pending = [], []
+    try:
+        for name in names:
+            row, table = _measure_one(prepared, name, lake, (known or {}).get(name), present)
+            rows.append(row)
+            if table is not None:
+                pending.append((row, table))
+    finally:
+        _write_pending(prepared, lake, pending)
+    return rows
+
+
+def _measure_one(prepared: pipeline.Prepared, name: str, lake, sha256: str | None,
+                 present: set | None) -> tuple[dict, object]:
+    """``(row, table or None)``: one image hashed (if needed), looked up and measured."""
     row = {"image": name, "sha256": sha256, "key": None, "status": None, "reason": None, "n_rows": 0,
            "hash_s": 0.0, "measure_s": 0.0, "write_s": 0.0}
     sess = prepared.session
@@ -215,27 +263,39 @@ def measure_into_lake(prepared: pipeline.Prepared, name: str, lake, sha256: str 
             source = read_file(sess.image_path(name))
         except (InputError, OSError) as e:
             row.update(status="bad", reason=getattr(e, "reason", None) or one_line(e))
-            return row
+            return row, None
         row["sha256"] = source.sha256
         row["hash_s"] = time.perf_counter() - t
     msettings = measure_settings(prepared)
     row["key"] = key = measurement_key(row["sha256"], msettings)
-    if lake.has_observations(sess.camera_id, sess.session_id, name, key):
+    if ((name, key) in present if present is not None
+            else lake.has_observations(sess.camera_id, sess.session_id, name, key)):
         row["status"] = "cached"
-        return row
+        return row, None
     t = time.perf_counter()
     try:
         table = pipeline.measure(prepared, name, source)
     except ImageError as e:
         row.update(status="bad", reason=e.reason, measure_s=time.perf_counter() - t)
-        return row
+        return row, None
     row["measure_s"] = time.perf_counter() - t
-    t = time.perf_counter()
     meta = dict(table.schema.metadata or {})
     meta.update({b"fieldcal.image_sha256": row["sha256"].encode(), b"fieldcal.measure": canonical_json(msettings)})
-    lake.write_observations(sess.camera_id, sess.session_id, name, key, table.replace_schema_metadata(meta))
-    row.update(status="measured", n_rows=int(table.num_rows), write_s=time.perf_counter() - t)
-    return row
+    row.update(status="measured", n_rows=int(table.num_rows))
+    return row, table.replace_schema_metadata(meta)
+
+
+def _write_pending(prepared: pipeline.Prepared, lake, pending: list) -> None:
+    """One lake append of the measured images' observations; each row gets its share of the time."""
+    if not pending:
+        return
+    sess = prepared.session
+    t = time.perf_counter()
+    lake.write_observations_many(sess.camera_id, sess.session_id,
+                                 [(row["image"], row["key"], table) for row, table in pending])
+    share = (time.perf_counter() - t) / len(pending)
+    for row, _ in pending:
+        row["write_s"] = share
 
 
 def read_observations(prepared: pipeline.Prepared, lake, keys: dict[str, str]) -> dict:

@@ -49,6 +49,7 @@ from __future__ import annotations
 import os
 import resource
 import statistics
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +58,7 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from prefect.context import FlowRunContext
 from prefect.futures import as_completed
+from prefect.runtime import task_run
 from prefect_dask import DaskTaskRunner
 
 from fieldcal import batch, pipeline, progress
@@ -109,15 +111,23 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # Linux: KiB
 
 
-def _warm(method: str, nthreads: int | None) -> None:
-    """Import the measuring code (and load the compiled disc kernel) before the work is timed;
-    one OpenCV thread and one codec thread per Dask thread."""
-    if method == "goniometer":
-        import fieldcal.goniometer.method  # noqa: F401
-    else:
-        from fieldcal.measure import disc_kernel
+_WARM_LOCK = threading.Lock()
+_WARMED: set[str] = set()
 
-        disc_kernel.warm_up()
+
+def _warm(method: str, nthreads: int | None) -> None:
+    """Import the measuring code (and load the compiled disc kernel) before the work is timed,
+    once per process (threads wait for a warm-up in progress instead of repeating it); one
+    OpenCV thread and one codec thread per Dask thread."""
+    with _WARM_LOCK:
+        if method not in _WARMED:
+            if method == "goniometer":
+                import fieldcal.goniometer.method  # noqa: F401
+            else:
+                from fieldcal.measure import disc_kernel
+
+                disc_kernel.warm_up()
+            _WARMED.add(method)
     if nthreads:
         import cv2
 
@@ -126,6 +136,15 @@ def _warm(method: str, nthreads: int | None) -> None:
         set_decode_threads(nthreads)
         if cv2.getNumThreads() != nthreads:
             cv2.setNumThreads(nthreads)
+
+
+def warm_in_background(method: str) -> threading.Thread:
+    """Start :func:`_warm` in a thread of this process: with in-process Dask workers (the
+    default), the imports and the kernel load (~0.5 s) then overlap the cluster's and the
+    sub-flow's start instead of delaying the first measuring task."""
+    thread = threading.Thread(target=_warm, args=(method, None), name="fieldcal-warm-up", daemon=True)
+    thread.start()
+    return thread
 
 
 def _transient(task_, task_run, state) -> bool:
@@ -149,8 +168,9 @@ def validate_session(session: str, settings: dict | None = None) -> pipeline.Pre
 @task(name="measure-batch", cache_policy=NO_CACHE, persist_result=False, retries=1,
       retry_delay_seconds=2, retry_condition_fn=_transient)
 def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
-                  storage_options: dict | None = None) -> dict:
-    """Hash, look up and (when not cached) measure a batch of images; observations to the lake.
+                  storage_options: dict | None = None, present: list | None = None) -> dict:
+    """Hash and measure a batch of images; their observations go to the lake in one append
+    (:func:`fieldcal.batch.measure_many_into_lake`; the images were looked up by the plan).
 
     Parameters
     ----------
@@ -161,6 +181,9 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
         ``{name: sha256}`` of images whose hash is known already (not read for hashing).
     lake, storage_options
         Where the observations go (the lake's observation tables).
+    present : list, optional
+        ``(image, key)`` of these images cached in the lake when the run was planned
+        (:attr:`fieldcal.batch.SessionPlan.present`).
 
     Returns
     -------
@@ -173,17 +196,15 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     """
     worker, nthreads = _worker_info()
     _warm(prepared.method, nthreads)
-    t_task = time.perf_counter()
-    lk = Lake(lake, storage_options)
-    rows = []
-    for name in names:
-        sha = known.get(name)
-        stamp = None if sha is not None else file_stamp(prepared.session.image_path(name))
-        row = batch.measure_into_lake(prepared, name, lk, sha)
-        row["stamp"] = stamp
-        rows.append(row)
+    t_task, start_unix = time.perf_counter(), time.time()
+    stamps = {name: file_stamp(prepared.session.image_path(name)) for name in names if name not in known}
+    # the plan's view of the lake, unless this is a retry that may find its first try's rows
+    rows = batch.measure_many_into_lake(prepared, names, Lake(lake, storage_options), known,
+                                        present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()})
+    for row in rows:
+        row["stamp"] = stamps.get(row["image"])
     return {"rows": rows, "task_s": time.perf_counter() - t_task, "worker": worker, "pid": os.getpid(),
-            "rss_peak_mb": _peak_rss_mb()}
+            "rss_peak_mb": _peak_rss_mb(), "start_unix": start_unix, "end_unix": time.time()}
 
 
 @task(name="solve", cache_policy=NO_CACHE, persist_result=False)
@@ -249,10 +270,11 @@ class _Collector:
         self.submitted: dict = {}
         progress.emit("images", total=total, **self.counts)
 
-    def submit(self, prepared, batch_names, known, lake, storage_options):
+    def submit(self, prepared, batch_names, known, lake, storage_options, present):
         t0 = time.perf_counter()
+        mine = set(batch_names)
         fut = measure_batch.submit(prepared, batch_names, {n: known[n] for n in batch_names if n in known}, lake,
-                                   storage_options)
+                                   storage_options, [p for p in present if p[0] in mine])
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
 
@@ -262,7 +284,8 @@ class _Collector:
         self.rows.extend(res["rows"])
         self.tasks.append({"n": len(names), "wall_s": time.perf_counter() - t0, "task_s": res["task_s"],
                            "submit_s": submit_s, "worker": res["worker"], "pid": res["pid"],
-                           "rss_peak_mb": res["rss_peak_mb"]})
+                           "rss_peak_mb": res["rss_peak_mb"], "start_unix": res["start_unix"],
+                           "end_unix": res["end_unix"]})
         self.counts["done"] += len(names)
         for r in res["rows"]:
             if r["status"] in ("cached", "bad"):
@@ -274,24 +297,27 @@ class _Collector:
 
 
 def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
-            storage_options: dict | None, batch_size: int | None, n_workers: int) -> dict:
+            storage_options: dict | None, batch_size: int | None, n_workers: int,
+            present: list | None = None) -> dict:
     """Submit :func:`measure_batch` tasks to the current flow's task runner and collect them.
 
     With ``batch_size`` every task takes that many images; otherwise the first wave is
     one image per worker (probes) and the rest follows :func:`fieldcal.batch.plan_batches`
     from the first probe's figures. Call it inside a flow. Returns ``rows`` (per image, in
     ``names`` order), ``tasks`` (per task: ``n``, ``wall_s``, ``task_s``, ``submit_s``,
-    ``worker``, ``pid``, ``rss_peak_mb``), ``batches`` (the sizes planned after the probes),
-    ``batch_size`` (the largest) and ``estimate`` (``image_s``, ``overhead_s``, or None).
+    ``worker``, ``pid``, ``rss_peak_mb``, ``start_unix``, ``end_unix``), ``batches`` (the
+    sizes planned after the probes), ``batch_size`` (the largest), ``estimate``
+    (``image_s``, ``overhead_s``, or None) and ``start_unix`` / ``end_unix`` of the fan-out.
     """
     logger = get_run_logger()
+    start_unix = time.time()
     c = _Collector(len(names), logger)
     queue, first, sizes, estimate = list(names), [], [], None
     if batch_size:
         b = max(1, int(batch_size))
         sizes = [min(b, len(queue) - i) for i in range(0, len(queue), b)]
     else:
-        first = [c.submit(prepared, [n], known, lake, storage_options) for n in queue[:n_workers]]
+        first = [c.submit(prepared, [n], known, lake, storage_options, present or []) for n in queue[:n_workers]]
         queue = queue[n_workers:]
         if queue:
             probe = next(iter(as_completed(first)))
@@ -306,30 +332,32 @@ def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str]
                         f"-> {len(sizes)} batches of {sizes[0]} down to {sizes[-1]} images")
     rest, i = [], 0
     for size in sizes:
-        rest.append(c.submit(prepared, queue[i:i + size], known, lake, storage_options))
+        rest.append(c.submit(prepared, queue[i:i + size], known, lake, storage_options, present or []))
         i += size
     for fut in as_completed(first + rest):
         c.collect(fut)
     order = {n: k for k, n in enumerate(names)}
     c.rows.sort(key=lambda r: order[r["image"]])
     return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),
-            "estimate": estimate}
+            "estimate": estimate, "start_unix": start_unix, "end_unix": time.time()}
 
 
-def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size) -> dict:
+def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size,
+                present) -> dict:
     t_body = time.perf_counter()
     progress.emit("stage", text="connecting to the Dask cluster" if runner.address else "starting the Dask cluster")
     n_workers, cluster_s = _cluster_threads(runner)
     get_run_logger().info(f"{len(names)} image(s) to measure on {n_workers} worker thread(s) "
                           f"(cluster ready in {cluster_s:.1f} s)")
-    out = fan_out(prepared, names, known, lake, storage_options, batch_size, n_workers)
+    out = fan_out(prepared, names, known, lake, storage_options, batch_size, n_workers, present)
     out.update(n_workers=n_workers, cluster_s=cluster_s, body_s=time.perf_counter() - t_body)
     return out
 
 
 @flow(name="measure-images", persist_result=False, validate_parameters=False)
 def measure_images(session: str, settings: dict | None, names: list[str], known: dict[str, str],
-                   lake: str, storage_options: dict | None = None, batch_size: int | None = None) -> dict:
+                   lake: str, storage_options: dict | None = None, batch_size: int | None = None,
+                   present: list | None = None) -> dict:
     """Measure ``names`` on this sub-flow's Dask task runner (:func:`fan_out`).
 
     Returns what :func:`fan_out` returns plus ``n_workers``, ``cluster_s`` (time to start or
@@ -337,7 +365,7 @@ def measure_images(session: str, settings: dict | None, names: list[str], known:
     Prefect's start and end of a flow run and the shutdown of a cluster it started).
     """
     prepared = pipeline.prepare(session, _settings(settings))
-    return _measure_on(_dask_runner(), prepared, names, known, lake, storage_options, batch_size)
+    return _measure_on(_dask_runner(), prepared, names, known, lake, storage_options, batch_size, present)
 
 
 # --------------------------------------------------------------------------------------
@@ -389,13 +417,19 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     progress.emit("stage", text=f"measuring {len(todo)} image(s)"
                   + (f" ({run.counts['cached']} cached)" if run.counts["cached"] else ""))
     known = {n: plan.hashes[n] for n in todo if n in plan.hashes}
+    mine = set(todo)
+    present = sorted(p for p in plan.present if p[0] in mine)   # cached under another content, maybe this one
     runner = _dask_runner()
+    if runner is None and todo and cluster.in_process(dask_address, cluster_kwargs):
+        warm_in_background(run.prepared.method)
     if runner is not None:
         run.on_cluster = True
-        run.measured = _measure_on(runner, run.prepared, todo, known, run.lake, run.storage_options, batch_size)
+        run.measured = _measure_on(runner, run.prepared, todo, known, run.lake, run.storage_options, batch_size,
+                                   present)
     else:
         sub = measure_images.with_options(task_runner=cluster.task_runner(dask_address, n_workers, cluster_kwargs))
-        run.measured = sub(str(run.session), run.settings, todo, known, run.lake, run.storage_options, batch_size)
+        run.measured = sub(str(run.session), run.settings, todo, known, run.lake, run.storage_options, batch_size,
+                           present)
     run.lap("measure_s", t)
     stamps = []
     for r in run.measured["rows"]:

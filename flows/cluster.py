@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 
 __all__ = ["THREAD_ENV", "DEFAULT_WORKERS", "dask_address", "task_runner", "local_cluster_kwargs",
-           "worker_count"]
+           "in_process", "worker_count"]
 
 ADDRESS_ENV = "FIELDCAL_DASK_ADDRESS"
 DEFAULT_WORKERS = 2
@@ -60,6 +60,11 @@ def task_runner(address: str | None = None, n_workers: int = DEFAULT_WORKERS,
     if address:
         return DaskTaskRunner(address=address)
     return DaskTaskRunner(cluster_kwargs=local_cluster_kwargs(n_workers, cluster_kwargs))
+
+
+def in_process(address: str | None = None, cluster_kwargs: dict | None = None) -> bool:
+    """Whether :func:`task_runner` would run the workers as threads of this process."""
+    return dask_address(address) is None and not (cluster_kwargs or {}).get("processes", False)
 
 
 def worker_count(client, timeout_s: float = 60.0) -> int:

@@ -86,3 +86,63 @@ def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
     assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 60
     assert batch.plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
     assert batch.plan_batches(0, 2, 1.0, 0.3) == []
+
+
+def _appends(lake: Lake) -> list[dict]:
+    """The observations tables' append commits (the first commit creates the table)."""
+    return [c for c in lake.tables.log("observations_goniometer") if c.get("action") == "observations"]
+
+
+def test_a_batch_of_images_is_one_lake_append_read_back_like_single_ones(gonio, tmp_path):
+    prepared = pipeline.prepare(gonio)
+    names = prepared.to_measure[:4]
+    lake = Lake(tmp_path / "lake")
+    rows = batch.measure_many_into_lake(prepared, names, lake, present=set())
+    assert [r["status"] for r in rows] == ["measured"] * 4 and [r["image"] for r in rows] == names
+    assert len(_appends(lake)) == 1 and _appends(lake)[0]["image"] == "4 images"
+    single = Lake(tmp_path / "single")
+    for name in names:
+        batch.measure_into_lake(prepared, name, single)
+    assert len(_appends(single)) == 4
+    keys = {r["image"]: r["key"] for r in rows}
+    assert batch.read_observations(prepared, Lake(tmp_path / "lake"), keys) == \
+        batch.read_observations(prepared, Lake(tmp_path / "single"), keys)
+    # with the probe (a retried task), images written before are found and not measured again
+    again = batch.measure_many_into_lake(prepared, names, lake, {r["image"]: r["sha256"] for r in rows})
+    assert [r["status"] for r in again] == ["cached"] * 4 and len(_appends(lake)) == 1
+
+
+def test_what_a_failing_batch_measured_before_the_failure_is_kept(gonio, tmp_path, monkeypatch):
+    prepared = pipeline.prepare(gonio)
+    names = prepared.to_measure[:4]
+    real, calls = pipeline.measure, []
+
+    def measure_then_fail(prep, name, source=None):
+        calls.append(name)
+        if len(calls) == 3:
+            raise MemoryError("worker out of memory")
+        return real(prep, name, source)
+
+    monkeypatch.setattr(pipeline, "measure", measure_then_fail)
+    lake = Lake(tmp_path / "lake")
+    with pytest.raises(MemoryError):
+        batch.measure_many_into_lake(prepared, names, lake, present=set())
+    monkeypatch.setattr(pipeline, "measure", real)
+    plan = batch.plan_session(prepared, lake, {n: sha256_file(gonio / n) for n in names})
+    assert set(plan.cached) == set(names[:2]) and len(_appends(lake)) == 1
+
+
+def test_images_hashed_by_the_task_are_found_cached_in_the_plans_view_without_lake_probes(gonio, tmp_path):
+    prepared = pipeline.prepare(gonio)
+    names = prepared.to_measure[:3]
+    lake = Lake(tmp_path / "lake")
+    batch.measure_many_into_lake(prepared, names[:2], lake, present=set())
+    plan = batch.plan_session(prepared, lake)            # no hash known: nothing cached by name yet
+    assert plan.cached == {} and len(plan.present) == 2 and names[0] in plan.todo
+
+    def no_probe(*args):
+        raise AssertionError("the lake was probed per image")
+
+    lake.has_observations = no_probe
+    rows = batch.measure_many_into_lake(prepared, names, lake, present=plan.present)
+    assert [r["status"] for r in rows] == ["cached", "cached", "measured"]

@@ -471,8 +471,17 @@ def _drop_undetermined_targets(data, obs_active, survey_active, reason):
     return drop.sum()
 
 
+MIN_INTERSECTION_DEG = 0.05
+"""Rays (unit vectors) whose widest angle is below this [deg] are taken as parallel: their
+intersection is not determined (repeated exposures from one station), and
+:func:`_blame_the_survey` asks for a far wider angle anyway."""
+
+
 def _intersect(rays, centers):
-    """Least-squares intersection of rays (k, 3) from centres (k, 3): the point nearest all."""
+    """Least-squares intersection of rays (k, 3) from centres (k, 3): the point nearest all,
+    or None when the rays are parallel (:data:`MIN_INTERSECTION_DEG`)."""
+    if (rays @ rays.T).min() > np.cos(np.radians(MIN_INTERSECTION_DEG)):
+        return None
     P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
     return np.linalg.solve(P.sum(0), np.einsum("kab,kb->a", P, centers))
 
@@ -504,6 +513,9 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
             img = data.obs.image[k]
             rays = np.einsum("kba,kb->ka", solver.R[img], cam.unproject(data.obs.uv_px[k]))
             X = _intersect(rays, solver.C[img])
+            if X is None:          # parallel rays: they cannot place the target
+                k = k[:0]
+                break
             uv = cam.project(X, solver.R[img], solver.C[img])          # (k, 2): one call, all images
             err = np.hypot(*(uv - data.obs.uv_px[k]).T)
             ok = np.isfinite(err) & (err < np.maximum(1.0, 5.0 * sigma0 * data.obs.sigma_px[k]))

@@ -111,7 +111,8 @@ def has_key(tables, camera_id: str, session_id: str, image: str, key: str) -> bo
     not a read of the session's observations as :func:`load_session` does."""
     f = (ds.field("session_id") == session_id) & (ds.field("image") == image) & (ds.field("key") == key)
     return any(tables.scan(kind, filter=f, columns=["key"], partition={"camera_id": camera_id},
-                           equal={"session_id": session_id, "key": key}).num_rows for kind in KINDS)
+                           equal={"session_id": session_id, "key": key}).num_rows
+               for kind in KINDS if tables.exists(kind))
 
 
 def load_session(tables, camera_id: str, session_id: str) -> dict:
@@ -119,6 +120,8 @@ def load_session(tables, camera_id: str, session_id: str) -> dict:
     out = {}
     f = (ds.field("camera_id") == camera_id) & (ds.field("session_id") == session_id)
     for kind in KINDS:
+        if not tables.exists(kind):   # (and no import of the other method's schema)
+            continue
         rows = tables.scan(kind, filter=f, partition={"camera_id": camera_id},
                            equal={"session_id": session_id})
         if not rows.num_rows:

@@ -531,9 +531,10 @@ class Lake:
 
     def has_observations(self, camera_id: str, session_id: str, image_name: str,
                          content_sha256: str) -> bool:
-        """Whether observations of this image content are cached (:func:`obs.has_key`: the
-        flow asks once per image; re-reading a growing session for every image made the
-        72-image benchmark spend ~18 s in lookups, bench/README_flow.md)."""
+        """Whether observations of this image content are cached (:func:`obs.has_key`, a
+        key-only probe: re-reading a growing session for every image made the 72-image
+        benchmark spend ~18 s in lookups, bench/README_flow.md; the flow now looks its
+        images up once, in the plan, :attr:`fieldcal.batch.SessionPlan.present`)."""
         observations_key(image_name, content_sha256)
         if (image_name, content_sha256) in self._obs_cache.get((camera_id, session_id), {}):
             return True
@@ -550,24 +551,47 @@ class Lake:
         the kind is told by the columns. Its schema metadata ``fieldcal.image_sha256``
         (the image's own hash) is kept.
         """
+        return self.write_observations_many(camera_id, session_id, [(image_name, content_sha256, table)])[0]
+
+    def write_observations_many(self, camera_id: str, session_id: str,
+                                items: list[tuple[str, str, pa.Table]]) -> list[str]:
+        """Cache several images' observations ``[(image, key, table)]`` of one session.
+
+        One Delta append per observations table for all of them (a measuring task's
+        images, not one commit per image); each image's rows are all there or none, as
+        with :meth:`write_observations`. Every item is checked before anything is
+        written. Returns the table name of each item.
+        """
         check_id(camera_id, "camera_id")
         check_id(session_id, "session_id")
-        observations_key(image_name, content_sha256)
-        kind, rows = obs.rows_for(camera_id, session_id, image_name, content_sha256, table)
+        for image_name, key, _ in items:
+            observations_key(image_name, key)      # checks the name and the key
+        per_item = [obs.rows_for(camera_id, session_id, image_name, key, table)
+                    for image_name, key, table in items]
+        names = [image_name for image_name, _, _ in items]
+        for kind in dict.fromkeys(kind for kind, _ in per_item):
+            rows = pa.concat_tables([r for k, r in per_item if k == kind])
+            self._append_observations(kind, rows, camera_id, session_id, names)
+        cached = self._obs_cache.get((camera_id, session_id))
+        if cached is not None:
+            for (image_name, key, _), (kind, rows) in zip(items, per_item, strict=True):
+                cached[(image_name, key)] = (kind, obs.strip(kind, rows))
+        kinds = [kind for kind, _ in per_item]
+        return kinds
+
+    def _append_observations(self, kind: str, rows: pa.Table, camera_id: str, session_id: str,
+                             images: list[str]) -> None:
+        """One Delta append of observation rows, its commit naming the images (or their count)."""
+        which = images[0] if len(images) == 1 else f"{len(images)} images"
         try:
             self.tables.append(kind, rows, {"action": "observations", "camera_id": camera_id,
-                                            "session_id": session_id, "image": image_name,
-                                            **_who()})
+                                            "session_id": session_id, "image": which, **_who()})
         except OSError as e:
             raise LakeError(f"cannot write {self.uri(kind)}: {reason(e)}") from None
         except (LakeError, InputError):
             raise
         except Exception as e:  # noqa: BLE001 - delta-rs errors are not OSErrors
             raise LakeError(f"cannot write {self.uri(kind)}: {reason(e)}") from None
-        cached = self._obs_cache.get((camera_id, session_id))
-        if cached is not None:
-            cached[(image_name, content_sha256)] = (kind, obs.strip(kind, rows))
-        return kind
 
     def read_observations(self, camera_id: str, session_id: str, image_name: str,
                           content_sha256: str) -> pa.Table | None:

@@ -20,6 +20,7 @@ from fieldcal.field.adjustment import (
     validate_field_data,
 )
 from fieldcal.field.bundle import BundleModel
+from fieldcal.field.data import FieldImage, FieldObservations
 from fieldcal.model.camera import FIELD_PARAMS, INDEX
 from fieldcal.products.compare import ray_difference_px
 from fieldcal.solver.lsq import scipy_reference, solve
@@ -134,6 +135,27 @@ def test_one_percent_blunders_are_all_rejected_and_the_result_still_passes():
     assert len(rejected) <= 2 * len(info.swapped_observations)
     assert np.all(np.abs(z_scores(sf, res)) < 3.0)
     assert res.stats()["rmse_px"] < 0.15
+
+
+def _exposed_twice(data):
+    """Every image twice: a second exposure from the same pose, the same image points."""
+    n, o = len(data.images), data.obs
+    obs = FieldObservations(np.concatenate([o.image, o.image + n]), np.concatenate([o.target, o.target]),
+                            np.concatenate([o.uv_px, o.uv_px]), np.concatenate([o.sigma_px, o.sigma_px]))
+    return replace(data, images=data.images + [FieldImage(f"again/{im.file}", im.station) for im in data.images],
+                   obs=obs)
+
+
+def test_repeated_exposures_from_one_pose_with_blunders_are_adjusted():
+    # the survey-blunder check intersects the rays of rejected points: two exposures from one
+    # pose give parallel rays, which have no intersection (it used to stop with "Singular matrix")
+    sf = wide_field(seed=1)
+    bad, info = add_blunders(sf, fraction=0.02, seed=11)
+    res = adjust_field(_exposed_twice(bad.data))
+    assert res.stats()["rmse_px"] < 0.15
+    moved = np.intersect1d(info.survey_targets, np.unique(bad.data.obs.target))
+    assert not res.survey_used[moved].any()
+    assert np.all(np.abs(z_scores(sf, res)) < 3.0)
 
 
 def test_blunders_with_fixed_targets_reject_the_images_of_moved_targets():

@@ -126,12 +126,12 @@ KILLER = textwrap.dedent("""
     def die():
         os.kill(os.getpid(), signal.SIGKILL)
 
-    def after(owner, name, when=lambda: True):
+    def after(owner, name, when=lambda *args, **kwargs: True):
         original = getattr(owner, name)
 
         def wrapper(*args, **kwargs):
             out = original(*args, **kwargs)
-            if when():
+            if when(*args, **kwargs):
                 die()
             return out
 
@@ -150,8 +150,9 @@ KILLER = textwrap.dedent("""
         writes = []
         if point == "validated":             # the session is validated, nothing is measured
             after(fieldcal.pipeline, "prepare")
-        elif point == "measuring":           # 20 of the 60 frames' observations are written
-            after(fieldcal.lake.store.Lake, "write_observations", lambda: writes.append(1) or len(writes) >= 20)
+        elif point == "measuring":           # 20 or more of the 60 frames' observations are written
+            after(fieldcal.lake.store.Lake, "write_observations_many",
+                  lambda lake, camera, session, items: writes.extend(items) or len(writes) >= 20)
         elif point == "observed":            # every observation is written, the solve starts
             before(fieldcal.pipeline, "solve")
         elif point == "solved":              # solved, the commit starts

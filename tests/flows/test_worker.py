@@ -18,3 +18,19 @@ def test_worker_setup_gives_each_dask_thread_one_opencv_and_one_codec_thread_and
     finally:
         cv2.setNumThreads(before[0])
         set_decode_threads(before[1])
+
+
+def test_in_process_workers_are_warmed_once_in_the_background_and_tasks_wait_for_it(monkeypatch):
+    from flows import calibrate, cluster
+
+    monkeypatch.delenv(cluster.ADDRESS_ENV, raising=False)
+    assert cluster.in_process(None, None) and cluster.in_process(None, {"processes": False})
+    assert not cluster.in_process(None, {"processes": True})
+    assert not cluster.in_process("tcp://127.0.0.1:8786", None)
+    calls = []
+    monkeypatch.setattr(calibrate, "_WARMED", set())
+    monkeypatch.setattr(disc_kernel, "warm_up", lambda: calls.append(1) or True)
+    thread = calibrate.warm_in_background("field")
+    calibrate._warm("field", None)       # a task starting now waits for the warm-up, not a second one
+    thread.join(timeout=10)
+    assert calls == [1] and "field" in calibrate._WARMED

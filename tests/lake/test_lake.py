@@ -690,6 +690,25 @@ def test_observations_key_and_bad_arguments(tmp_path):
     assert lake_files(tmp_path) == []
 
 
+def test_many_images_of_both_kinds_are_one_append_per_table_and_checked_before_any(tmp_path):
+    sha = [hashlib.sha256(bytes([i])).hexdigest() for i in range(3)]
+    lake = Lake(tmp_path)
+    bad = [("a.tif", sha[0], field_measurements()), ("b.tif", sha[1], pa.table({"u": [1.0]}))]
+    with pytest.raises(InputError, match="b.tif"):
+        lake.write_observations_many("cam-a", "s1", bad)
+    assert lake_files(tmp_path) == []                   # the good first item was not written either
+    items = [("images/a.tif", sha[0], field_measurements()), ("images/f.tif", sha[1], spot_measurement()),
+             ("images/b.tif", sha[2], field_measurements(n=2))]
+    kinds = lake.write_observations_many("cam-a", "s1", items)
+    assert kinds == ["observations_field", "observations_goniometer", "observations_field"]
+    for kind, n in (("observations_field", 1), ("observations_goniometer", 1)):
+        assert sum(c.get("action") == "observations" for c in lake.tables.log(kind)) == n
+    fresh = Lake(tmp_path)
+    for name, key, table in items:
+        assert fresh.has_observations("cam-a", "s1", name, key)
+        assert fresh.read_observations("cam-a", "s1", name, key).num_rows == table.num_rows
+
+
 # --------------------------------------------------------------------------------------
 # fingerprints
 # --------------------------------------------------------------------------------------
