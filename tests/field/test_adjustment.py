@@ -425,3 +425,29 @@ def test_a_warm_start_with_the_previous_damping_reaches_the_cold_warm_start_solu
     for n in CORE:
         assert abs(plain.params[INDEX[n]] - carried.params[INDEX[n]]) < 5e-3 * plain.sigma[n], n
         assert abs(carried.params[INDEX[n]] - sf.camera.params[INDEX[n]]) < 4.0 * carried.sigma[n], n
+
+
+def test_rounds_over_the_same_observations_reuse_the_jacobian_analysis_and_agree(monkeypatch):
+    """A re-weighted round (variance components) over the same active observations reuses the
+    previous round's index analysis of the Jacobian; the calibration is bit for bit the one
+    made with a fresh analysis every round."""
+    import fieldcal.field.adjustment as adjustment
+
+    sf = paper_field(seed=2, n_attitudes=2)
+    # a-priori image sigmas half the true noise: the variance components add a floor and re-weight
+    data = replace(sf.data, obs=replace(sf.data.obs, sigma_px=0.5 * sf.data.obs.sigma_px))
+    reused = []
+    same = adjustment._same_pattern
+
+    def recording(a, b):
+        reused.append(same(a, b))
+        return reused[-1]
+
+    monkeypatch.setattr(adjustment, "_same_pattern", recording)
+    shared = adjust_field(data)
+    assert shared.variance_components.rounds >= 1 and any(reused)
+    monkeypatch.setattr(adjustment, "_same_pattern", lambda a, b: False)
+    fresh = adjust_field(data)
+    np.testing.assert_array_equal(shared.params, fresh.params)
+    np.testing.assert_array_equal(shared.covariance, fresh.covariance)
+    np.testing.assert_array_equal(shared.obs_used, fresh.obs_used)
