@@ -257,8 +257,10 @@ def _unique_inverse(keys, n_max: int):
         return uniq, inv.reshape(-1)
     mark = np.zeros(n_max, bool)
     mark[keys] = True
-    rank = np.cumsum(mark, dtype=np.int32) - 1
-    return np.flatnonzero(mark), rank[keys]
+    uniq = np.flatnonzero(mark)
+    rank = np.empty(n_max, np.intp)            # set where marked only (no cumsum over n_max)
+    rank[uniq] = np.arange(len(uniq))
+    return uniq, rank[keys]
 
 
 def _unique_rows(rows, n_cols: int):
