@@ -451,3 +451,22 @@ def test_rounds_over_the_same_observations_reuse_the_jacobian_analysis_and_agree
     np.testing.assert_array_equal(shared.params, fresh.params)
     np.testing.assert_array_equal(shared.covariance, fresh.covariance)
     np.testing.assert_array_equal(shared.obs_used, fresh.obs_used)
+
+
+def test_field_problem_returns_its_last_evaluation_at_the_same_point():
+    """The start is evaluated once for the f check and the solver: the same (r, J) objects at
+    the same x (and the normal equations made from J with them), a new evaluation elsewhere."""
+    sf = wide_field(seed=0)
+    m = BundleModel(sf.data, sf.camera.params, ("f_mm", "xp_mm", "yp_mm"), sf.R_world_to_camera,
+                    targets_adjusted=True)
+    x = m.pack(sf.camera.params, sf.center_m, sf.data.targets.xyz_m)
+    problem = FieldProblem(m)
+    r0, J0 = problem.evaluate(x, True)
+    r1, J1 = problem.evaluate(x.copy(), True)
+    assert r1 is r0 and J1 is J0
+    y = x.copy()
+    y[0] += 1e-3
+    r2, J2 = problem.evaluate(y, True)
+    assert J2 is not J0 and not np.array_equal(r2, r0)
+    r3, _ = problem.evaluate(y, False)
+    np.testing.assert_array_equal(r3, r2)
