@@ -16,7 +16,10 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
    (``robust_k`` times 1.4826 MAD), then data snooping: the test statistic of each image
    point (2-D) and each survey (3-D) ``T = v^T Q_vv^-1 v / sigma0^2`` with
    ``Q_vv = I - J_g N^-1 J_g^T`` from the normal equations, rejected above the chi-square
-   quantile of ``snoop_alpha``; repeat until nothing is rejected.
+   quantile of ``snoop_alpha``; repeat until nothing is rejected. Each round starts at the
+   previous round's solution and continues LM with the damping it ended with (a warm start:
+   1-2 iterations where a cold damping took 4-5); a round over the same observations (a
+   re-weighting, step 4b) reuses the Jacobian's index analysis.
 4. **Parameter selection** (when the session gives no ``estimate``): an additional
    parameter (``k1 .. a2``) is held fixed at 0 when the data cannot determine it: its
    correlation with another interior parameter exceeds ``max_correlation`` (the weaker
@@ -236,14 +239,14 @@ class FieldProblem:
         self.block_size = 3 if m.targets_adjusted else 6
         if like is not None and like._template is not None and _same_pattern(like.model, m):
             self._template, self._structure = like._template, like._structure
+        self._last = None               # (x, r, J) of the last evaluation with the Jacobian
 
     def evaluate(self, x, jacobian: bool):
         """``(r, J)`` at ``x``; the last evaluation with the Jacobian is kept, and asked again at
         the same ``x`` (the start, seen by the f check and then by the solver) it is returned
         as it is, with the normal equations already made from it."""
-        last = getattr(self, "_last", None)
-        if jacobian and last is not None and np.array_equal(last[0], x):
-            return last[1], last[2]
+        if jacobian and self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1], self._last[2]
         m = self.model
         r, jb, sd = m.residuals_and_blocks(x, jacobian)
         if not jacobian:
