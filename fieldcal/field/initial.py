@@ -8,11 +8,13 @@
 2. Every image is oriented with that common interior orientation:
    images with a DLT pose all at once by :func:`refine_poses` (a Levenberg-Marquardt per
    image, vectorised over the images: the bundle with the interior and the targets held
-   fixed), the others one by one by :func:`fieldcal.field.resection.resect` (RANSAC,
-   planar pose for coplanar points). Points further than ``threshold_px`` from their
-   oriented image (the DLT's outliers, or, since the distortion is not known yet, points in
-   strongly distorted corners) are flagged as initial outliers: the adjustment readmits
-   those that fit once the distortion is estimated.
+   fixed), the others (and those whose refined pose keeps fewer than
+   :data:`MIN_SUPPORT_FRACTION` of their points) one by one by
+   :func:`fieldcal.field.resection.resect` (RANSAC, planar pose for coplanar points).
+   Points further than ``threshold_px`` from their oriented image (the DLT's outliers, or,
+   since the distortion is not known yet, points in strongly distorted corners) are flagged
+   as initial outliers: the adjustment readmits those that fit once the distortion is
+   estimated.
 3. The distortion coefficients start from the linear least squares of eq. 7-8
    (:func:`fieldcal.field.distortion_init.distortion_lsq`) over the points not flagged.
 """
