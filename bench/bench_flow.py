@@ -240,7 +240,8 @@ def table(results: dict) -> str:
     row("outside reading / extraction / solving [s]", lambda d: f"{d['outside_s']:.1f}")
     row("**share outside**", lambda d: f"**{d['outside_share']:.1%}**" if d.get("measure_s_sum") else None)
     for key in ("cluster start", "sub-flow start + end, cluster shutdown", "flow run start + end",
-                "Delta appends of observations (per worker)", "observations read back (Parquet)", "commit (Zarr, Parquet, JSON)",
+                "Delta appends of observations (per worker)", "observations read back (Parquet)",
+                "commit (Zarr, Parquet, JSON)",
                 "validate + lookup", "in tasks, besides hashing / measuring / writing (per worker)",
                 "workers waiting before / between tasks (per worker)",
                 "workers idle after their last task (per worker)",

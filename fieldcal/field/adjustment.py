@@ -521,9 +521,11 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
     are intersected (least squares, current cameras), dropping the worst ray while the rest
     do not meet within the image noise. If at least two rays remain that meet within the
     noise, in front of their cameras and at an angle of at least ``10 / (n - 1)`` degrees
-    (two rays always nearly meet: they need a wide angle), and the intersection lies more
-    than 5 survey sigmas from the surveyed coordinates, the survey is the blunder: it is
-    rejected and the consistent points are readmitted. Returns the number of surveys rejected.
+    (two rays always nearly meet: they need a wide angle), they outnumber the target's points
+    still in use (those fit the survey: the rejected ones are then blunders of their own, e.g.
+    two swapped ids that happen to meet), and the intersection lies more than 5 survey sigmas
+    from the surveyed coordinates, the survey is the blunder: it is rejected and the
+    consistent points are readmitted. Returns the number of surveys rejected.
     """
     data = solver.data
     out = ~obs_active & np.isin(reason, ("initial outlier", "blunder"))
@@ -554,7 +556,8 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
             continue
         angle = np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0)))
         far = np.linalg.norm(X - data.targets.xyz_m[t]) * 1000.0 > 5.0 * data.targets.sigma_mm[t]
-        if angle >= 10.0 / (len(k) - 1) and far:
+        outvote = len(k) > np.count_nonzero(obs_active & (data.obs.target == t))
+        if angle >= 10.0 / (len(k) - 1) and far and outvote:
             survey_active[t] = False
             obs_active[k] = True
             reason[k] = ""

@@ -8,11 +8,13 @@
 2. Every image is oriented with that common interior orientation:
    images with a DLT pose all at once by :func:`refine_poses` (a Levenberg-Marquardt per
    image, vectorised over the images: the bundle with the interior and the targets held
-   fixed), the others one by one by :func:`fieldcal.field.resection.resect` (RANSAC,
-   planar pose for coplanar points). Points further than ``threshold_px`` from their
-   oriented image (the DLT's outliers, or, since the distortion is not known yet, points in
-   strongly distorted corners) are flagged as initial outliers: the adjustment readmits
-   those that fit once the distortion is estimated.
+   fixed), the others (and those whose refined pose keeps fewer than
+   :data:`MIN_SUPPORT_FRACTION` of their points) one by one by
+   :func:`fieldcal.field.resection.resect` (RANSAC, planar pose for coplanar points).
+   Points further than ``threshold_px`` from their oriented image (the DLT's outliers, or,
+   since the distortion is not known yet, points in strongly distorted corners) are flagged
+   as initial outliers: the adjustment readmits those that fit once the distortion is
+   estimated.
 3. The distortion coefficients start from the linear least squares of eq. 7-8
    (:func:`fieldcal.field.distortion_init.distortion_lsq`) over the points not flagged.
 """
@@ -37,6 +39,13 @@ __all__ = ["InitialValues", "initial_values", "refine_poses", "per_image", "CORE
 
 CORE_PARAMS = ("f_mm", "xp_mm", "yp_mm")
 """The interior parameters every start has (the rest start from the distortion fit)."""
+
+MIN_SUPPORT_FRACTION = 0.5
+"""A pose refined in the batch (step 2) is kept when at least this fraction of its image's
+points lies within the threshold of it; otherwise the image is resected. A pose that
+disagrees with most of its points is not that image's pose (blunders are a minority: the
+robust DLT allows 30 %), and its RMS, taken over the few points it still keeps, says nothing:
+a DLT pulled by 8 swapped ids of 125 refined to a pose that kept 1 point, at 0 px."""
 
 
 @dataclass
@@ -220,7 +229,9 @@ def _orient(data: FieldData, groups, params, poses, outliers, threshold_px):
             if not (far & use).any():
                 break
             use &= ~far
-        batch &= np.isfinite(rms) & (rms <= threshold_px)    # the rest: resection, one by one
+        near = np.bincount(data.obs.image[on & ~far], minlength=n_img)
+        supported = near >= MIN_SUPPORT_FRACTION * np.array([len(k) for k in groups])
+        batch &= np.isfinite(rms) & (rms <= threshold_px) & supported    # the rest: resection, one by one
         outliers |= far & batch[data.obs.image]
     camera = Camera(data.sensor, params)
     X_all = data.targets.xyz_m

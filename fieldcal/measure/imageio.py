@@ -24,6 +24,7 @@ import hashlib
 import io
 import os
 import struct
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -166,12 +167,20 @@ def read_file(path) -> ImageFile:
 
 
 class _MemoryFile(io.RawIOBase):
-    """A read-only, seekable binary stream over bytes in memory, without copying them
-    (``io.BytesIO`` copies a writable buffer)."""
+    """A read-only, seekable binary stream over a 1-D uint8 array, without copying it
+    (``io.BytesIO`` copies a writable buffer).
 
-    def __init__(self, buffer):
+    It holds the array by weak reference: tifffile's file handle and this stream form a
+    reference cycle that only Python's cyclic collector frees, and a strong reference from
+    it kept every image's 80-100 MB of bytes alive until a collection happened to run
+    (a worker's memory grew with the number of frames, bench/README_flow.md). The bytes
+    live as long as their :class:`ImageFile`.
+    """
+
+    def __init__(self, buffer: np.ndarray):
         super().__init__()
-        self._view = memoryview(buffer).cast("B")
+        self._buffer = weakref.ref(buffer)
+        self._size = int(buffer.nbytes)
         self._pos = 0
 
     def readable(self) -> bool:
@@ -184,14 +193,17 @@ class _MemoryFile(io.RawIOBase):
         return self._pos
 
     def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
-        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: len(self._view)}[whence]
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._size}[whence]
         self._pos = max(0, base + int(offset))
         return self._pos
 
     def readinto(self, buffer) -> int:
+        data = self._buffer()
+        if data is None:
+            raise ValueError("the image bytes were released before they were decoded")
         out = memoryview(buffer).cast("B")
-        n = max(0, min(len(out), len(self._view) - self._pos))
-        out[:n] = self._view[self._pos:self._pos + n]
+        n = max(0, min(len(out), self._size - self._pos))
+        out[:n] = memoryview(data)[self._pos:self._pos + n]
         self._pos += n
         return n
 

@@ -1,7 +1,9 @@
 """Reading TIFFs: every layout the contract allows, and one clear line for anything else."""
 
+import gc
 import hashlib
 import os
+import weakref
 
 import numpy as np
 import pytest
@@ -53,6 +55,29 @@ def test_one_pass_hash_is_the_file_hash_and_the_pixels_are_decoded_from_those_by
     # an uncompressed native-order image is a view of the bytes read, not a copy
     assert np.shares_memory(out, f.data) == (kw == {})
     assert probe_image(f).compression == ("NONE" if "compression" not in kw else kw["compression"].upper())
+
+
+@pytest.mark.parametrize("kw", [{}, {"tile": (64, 64), "compression": "zstd"}])
+def test_the_bytes_read_are_freed_with_their_image_file_without_waiting_for_the_garbage_collector(tmp_path, kw):
+    # tifffile's handle and the stream over the bytes form a reference cycle; the bytes of every
+    # frame used to live until Python's cyclic collector ran (a worker's peak memory grew
+    # with the number of frames)
+    p = tmp_path / "a.tif"
+    tifffile.imwrite(p, IMG16, **kw)
+    gc.collect()
+    gc.disable()
+    try:
+        f = read_file(p)
+        probe_image(f)
+        out = read_image(f)
+        data = weakref.ref(f.data)
+        del f
+        if kw:                              # decoded: the bytes go with the ImageFile
+            assert data() is None
+        del out                             # uncompressed: the pixels are a view of the bytes
+        assert data() is None
+    finally:
+        gc.enable()
 
 
 def test_read_file_names_a_missing_file_and_a_folder(tmp_path):
