@@ -41,9 +41,12 @@ __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session",
            "read_observations",
            "plan_batches", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
 
-TASKS_PER_WORKER = 2
-"""Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left."""
-MAX_TASK_S = 60.0
+TASKS_PER_WORKER = 1
+"""Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left.
+1 (guided self-scheduling proper) rather than 2: each Prefect task run costs its worker
+~0.15-0.2 s, and 8-9 tasks instead of 15 made the 72-frame flow 0.85x as long in alternating
+runs (bench/README_flow.md)."""
+MAX_TASK_S = 30.0
 """Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
 MISSING = "missing"
 """The stand-in hash of a listed image whose file is absent (part of the fingerprint)."""
