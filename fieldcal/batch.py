@@ -46,7 +46,7 @@ TASKS_PER_WORKER = 1
 1 (guided self-scheduling proper) rather than 2: each Prefect task run costs its worker
 ~0.15-0.2 s, and 8-9 tasks instead of 15 made the 72-frame flow 0.85x as long in alternating
 runs (bench/README_flow.md)."""
-MAX_TASK_S = 30.0
+MAX_TASK_S = 60.0
 """Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
 MISSING = "missing"
 """The stand-in hash of a listed image whose file is absent (part of the fingerprint)."""

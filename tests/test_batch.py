@@ -76,17 +76,17 @@ def test_the_no_op_check_finds_the_committed_version_of_the_same_inputs(tmp_path
 def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
     # full-size images: 1 s of work, 0.3 s overhead per task; 70 images on 2 workers
     sizes = batch.plan_batches(70, 2, 1.0, 0.3)
-    assert sum(sizes) == 70 and sizes == [30, 20, 10, 5, 3, 1, 1]    # 35 first, capped at 30 s
+    assert sum(sizes) == 70 and sizes == [35, 18, 9, 4, 2, 1, 1]      # half of what is left per worker
     assert sizes == sorted(sizes, reverse=True)
     # two tasks per worker: each takes a quarter of what is left
     assert batch.plan_batches(70, 2, 1.0, 0.3, tasks_per_worker=2)[:4] == [18, 13, 10, 8]
     # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames)
     assert batch.plan_batches(178, 2, 0.005, 0.5) == [100, 78]
-    # slow images and cheap tasks: the guided sizes alone, at most 30 s of work each
-    assert batch.plan_batches(8, 2, 30.0, 0.1) == [1] * 8
-    assert batch.plan_batches(8, 2, 10.0, 0.1) == [3, 3, 1, 1]
-    # at most 30 s of work per task beyond the floor
-    assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 30
+    # slow images and cheap tasks: the guided sizes alone, at most 60 s of work each
+    assert batch.plan_batches(8, 2, 30.0, 0.1) == [2, 2, 2, 1, 1]
+    assert batch.plan_batches(8, 2, 10.0, 0.1) == [4, 2, 1, 1]
+    # at most 60 s of work per task beyond the floor
+    assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 60
     assert batch.plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
     assert batch.plan_batches(0, 2, 1.0, 0.3) == []
 
