@@ -47,8 +47,7 @@ def test_the_library_never_imports_prefect():
             "for m in pkgutil.walk_packages(fieldcal.__path__, 'fieldcal.'):\n"
             "    importlib.import_module(m.name)\n"
             "print(sorted(k for k in sys.modules if k == 'prefect' or k.startswith('prefect.')))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
-    assert out.stdout.strip() == "[]"
+    assert _printed_by_a_fresh_interpreter(code) == "[]"
 
 
 def test_the_solve_step_does_not_import_scipy_stats_or_optimize():
@@ -59,8 +58,13 @@ def test_the_solve_step_does_not_import_scipy_stats_or_optimize():
             "import fieldcal.pipeline, fieldcal.field.adjustment, fieldcal.field.from_images\n"
             "import fieldcal.field.check_points, fieldcal.solver.lsq\n"
             "print(sorted(k for k in ('scipy.stats', 'scipy.optimize') if k in sys.modules))\n")
+    assert _printed_by_a_fresh_interpreter(code) == "[]"
+
+
+def _printed_by_a_fresh_interpreter(code: str) -> str:
+    """What ``code`` prints when run by a new Python process in the checkout (its own imports)."""
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
-    assert out.stdout.strip() == "[]"
+    return out.stdout.strip()
 
 
 def _graph():

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pyarrow as pa
 import scipy.linalg
-from scipy.special import chdtri   # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
+from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel

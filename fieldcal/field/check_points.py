@@ -48,7 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import chdtrc, chdtri   # chi2.sf(x, k), chi2.isf(p, k) without scipy.stats
+from scipy.special import chdtrc, chdtri  # chi2.sf(x, k), chi2.isf(p, k) without scipy.stats
 
 from fieldcal.errors import InputError
 from fieldcal.field.bundle import BundleModel

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import chdtrc   # chi2.sf(x, k) = chdtrc(k, x), without scipy.stats' import
+from scipy.special import chdtrc  # chi2.sf(x, k) = chdtrc(k, x), without scipy.stats' import
 
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import FieldResult, InitialValues, adjust_field

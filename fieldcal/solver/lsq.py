@@ -544,7 +544,7 @@ def scipy_reference(problem, x0, *, ftol: float = 1e-15, xtol: float = 1e-15, gt
     -------
     scipy.optimize.OptimizeResult
     """
-    import scipy.optimize   # only here: an independent check, not worth its import time in every solve
+    import scipy.optimize  # only here: an independent check, not worth its import time in every solve
 
     x0 = np.array(x0, dtype=float).reshape(-1)
     dense = len(x0) <= dense_max

@@ -14,8 +14,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, centred
 from fieldcal.field import consider_kernel
+from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, centred
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.variance_components import (
     fixed_target_covariance,

@@ -251,8 +251,8 @@ def test_covariances_match_the_dense_inverse_with_blocks_of_six():
     blk_of = np.concatenate([np.arange(n_blk), rng.integers(0, n_blk, k - n_blk)])
     cols = np.concatenate([np.broadcast_to(np.arange(n_red), (k, n_red)),
                            n_red + b * blk_of[:, None] + np.arange(b)], axis=1)
-    J = BlockSparseJacobian(2 * k, n, n_red, b,
-                            [ResidualBlock(np.arange(2 * k).reshape(k, 2), cols, rng.standard_normal((k, 2, n_red + b)))])
+    rows = ResidualBlock(np.arange(2 * k).reshape(k, 2), cols, rng.standard_normal((k, 2, n_red + b)))
+    J = BlockSparseJacobian(2 * k, n, n_red, b, [rows])
     D = dense_from_blocks(J)
     Ninv = np.linalg.inv(D.T @ D)
     ne = J.normal_equations()
