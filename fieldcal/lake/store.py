@@ -568,15 +568,15 @@ class Lake:
             observations_key(image_name, key)      # checks the name and the key
         per_item = [obs.rows_for(camera_id, session_id, image_name, key, table)
                     for image_name, key, table in items]
-        names = [image_name for image_name, _, _ in items]
-        for kind in dict.fromkeys(kind for kind, _ in per_item):
-            rows = pa.concat_tables([r for k, r in per_item if k == kind])
-            self._append_observations(kind, rows, camera_id, session_id, names)
+        kinds = [kind for kind, _ in per_item]
+        for kind in dict.fromkeys(kinds):
+            mine = [i for i, k in enumerate(kinds) if k == kind]
+            self._append_observations(kind, pa.concat_tables([per_item[i][1] for i in mine]),
+                                      camera_id, session_id, [items[i][0] for i in mine])
         cached = self._obs_cache.get((camera_id, session_id))
         if cached is not None:
             for (image_name, key, _), (kind, rows) in zip(items, per_item, strict=True):
                 cached[(image_name, key)] = (kind, obs.strip(kind, rows))
-        kinds = [kind for kind, _ in per_item]
         return kinds
 
     def _append_observations(self, kind: str, rows: pa.Table, camera_id: str, session_id: str,
