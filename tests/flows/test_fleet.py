@@ -104,10 +104,11 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
     assert cli.main(["fleet", str(root), "--lake", lake, "--format", "json"]) == 1          # 2 failed
     first = json.loads(capsys.readouterr().out)
     status = {(s["camera_id"], s["session_id"]): s["status"] for s in first["sessions"]}
+    reasons = {(s["camera_id"], s["session_id"]): s["reason"] for s in first["sessions"] if s["reason"]}
     assert status == {("cam-w0", "2026-05-01"): "committed", ("cam-w1", "2026-05-02"): "committed",
                       ("cam-w0", "2026-05-03"): "committed", ("cam-w1", "2026-05-04"): "committed",
                       ("cam-lab", "2026-05-09"): "committed", ("cam-few", "2026-05-10"): "failed",
-                      (None, None): "failed"}
+                      (None, None): "failed"}, reasons
     assert (first["n_found"], first["n_committed"], first["n_failed"]) == (7, 5, 2)
     # the first two solves met: two sessions at once, on two different workers of the cluster
     assert len(set(meet.arrived[:2])) == 2 and len(meet.arrived) == 6
