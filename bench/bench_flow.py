@@ -183,7 +183,7 @@ def analyse(result: dict, wall_s: float) -> dict:
             "commit (Zarr, Parquet, JSON)": t.get("commit_s", 0.0),
             "validate + lookup": t.get("validate_s", 0.0) + t.get("lookup_s", 0.0),
             "flow run start + end": wall_s - t.get("total_s", wall_s),
-            "sub-flow start + end, cluster shutdown": t.get("measure_s", 0.0) - m.get("body_s", 0.0),
+            "cluster shutdown (before: and the sub-flow's start + end)": t.get("measure_s", 0.0) - m.get("body_s", 0.0),
             "in tasks, besides hashing / measuring / writing (per worker)": (task_s - hash_s - measure_s - write_s) / w,
             **_waiting(m, w),
         })
@@ -239,7 +239,7 @@ def table(results: dict) -> str:
     row("solver [s]", lambda d: f"{d['timings']['solver_s']:.1f}")
     row("outside reading / extraction / solving [s]", lambda d: f"{d['outside_s']:.1f}")
     row("**share outside**", lambda d: f"**{d['outside_share']:.1%}**" if d.get("measure_s_sum") else None)
-    for key in ("cluster start", "sub-flow start + end, cluster shutdown", "flow run start + end",
+    for key in ("cluster start", "cluster shutdown (before: and the sub-flow's start + end)", "flow run start + end",
                 "Delta appends of observations (per worker)", "observations read back (Parquet)",
                 "commit (Zarr, Parquet, JSON)",
                 "validate + lookup", "in tasks, besides hashing / measuring / writing (per worker)",

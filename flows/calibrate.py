@@ -21,9 +21,11 @@ what is cached, the no-op check, batch sizes):
    - the flow's own task runner when it is a :class:`prefect_dask.DaskTaskRunner` (the
      command line and the fleet call ``calibrate_session.with_options(task_runner=...)``);
      it connects to the cluster, or starts a local one, at the first task only;
-   - otherwise a sub-flow ``measure-images`` on a runner for ``dask_address`` (or
-     ``$FIELDCAL_DASK_ADDRESS``, or a temporary local cluster), started only when some
-     image has to be read.
+   - otherwise a Dask task runner for ``dask_address`` (or ``$FIELDCAL_DASK_ADDRESS``, or
+     a temporary local cluster), entered by the flow itself only when some image has to
+     be read and left (the local cluster stopped) when the images are measured. Its task
+     runs belong to this flow run: no sub-flow run, whose start and end cost Prefect
+     ~0.5-1 s per run (``bench/README_flow.md``).
 4. **solve** (task): reads the observations back from the lake and runs
    :func:`fieldcal.pipeline.solve`, on the Dask cluster when the flow runs on one that is
    reached by address or was started for the images (so that the fleet's sessions share
@@ -68,7 +70,7 @@ from fieldcal.lake.store import Lake
 from . import cluster
 from .hashcache import HashCache, file_stamp, known_hashes
 
-__all__ = ["calibrate_session", "measure_images", "measure_batch", "validate_session", "solve_session",
+__all__ = ["calibrate_session", "measure_batch", "validate_session", "solve_session",
            "commit_version", "fan_out"]
 
 
@@ -140,8 +142,8 @@ def _warm(method: str, nthreads: int | None) -> None:
 
 def warm_in_background(method: str) -> threading.Thread:
     """Start :func:`_warm` in a thread of this process: with in-process Dask workers (the
-    default), the imports and the kernel load (~0.5 s) then overlap the cluster's and the
-    sub-flow's start instead of delaying the first measuring task."""
+    default), the imports and the kernel load (~0.5 s) then overlap the cluster's start
+    instead of delaying the first measuring task."""
     thread = threading.Thread(target=_warm, args=(method, None), name="fieldcal-warm-up", daemon=True)
     thread.start()
     return thread
@@ -270,11 +272,13 @@ class _Collector:
         self.submitted: dict = {}
         progress.emit("images", total=total, **self.counts)
 
-    def submit(self, prepared, batch_names, known, lake, storage_options, present):
+    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present):
         t0 = time.perf_counter()
         mine = set(batch_names)
-        fut = measure_batch.submit(prepared, batch_names, {n: known[n] for n in batch_names if n in known}, lake,
-                                   storage_options, [p for p in present if p[0] in mine])
+        fut = runner.submit(measure_batch, {"prepared": prepared, "names": batch_names,
+                                            "known": {n: known[n] for n in batch_names if n in known},
+                                            "lake": lake, "storage_options": storage_options,
+                                            "present": [p for p in present if p[0] in mine]})
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
 
@@ -296,10 +300,10 @@ class _Collector:
         return res
 
 
-def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
-            storage_options: dict | None, batch_size: int | None, n_workers: int,
+def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str], known: dict[str, str],
+            lake: str, storage_options: dict | None, batch_size: int | None, n_workers: int,
             present: list | None = None) -> dict:
-    """Submit :func:`measure_batch` tasks to the current flow's task runner and collect them.
+    """Submit :func:`measure_batch` tasks to ``runner`` (entered) and collect them.
 
     With ``batch_size`` every task takes that many images; otherwise the first wave is
     one image per worker (probes) and the rest follows :func:`fieldcal.batch.plan_batches`
@@ -317,7 +321,8 @@ def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str]
         b = max(1, int(batch_size))
         sizes = [min(b, len(queue) - i) for i in range(0, len(queue), b)]
     else:
-        first = [c.submit(prepared, [n], known, lake, storage_options, present or []) for n in queue[:n_workers]]
+        first = [c.submit(runner, prepared, [n], known, lake, storage_options, present or [])
+                 for n in queue[:n_workers]]
         queue = queue[n_workers:]
         if queue:
             probe = next(iter(as_completed(first)))
@@ -332,7 +337,7 @@ def fan_out(prepared: pipeline.Prepared, names: list[str], known: dict[str, str]
                         f"-> {len(sizes)} batches of {sizes[0]} down to {sizes[-1]} images")
     rest, i = [], 0
     for size in sizes:
-        rest.append(c.submit(prepared, queue[i:i + size], known, lake, storage_options, present or []))
+        rest.append(c.submit(runner, prepared, queue[i:i + size], known, lake, storage_options, present or []))
         i += size
     for fut in as_completed(first + rest):
         c.collect(fut)
@@ -349,23 +354,9 @@ def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_op
     n_workers, cluster_s = _cluster_threads(runner)
     get_run_logger().info(f"{len(names)} image(s) to measure on {n_workers} worker thread(s) "
                           f"(cluster ready in {cluster_s:.1f} s)")
-    out = fan_out(prepared, names, known, lake, storage_options, batch_size, n_workers, present)
+    out = fan_out(runner, prepared, names, known, lake, storage_options, batch_size, n_workers, present)
     out.update(n_workers=n_workers, cluster_s=cluster_s, body_s=time.perf_counter() - t_body)
     return out
-
-
-@flow(name="measure-images", persist_result=False, validate_parameters=False)
-def measure_images(session: str, settings: dict | None, names: list[str], known: dict[str, str],
-                   lake: str, storage_options: dict | None = None, batch_size: int | None = None,
-                   present: list | None = None) -> dict:
-    """Measure ``names`` on this sub-flow's Dask task runner (:func:`fan_out`).
-
-    Returns what :func:`fan_out` returns plus ``n_workers``, ``cluster_s`` (time to start or
-    reach the cluster [s]) and ``body_s`` (this flow's own time [s]; the rest of its run is
-    Prefect's start and end of a flow run and the shutdown of a cluster it started).
-    """
-    prepared = pipeline.prepare(session, _settings(settings))
-    return _measure_on(_dask_runner(), prepared, names, known, lake, storage_options, batch_size, present)
 
 
 # --------------------------------------------------------------------------------------
@@ -422,14 +413,15 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     runner = _dask_runner()
     if runner is None and todo and cluster.in_process(dask_address, cluster_kwargs):
         warm_in_background(run.prepared.method)
+    args = (run.prepared, todo, known, run.lake, run.storage_options, batch_size, present)
     if runner is not None:
         run.on_cluster = True
-        run.measured = _measure_on(runner, run.prepared, todo, known, run.lake, run.storage_options, batch_size,
-                                   present)
+        run.measured = _measure_on(runner, *args)
     else:
-        sub = measure_images.with_options(task_runner=cluster.task_runner(dask_address, n_workers, cluster_kwargs))
-        run.measured = sub(str(run.session), run.settings, todo, known, run.lake, run.storage_options, batch_size,
-                           present)
+        with cluster.task_runner(dask_address, n_workers, cluster_kwargs) as own:
+            run.measured = _measure_on(own, *args)
+            t_exit = time.perf_counter()
+        run.measured["exit_s"] = time.perf_counter() - t_exit     # a local cluster's shutdown
     run.lap("measure_s", t)
     stamps = []
     for r in run.measured["rows"]:
@@ -538,7 +530,7 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
         ``rigorous_goniometer``); part of the inputs' fingerprint.
     dask_address : str, optional
         When the flow's own task runner is not a Dask one: the scheduler of an existing
-        cluster for the measuring sub-flow (else ``$FIELDCAL_DASK_ADDRESS``, else a
+        cluster for the measuring tasks (else ``$FIELDCAL_DASK_ADDRESS``, else a
         temporary local cluster of ``n_workers`` single-threaded workers).
     n_workers : int
         Workers of that temporary local cluster.
