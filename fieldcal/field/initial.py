@@ -30,7 +30,7 @@ from fieldcal.errors import GeometryError
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
-from fieldcal.field.dlt import dlt_robust, zhang_focal
+from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_coplanar
 from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import INDEX, Camera
@@ -69,7 +69,11 @@ def per_image(data: FieldData) -> list[np.ndarray]:
 
 
 def _dlts(data: FieldData, groups):
-    """Step 1: the robust DLT of every image that has non-coplanar targets (else NaN/None)."""
+    """Step 1: the robust DLT of every image that has non-coplanar targets (else NaN/None).
+
+    The fast paths of all images are taken in one batch (:func:`dlt_robust_many`); the images
+    it leaves (blunders, borderline geometry) get :func:`dlt_robust` one by one, as before.
+    """
     n_img = len(data.images)
     dlt_f, dlt_pp = np.full(n_img, np.nan), np.full((n_img, 2), np.nan)
     poses: list = [None] * n_img
@@ -77,14 +81,18 @@ def _dlts(data: FieldData, groups):
     X_all = data.targets.xyz_m
     if is_coplanar(X_all[np.unique(data.obs.target)]):
         return dlt_f, dlt_pp, poses, outliers
+    views = [(X_all[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
+    fast = dlt_robust_many(views, data.sensor, fallback=False)   # the fast paths, batched
     for i, k in enumerate(groups):
-        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-        if is_coplanar(X):
-            continue
-        try:
-            res = dlt_robust(X, uv, data.sensor, where=data.images[i].file, seed=i)
-        except GeometryError:
-            continue
+        res = fast[i]
+        if res is None:                 # no fast path: this image's own robust DLT
+            X, uv = views[i]
+            if is_coplanar(X):
+                continue
+            try:
+                res = dlt_robust(X, uv, data.sensor, where=data.images[i].file, seed=i)
+            except GeometryError:
+                continue
         dlt_f[i], dlt_pp[i] = res.f_mm, (res.xp_mm, res.yp_mm)
         poses[i] = (res.R_world_to_camera, res.center_m)
         outliers[k[~res.inliers]] = True
