@@ -785,6 +785,12 @@ def _covariance_via_eigen(S):
     return (V / w) @ V.T / np.outer(d, d)
 
 
+_CLOSE_CALL_REL = 1e-6
+""":func:`_check_f_determinable` passes a network on f's variance from one triangular solve
+only when its relative sigma is below the limit by more than this fraction; closer calls are
+decided on the full inverse, as the diagnosis is (round-off cannot change the decision)."""
+
+
 def _check_f_determinable(model, x, J, o):
     """Refuse, before the first adjustment, a network that cannot determine f.
 
@@ -809,12 +815,20 @@ def _check_f_determinable(model, x, J, o):
     S = _reduced_normal_matrix(model, J.normal_equations())
     keep = np.array([n in CORE_PARAMS for n in names] + [True] * (S.shape[0] - len(names)))
     Sk = S[np.ix_(keep, keep)]
+    jf = names.index("f_mm")
     try:
         cho, scale = equilibrated_cholesky(Sk)
-        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
     except SingularSystemError:
         cov = _covariance_via_eigen(Sk)
-    jf = names.index("f_mm")
+    else:
+        # f's variance alone decides (one triangular solve: e_f^T S^-1 e_f = |U^-T e_f|^2 with
+        # S = U^T U); all of S^-1 only for the diagnosis, or when that decision is a close call
+        y = scipy.linalg.solve_triangular(cho[0], np.eye(len(Sk))[jf], trans="T", lower=cho[1],
+                                          check_finite=False)
+        rel = np.sqrt(max(float(y @ y), 0.0)) * scale[jf] / max(abs(x[jf]), 1e-12)
+        if rel <= o.max_rel_sigma_f * (1.0 - _CLOSE_CALL_REL):
+            return
+        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
     var = np.maximum(np.diag(cov), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = cov[jf] / np.sqrt(var[jf] * var)
