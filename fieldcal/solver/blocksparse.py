@@ -606,8 +606,16 @@ class BlockSparseJacobian:
         return np.sqrt(sq)
 
     def all_finite(self) -> bool:
-        """Whether every stored derivative is finite."""
-        return all(np.isfinite(v).all() for blk in self.blocks for v in blk.part_values)
+        """Whether every stored derivative is finite (a block's parts side by side in one
+        contiguous array, when it has them so, else part by part)."""
+        for blk in self.blocks:
+            v = blk._values
+            if v is not None:
+                if not np.isfinite(v).all():
+                    return False
+            elif not all(np.isfinite(p).all() for p in blk.part_values):
+                return False
+        return True
 
     def to_csr(self) -> scipy.sparse.csr_matrix:
         """J as a ``scipy.sparse.csr_matrix`` (m, n)."""

@@ -374,11 +374,12 @@ class _State:
         self.nfev = 1
         if not finite:
             raise InputError("the residuals or the Jacobian at x0 are not finite", "lsq.solve")
-        d = J.column_norms()
+        norms = J.column_norms()
+        d = norms.copy()
         d[~(np.isfinite(d) & (d > 0))] = 1.0
         self.d = d
         self._set(x, r, J, J.gradient(r))
-        self.mu = tau * float(((J.column_norms() / d) ** 2).max(initial=0.0))  # tau max diag(N_z)
+        self.mu = tau * float(((norms / d) ** 2).max(initial=0.0))  # tau max diag(N_z)
         if not self.mu > 0:
             self.mu = tau if tau > 0 else 1e-3
         self.nu = 2.0

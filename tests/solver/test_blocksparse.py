@@ -266,3 +266,27 @@ def test_covariances_match_the_dense_inverse_with_blocks_of_six():
     for g in range(k):
         Jg = D[2 * g:2 * g + 2]
         assert np.allclose(Q[g], Jg @ Ninv @ Jg.T, atol=tol), g
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_all_finite_sees_a_bad_number_in_any_part_combined_or_not(bad):
+    J, _ = random_problem(seed=4)
+    assert J.all_finite()
+    b0 = J.blocks[0]
+    for part in range(len(b0.part_values)):
+        for combined in (False, True):
+            vals = [v.copy() for v in b0.part_values]
+            vals[part][-1, 1, -1] = bad
+            glued = np.concatenate(vals, axis=2)
+            views, at = [], 0                    # the parts as views of one array, as the bundle makes them
+            for v in vals:
+                views.append(glued[:, :, at:at + v.shape[2]])
+                at += v.shape[2]
+            blk = b0.with_values(*views, combined=glued) if combined else b0.with_values(*vals)
+            J2 = BlockSparseJacobian(J.n_rows, N_PAR, N_RED, B, [blk, *J.blocks[1:]], structure=J.structure)
+            assert not J2.all_finite(), (part, combined)
+    vals = [v.copy() for v in J.blocks[1].part_values]
+    vals[0][0, 0, 0] = bad
+    J3 = BlockSparseJacobian(J.n_rows, N_PAR, N_RED, B, [b0, J.blocks[1].with_values(*vals), J.blocks[2]],
+                             structure=J.structure)
+    assert not J3.all_finite()
