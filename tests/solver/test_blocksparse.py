@@ -290,3 +290,28 @@ def test_all_finite_sees_a_bad_number_in_any_part_combined_or_not(bad):
     J3 = BlockSparseJacobian(J.n_rows, N_PAR, N_RED, B, [b0, J.blocks[1].with_values(*vals), J.blocks[2]],
                              structure=J.structure)
     assert not J3.all_finite()
+
+
+def test_repeated_columns_across_parts_are_found():
+    # the quick pre-check (_may_repeat_a_column) may only skip the full check when no group
+    # repeats a column: against brute force on random parts, shared and per group
+    from fieldcal.solver.blocksparse import _may_repeat_a_column
+
+    rng = np.random.default_rng(7)
+    for _ in range(400):
+        k, n = int(rng.integers(1, 6)), int(rng.integers(4, 12))
+        parts = []
+        for _ in range(int(rng.integers(1, 4))):
+            c = int(rng.integers(1, 4))
+            parts.append(rng.choice(n, c, replace=False) if rng.random() < 0.4
+                         else np.stack([rng.choice(n, c, replace=False) for _ in range(k)]))
+        full = np.concatenate([np.broadcast_to(p, (k, p.shape[-1])) for p in parts], axis=1)
+        repeats = any(len(set(row)) < len(row) for row in full.tolist())
+        if repeats:
+            assert _may_repeat_a_column(parts, n)
+    # and through the Jacobian: a group's own column that is also a shared one
+    rows = np.arange(4).reshape(2, 2)
+    blk = ResidualBlock.from_parts(rows, [(np.array([0, 1]), np.ones((2, 2, 2))),
+                                          (np.array([[3], [1]]), np.ones((2, 2, 1)))])
+    with pytest.raises(InputError, match=r"group 1 repeats a column \(\[0, 1, 1\]\)"):
+        BlockSparseJacobian(4, 6, 3, 3, [blk])
