@@ -58,7 +58,7 @@ import scipy.linalg
 from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.bundle import BundleModel
+from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
@@ -472,13 +472,7 @@ class _Solver:
 
     def residuals_all(self):
         """Measured minus predicted pixels of every observation at the current state."""
-        d = self.data
-        Xc = np.einsum("kab,kb->ka", self.R[d.obs.image], self.X[d.obs.target] - self.C[d.obs.image])
-        cam = Camera(d.sensor, self.params)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
-        uv = d.sensor.mm_to_pixel(cam.distort(q, check=False))
-        return d.obs.uv_px - uv
+        return image_residuals(self.data, self.params, self.R, self.C, self.X)
 
 
 def _robust_scale(z):

@@ -40,7 +40,39 @@ from fieldcal.field.data import FieldData
 from fieldcal.model.camera import INDEX, Camera, correction_terms, distort, ideal_point_columns
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
 
-__all__ = ["BundleModel", "ObservationJacobian"]
+__all__ = ["BundleModel", "ObservationJacobian", "image_residuals"]
+
+
+def image_residuals(data: FieldData, params, R, C, X=None, *, implementation: str = "auto"):
+    """Measured minus predicted pixels (m, 2) [px] of every observation (active or not).
+
+    ``Xc = R_i (X_t - C_i)``, ``q = -f (Xc, Yc)/Zc``, :func:`fieldcal.model.camera.distort`
+    (Newton from ``q``), the pixel; NaN behind the camera (``Zc >= 0``) or where Newton does
+    not converge. ``R`` (n_images, 3, 3) world to camera, ``C`` (n_images, 3) [m], ``X``
+    (n_targets, 3) [m] (default: the surveyed coordinates). ``implementation``: ``"numba"``
+    (:func:`fieldcal.field.bundle_kernel.residuals_kernel`, the same arithmetic point by
+    point), ``"numpy"`` (the reference, here) or ``"auto"``.
+    """
+    d = data.obs
+    X = data.targets.xyz_m if X is None else X
+    kern = None if implementation == "numpy" else bundle_kernel.residuals_kernel()
+    if implementation == "numba" and kern is None:
+        raise RuntimeError(bundle_kernel.status())
+    if kern is not None:
+        s = data.sensor
+        out = np.empty((len(d.image), 2))
+        kern(np.ascontiguousarray(params, dtype=float), np.ascontiguousarray(R, dtype=float),
+             np.ascontiguousarray(C, dtype=float), np.ascontiguousarray(X, dtype=float),
+             np.ascontiguousarray(d.image, dtype=np.int64), np.ascontiguousarray(d.target, dtype=np.int64),
+             np.ascontiguousarray(d.uv_px, dtype=float), float(s.width_px), float(s.height_px),
+             float(s.pixel_mm), 1e-10, 30, out)
+        return out
+    Xc = np.einsum("kab,kb->ka", R[d.image], X[d.target] - C[d.image])
+    cam = Camera(data.sensor, params)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
+    uv = data.sensor.mm_to_pixel(cam.distort(q, check=False))
+    return d.uv_px - uv
 
 
 @dataclass

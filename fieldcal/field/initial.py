@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldcal.errors import GeometryError
-from fieldcal.field.bundle import BundleModel
+from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
 from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
@@ -212,13 +212,7 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
 
 def _image_residuals_px(data: FieldData, params, R, C):
     """|measured - projected| [px] of every observation (NaN behind the camera)."""
-    cam = Camera(data.sensor, params)
-    d = data.obs
-    Xc = np.einsum("kab,kb->ka", R[d.image], data.targets.xyz_m[d.target] - C[d.image])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
-    uv = data.sensor.mm_to_pixel(cam.distort(q, check=False))
-    return np.hypot(*(d.uv_px - uv).T)
+    return np.hypot(*image_residuals(data, params, R, C).T)
 
 
 def _orient(data: FieldData, groups, params, poses, outliers, threshold_px):
