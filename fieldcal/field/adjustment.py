@@ -351,17 +351,20 @@ class FieldResult:
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
         out = []
-        used = self.obs_used
+        img = self.data.obs.image
+        k_used = np.flatnonzero(self.obs_used)          # the used points, image by image, in order
+        k_used = k_used[np.argsort(img[k_used], kind="stable")]
+        bounds = np.searchsorted(img[k_used], np.arange(len(self.data.images) + 1))
         for i, im in enumerate(self.data.images):
-            k = (self.data.obs.image == i) & used
+            k = k_used[bounds[i]:bounds[i + 1]]
             res = self.residual_px[k]
             out.append({
                 "file": im.file, "station": im.station,
                 "center_m": self.center_m[i].tolist(),
                 "rotation_world_to_camera": self.R_world_to_camera[i].tolist(),
                 "sigma_center_m": self.sigma_center_m[i].tolist(),
-                "n_observations": int(k.sum()),
-                "rmse_px": float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if k.any() else None,
+                "n_observations": len(k),
+                "rmse_px": float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if len(k) else None,
             })
         return out
 
