@@ -95,6 +95,15 @@ def _assemble_rows2(v, red_pos, elim_pos, e, local, slot_idx, V, Ws):
 
 def _gradient(v, rows, cols, res, out):
     k, r, c = v.shape
+    if r == 2:    # image points: the group's two residuals loaded once (the same sums, in order)
+        for g in range(k):
+            r0, r1 = res[rows[g, 0]], res[rows[g, 1]]
+            for j in range(c):
+                s = 0.0
+                s += v[g, 0, j] * r0
+                s += v[g, 1, j] * r1
+                out[cols[g, j]] += s
+        return
     for g in range(k):
         for j in range(c):
             s = 0.0
@@ -105,6 +114,16 @@ def _gradient(v, rows, cols, res, out):
 
 def _matvec(v, rows, cols, h, out):
     k, r, c = v.shape
+    if r == 2:    # image points: both rows in one pass over the columns (the same sums, in order)
+        for g in range(k):
+            s0, s1 = 0.0, 0.0
+            for j in range(c):
+                hj = h[cols[g, j]]
+                s0 += v[g, 0, j] * hj
+                s1 += v[g, 1, j] * hj
+            out[rows[g, 0]] = s0
+            out[rows[g, 1]] = s1
+        return
     for g in range(k):
         for q in range(r):
             s = 0.0

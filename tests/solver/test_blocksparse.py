@@ -315,3 +315,35 @@ def test_repeated_columns_across_parts_are_found():
                                           (np.array([[3], [1]]), np.ones((2, 2, 1)))])
     with pytest.raises(InputError, match=r"group 1 repeats a column \(\[0, 1, 1\]\)"):
         BlockSparseJacobian(4, 6, 3, 3, [blk])
+
+
+def test_two_row_gradient_and_matvec_loops_sum_in_the_generic_order():
+    # the kernels' two-row paths (image points) keep the generic loop's order of the sums:
+    # bit-identical J^T r and J h (the generic loop here, in plain Python)
+    from fieldcal.solver import blocksparse_kernels as K
+
+    gr, mv = K.gradient(), K.matvec()
+    if gr is None:
+        pytest.skip("no compiled kernels")
+    rng = np.random.default_rng(11)
+    k, c, n = 50, 7, 30
+    v = rng.standard_normal((k, 2, c)) * 10.0 ** rng.integers(-8, 8, (k, 2, c))
+    rows = rng.permutation(2 * k).reshape(k, 2)
+    cols = np.stack([rng.choice(n, c, replace=False) for _ in range(k)])
+    res, h = rng.standard_normal(2 * k), rng.standard_normal(n)
+    g_ref, out_ref = np.zeros(n), np.zeros(2 * k)
+    for gi in range(k):
+        for j in range(c):
+            s = 0.0
+            for q in range(2):
+                s += v[gi, q, j] * res[rows[gi, q]]
+            g_ref[cols[gi, j]] += s
+        for q in range(2):
+            s = 0.0
+            for j in range(c):
+                s += v[gi, q, j] * h[cols[gi, j]]
+            out_ref[rows[gi, q]] = s
+    g, out = np.zeros(n), np.zeros(2 * k)
+    gr(v, rows, cols, res, g)
+    mv(v, rows, cols, h, out)
+    assert np.array_equal(g, g_ref) and np.array_equal(out, out_ref)
