@@ -271,6 +271,16 @@ class FieldProblem:
         return r, J
 
 
+    def observation_blocks(self, x):
+        """``(d_int, d_ext)`` (m, 2, n_int), (m, 2, 6) of the image residuals at ``x``: those of the
+        kept Jacobian when ``x`` is its point (the same numbers), else evaluated."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            parts = self._last[2].blocks[0].part_values
+            return parts[0], parts[1]
+        _, jb, _ = self.model.residuals_and_blocks(x, True)
+        return jb.d_int, jb.d_ext
+
+
 def _same_pattern(a: BundleModel, b: BundleModel) -> bool:
     """Whether two models have the same unknowns and active observations (the same Jacobian
     pattern: rows, columns and groups), whatever their values and weights."""
@@ -668,8 +678,13 @@ def _final_stats(model, result, solver, o):
     if model.targets_adjusted or not o.variance_components:
         solver.vc.unit_sigma = float(result.sigma0)
         return _interior_stats(model, result)
-    _, jb, _ = model.residuals_and_blocks(result.x, True)
-    M, trace_q = survey_consider_matrix(jb.d_int, jb.d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
+    problem = solver.problem
+    if problem is not None and problem.model is model:
+        d_int, d_ext = problem.observation_blocks(result.x)
+    else:
+        _, jb, _ = model.residuals_and_blocks(result.x, True)
+        d_int, d_ext = jb.d_int, jb.d_ext
+    M, trace_q = survey_consider_matrix(d_int, d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
                                         model.n_images)
     m, n = result.jac.shape
     unit = _reduced_covariance(model, result.jac.normal_equations())

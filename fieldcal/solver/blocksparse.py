@@ -745,7 +745,7 @@ class NormalEquations:
         self.U = U.reshape(nr, nr)
         self.V = V.reshape(nb, b, b)
         self.W_slots = Ws.reshape(st.n_slots, b)
-        self._zero = self._WT = self._Cr = self._Cee = self._cross = None
+        self._zero = self._WT = self._Cr = self._Cee = self._cross = self._dense_cov = None
 
     def _assemble_compiled(self, kern, lay, values, V, Ws):
         """V and W_slots of one residual block by the compiled loop (U is formed by BLAS)."""
@@ -939,6 +939,8 @@ class NormalEquations:
         ``(N^-1)_rr = S^-1``, ``(N^-1)_re = -S^-1 Y``, ``(N^-1)_ee = V^-1 + Y^T S^-1 Y``
         with ``Y = W V^-1``; raises :class:`SingularSystemError` as :meth:`solve` does.
         """
+        if self._dense_cov is not None:          # made once per normal equations; a copy each call
+            return self._dense_cov.copy()
         Cr = self.covariance_reduced()
         nr, b, nb = self.n_reduced, self.b, self.n_blocks
         if not nb:
@@ -955,7 +957,8 @@ class NormalEquations:
         idx = np.arange(nb)[:, None] * b + np.arange(b)
         Cee[idx[:, :, None], idx[:, None, :]] += Vinv
         C[nr:, nr:] = 0.5 * (Cee + Cee.T)
-        return C
+        self._dense_cov = C
+        return C.copy()
 
     def covariance_elim_blocks(self) -> np.ndarray:
         """(n_blocks, b, b) the diagonal blocks of ``N^-1`` for the eliminated parameters."""

@@ -561,3 +561,19 @@ def test_the_f_check_decides_as_the_full_inverse_does(monkeypatch):
                 orig(model, x, J, opts)
         else:
             orig(model, x, J, opts)
+
+
+def test_observation_blocks_of_the_kept_jacobian_are_those_of_an_evaluation():
+    sf = wide_field(seed=0)
+    m = BundleModel(sf.data, sf.camera.params, FIELD_PARAMS, sf.R_world_to_camera, targets_adjusted=False)
+    x = m.pack(sf.camera.params, sf.center_m, sf.data.targets.xyz_m)
+    problem = FieldProblem(m)
+    _, jb, _ = m.residuals_and_blocks(x, True)
+    problem.evaluate(x, True)
+    d_int, d_ext = problem.observation_blocks(x)          # kept: the Jacobian's own blocks
+    assert np.array_equal(d_int, jb.d_int) and np.array_equal(d_ext, jb.d_ext)
+    y = x.copy()
+    y[0] += 1e-3
+    d_int, d_ext = problem.observation_blocks(y)          # another point: evaluated there
+    _, jb_y, _ = m.residuals_and_blocks(y, True)
+    assert np.array_equal(d_int, jb_y.d_int) and np.array_equal(d_ext, jb_y.d_ext)

@@ -347,3 +347,14 @@ def test_two_row_gradient_and_matvec_loops_sum_in_the_generic_order():
     gr(v, rows, cols, res, g)
     mv(v, rows, cols, h, out)
     assert np.array_equal(g, g_ref) and np.array_equal(out, out_ref)
+
+
+def test_dense_covariance_is_made_once_and_handed_out_as_copies(problem):
+    J, D, _ = problem
+    ne = J.normal_equations()
+    a = ne.covariance_dense()
+    assert np.allclose(a, np.linalg.inv(D.T @ D), rtol=1e-8, atol=1e-10)
+    a[:] = 0.0                                   # a caller's change does not reach the next caller
+    b = ne.covariance_dense()
+    assert np.allclose(b, np.linalg.inv(D.T @ D), rtol=1e-8, atol=1e-10)
+    assert b is not ne.covariance_dense() and np.array_equal(b, ne.covariance_dense())
