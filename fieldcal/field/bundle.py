@@ -31,6 +31,7 @@ Jacobian of ``x' = distort(q)``: with ``g(x'; p) = correct(x')``, the predicted 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,6 +152,22 @@ class BundleModel:
         self._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(self.n_images)
                               if bounds[i + 1] > bounds[i]]
         self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
+
+    def restricted(self, keep) -> BundleModel:
+        """A copy that evaluates only the active observations ``keep`` ((m_active,) bool, in this
+        model's order): the same unknowns, parameter layout and reference rotations, so
+        :meth:`residuals_and_blocks` gives exactly this model's rows ``keep`` (each point is
+        computed on its own). For evaluation only (e.g. images still iterating)."""
+        keep = np.asarray(keep, bool)
+        sub = copy.copy(self)
+        for name in ("k", "img", "tgt", "uv", "sigma_px", "_start_mm", "tgt_slot"):
+            setattr(sub, name, getattr(self, name)[keep])
+        sub.n_rows_image = 2 * len(sub.k)
+        sub.n_rows = sub.n_rows_image + 3 * len(sub.survey_k)
+        bounds = np.searchsorted(sub.img, np.arange(sub.n_images + 1))
+        sub._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(sub.n_images)
+                             if bounds[i + 1] > bounds[i]]
+        return sub
 
     # ------------------------------------------------------------------ packing
     def pack(self, params, center_m, targets_m=None):

@@ -193,7 +193,15 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         done |= -0.5 * np.einsum("ki,ki->k", h, g) <= tol * cost     # predicted decrease negligible
         h[done] = 0.0
         x_new = x + h.ravel()
-        r_new, jb_new, _ = model.residuals_and_blocks(x_new)
+        live = ~done[model.img]                     # points of the images still iterating
+        if live.sum() >= 0.8 * len(live):
+            r_new, jb_new, _ = model.residuals_and_blocks(x_new)
+            d_new = jb_new.d_ext
+        else:   # only those images (each point is computed on its own: the same numbers)
+            r_live, jb_live, _ = model.restricted(live).residuals_and_blocks(x_new)
+            r_new, d_new = r.copy(), np.empty_like(jb.d_ext)
+            r_new.reshape(-1, 2)[live] = r_live.reshape(-1, 2)
+            d_new[live] = jb_live.d_ext
         cost_new = _segment_sums(r_new.reshape(-1, 2) ** 2, starts, counts).sum(axis=1)
         better = np.isfinite(cost_new) & (cost_new < cost) & ~done
         done |= ~better & (mu > 1e10)
@@ -201,7 +209,7 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         take = better[model.img]
         x = np.where(np.repeat(better, 6), x_new, x)
         r = np.where(np.repeat(take, 2), r_new, r)
-        np.copyto(jb.d_ext, jb_new.d_ext, where=take[:, None, None])
+        np.copyto(jb.d_ext, d_new, where=take[:, None, None])
         cost = np.where(better, cost_new, cost)
     _, R_new, C_new, _ = model.unpack(x)
     sigma = _segment_sums(model.sigma_px ** 2, starts, counts) / np.maximum(counts, 1)

@@ -138,6 +138,25 @@ def test_image_residuals_kernel_and_numpy_reference_agree():
                           equal_nan=True)
 
 
+@pytest.mark.parametrize("implementation", ["numpy", "numba"])
+@pytest.mark.parametrize("adjusted", [False, True])
+def test_a_restricted_model_evaluates_exactly_the_kept_rows(implementation, adjusted):
+    if implementation == "numba" and bundle_kernel.kernel() is None:
+        pytest.skip(bundle_kernel.status())
+    sf = wide_field(seed=0)
+    m = BundleModel(sf.data, sf.camera.params, FIELD_PARAMS, sf.R_world_to_camera, targets_adjusted=adjusted)
+    x = m.pack(sf.camera.params, sf.center_m, sf.data.targets.xyz_m)
+    x[m.n_int:m.n_reduced] += np.random.default_rng(5).normal(0, 1e-3, 6 * m.n_images)
+    keep = np.isin(m.img, [1, 4, 5, 17])
+    r, jb, sd = m.residuals_and_blocks(x, implementation=implementation)
+    rs, jbs, sds = m.restricted(keep).residuals_and_blocks(x, implementation=implementation)
+    n_img = m.n_rows_image
+    assert np.array_equal(rs[: 2 * keep.sum()], r[:n_img].reshape(-1, 2)[keep].ravel())
+    assert np.array_equal(rs[2 * keep.sum():], r[n_img:]) and np.array_equal(sds, sd)
+    for name in ("d_int", "d_ext", "d_tgt"):
+        assert np.array_equal(getattr(jbs, name), getattr(jb, name)[keep]), name
+
+
 def test_without_numba_the_numpy_reference_runs_and_says_so():
     """FIELDCAL_NUMBA=0 (as on a platform where the kernel cannot be compiled): same result."""
     code = ("from fieldcal.field import bundle_kernel as k; print(k.kernel() is None); print(k.status())")
