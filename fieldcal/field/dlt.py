@@ -614,6 +614,39 @@ def _near(a, limit):
     return np.abs(a - limit) <= DECISION_MARGIN_REL * np.abs(limit)
 
 
+def _all_points_kept(P, Xh, uvp, uvn, w, n, k_sigma, floor_px, detrend_degree, n_terms):
+    """The inlier rule (:class:`_InlierRule`) with every point an inlier, for padded images
+    (B, n_max, .): whether it keeps all of each image's points, clearly (no point within
+    :data:`DECISION_MARGIN_REL` of the limit, a detrend basis of condition below
+    :data:`MAX_DETREND_CONDITION`, every residual finite)."""
+    B, w3 = len(P), w[:, :, None]
+    h = Xh @ np.swapaxes(P, -1, -2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        res = uvp - h[..., :2] / h[..., 2:3]
+    finite = np.all(np.isfinite(res), axis=-1)
+    ok = np.all(finite | ~w, axis=1)
+    res = np.where(w3 & finite[..., None], res, 0.0)
+    local = res
+    if n_terms:
+        M = _monomials(uvn, detrend_degree) * w3
+        Rm = np.linalg.qr(np.concatenate([M, res], axis=-1), mode="r")
+        R11 = Rm[:, :n_terms, :n_terms]
+        s11 = np.linalg.svd(R11, compute_uv=False)
+        well = s11[:, -1] * MAX_DETREND_CONDITION > s11[:, 0]
+        ok &= well
+        R11 = np.where(well[:, None, None], R11, np.eye(n_terms))
+        coef = np.linalg.solve(R11, Rm[:, :n_terms, n_terms:])
+        local = res - M @ coef
+    e = np.sqrt(local[..., 0] ** 2 + local[..., 1] ** 2)
+    comp, valid2 = local.reshape(B, -1), np.repeat(w, 2, axis=1)
+    med = _batch_median(comp, valid2, 2 * n)
+    sigma = MAD_TO_SIGMA * _batch_median(np.abs(comp - med[:, None]), valid2, 2 * n)
+    limit = np.maximum(k_sigma * sigma, floor_px)
+    ok &= np.all((e <= limit[:, None]) | ~w, axis=1)
+    ok &= ~np.any(_near(e, limit[:, None]) & w, axis=1)
+    return ok
+
+
 def _fast_paths(views, sensor: Sensor, k_sigma, floor_px, detrend_degree, tol_rel):
     """Step 0 of :func:`dlt_robust` for many images at once: a DltResult per image, or None."""
     out = [None] * len(views)
@@ -650,31 +683,7 @@ def _fast_paths(views, sensor: Sensor, k_sigma, floor_px, detrend_degree, tol_re
     lam, V = np.linalg.eigh(_normal_matrix(Xn, uvn))                   # ascending
     ok &= lam[:, 1] - lam[:, 0] > MIN_EIGEN_GAP_REL * lam[:, -1]
     P = np.linalg.solve(Ti, V[:, :, 0].reshape(B, 3, 4)) @ Tw
-    # the inlier rule (_InlierRule) with every point an inlier: all must be kept
-    h = Xh @ np.swapaxes(P, -1, -2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        res = uvp - h[..., :2] / h[..., 2:3]
-    finite = np.all(np.isfinite(res), axis=-1)
-    ok &= np.all(finite | ~w, axis=1)
-    res = np.where(w3 & finite[..., None], res, 0.0)
-    local = res
-    if n_terms:
-        M = _monomials(uvn, detrend_degree) * w3
-        Rm = np.linalg.qr(np.concatenate([M, res], axis=-1), mode="r")
-        R11 = Rm[:, :n_terms, :n_terms]
-        s11 = np.linalg.svd(R11, compute_uv=False)
-        well = s11[:, -1] * MAX_DETREND_CONDITION > s11[:, 0]
-        ok &= well
-        R11 = np.where(well[:, None, None], R11, np.eye(n_terms))
-        coef = np.linalg.solve(R11, Rm[:, :n_terms, n_terms:])
-        local = res - M @ coef
-    e = np.sqrt(local[..., 0] ** 2 + local[..., 1] ** 2)
-    comp, valid2 = local.reshape(B, -1), np.repeat(w, 2, axis=1)
-    med = _batch_median(comp, valid2, 2 * n)
-    sigma = MAD_TO_SIGMA * _batch_median(np.abs(comp - med[:, None]), valid2, 2 * n)
-    limit = np.maximum(k_sigma * sigma, floor_px)
-    ok &= np.all((e <= limit[:, None]) | ~w, axis=1)
-    ok &= ~np.any(_near(e, limit[:, None]) & w, axis=1)
+    ok &= _all_points_kept(P, Xh, uvp, uvn, w, n, k_sigma, floor_px, detrend_degree, n_terms)
     # the decomposition (_decompose) and the camera test (_camera_like)
     det = np.linalg.det(P[:, :, :3])
     ok &= np.isfinite(det) & (np.abs(det) >= 1e-300)
