@@ -279,12 +279,13 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
         arrays["check_points/sigma_mm"] = np.sqrt(np.einsum("kii->ki", cp.cov_mm2))
         attrs["check_points/error_mm"] = {"ids": [str(t) for t in cp.ids],
                                           "what": "intersected minus surveyed coordinates [mm]"}
-    summary = _field_summary(sess, res)
+    summary = _field_summary(sess, res, stats)
     return Outcome(doc, arrays, attrs, res.residual_table(), summary, left_out, res)
 
 
-def _field_summary(sess, res: FieldResult) -> list[str]:
-    st = res.stats()
+def _field_summary(sess, res: FieldResult, st: dict | None = None) -> list[str]:
+    """The summary lines of a field result; ``st``: its :meth:`FieldResult.stats`, when made already."""
+    st = res.stats() if st is None else st
     lines = [f"{sess.camera_id} / {sess.session_id}: field method, {st['n_images']} images, "
              f"{st['n_targets']} targets, {st['n_observations']} points ({st['n_rejected']} rejected)",
              f"rmse {st['rmse_px']:.3f} px, sigma0 {st['sigma0']:.3f}, {st['iterations']} iterations ({st['solver']})"]

@@ -58,7 +58,7 @@ import scipy.linalg
 from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.bundle import BundleModel
+from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
@@ -271,6 +271,16 @@ class FieldProblem:
         return r, J
 
 
+    def observation_blocks(self, x):
+        """``(d_int, d_ext)`` (m, 2, n_int), (m, 2, 6) of the image residuals at ``x``: those of the
+        kept Jacobian when ``x`` is its point (the same numbers), else evaluated."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            parts = self._last[2].blocks[0].part_values
+            return parts[0], parts[1]
+        _, jb, _ = self.model.residuals_and_blocks(x, True)
+        return jb.d_int, jb.d_ext
+
+
 def _same_pattern(a: BundleModel, b: BundleModel) -> bool:
     """Whether two models have the same unknowns and active observations (the same Jacobian
     pattern: rows, columns and groups), whatever their values and weights."""
@@ -351,17 +361,20 @@ class FieldResult:
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
         out = []
-        used = self.obs_used
+        img = self.data.obs.image
+        k_used = np.flatnonzero(self.obs_used)          # the used points, image by image, in order
+        k_used = k_used[np.argsort(img[k_used], kind="stable")]
+        bounds = np.searchsorted(img[k_used], np.arange(len(self.data.images) + 1))
         for i, im in enumerate(self.data.images):
-            k = (self.data.obs.image == i) & used
+            k = k_used[bounds[i]:bounds[i + 1]]
             res = self.residual_px[k]
             out.append({
                 "file": im.file, "station": im.station,
                 "center_m": self.center_m[i].tolist(),
                 "rotation_world_to_camera": self.R_world_to_camera[i].tolist(),
                 "sigma_center_m": self.sigma_center_m[i].tolist(),
-                "n_observations": int(k.sum()),
-                "rmse_px": float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if k.any() else None,
+                "n_observations": len(k),
+                "rmse_px": float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if len(k) else None,
             })
         return out
 
@@ -472,13 +485,7 @@ class _Solver:
 
     def residuals_all(self):
         """Measured minus predicted pixels of every observation at the current state."""
-        d = self.data
-        Xc = np.einsum("kab,kb->ka", self.R[d.obs.image], self.X[d.obs.target] - self.C[d.obs.image])
-        cam = Camera(d.sensor, self.params)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
-        uv = d.sensor.mm_to_pixel(cam.distort(q, check=False))
-        return d.obs.uv_px - uv
+        return image_residuals(self.data, self.params, self.R, self.C, self.X)
 
 
 def _robust_scale(z):
@@ -671,8 +678,13 @@ def _final_stats(model, result, solver, o):
     if model.targets_adjusted or not o.variance_components:
         solver.vc.unit_sigma = float(result.sigma0)
         return _interior_stats(model, result)
-    _, jb, _ = model.residuals_and_blocks(result.x, True)
-    M, trace_q = survey_consider_matrix(jb.d_int, jb.d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
+    problem = solver.problem
+    if problem is not None and problem.model is model:
+        d_int, d_ext = problem.observation_blocks(result.x)
+    else:
+        _, jb, _ = model.residuals_and_blocks(result.x, True)
+        d_int, d_ext = jb.d_int, jb.d_ext
+    M, trace_q = survey_consider_matrix(d_int, d_ext, model.img, model.tgt, model.sigma_m[model.tgt],
                                         model.n_images)
     m, n = result.jac.shape
     unit = _reduced_covariance(model, result.jac.normal_equations())
@@ -785,6 +797,12 @@ def _covariance_via_eigen(S):
     return (V / w) @ V.T / np.outer(d, d)
 
 
+_CLOSE_CALL_REL = 1e-6
+""":func:`_check_f_determinable` passes a network on f's variance from one triangular solve
+only when its relative sigma is below the limit by more than this fraction; closer calls are
+decided on the full inverse, as the diagnosis is (round-off cannot change the decision)."""
+
+
 def _check_f_determinable(model, x, J, o):
     """Refuse, before the first adjustment, a network that cannot determine f.
 
@@ -809,12 +827,20 @@ def _check_f_determinable(model, x, J, o):
     S = _reduced_normal_matrix(model, J.normal_equations())
     keep = np.array([n in CORE_PARAMS for n in names] + [True] * (S.shape[0] - len(names)))
     Sk = S[np.ix_(keep, keep)]
+    jf = names.index("f_mm")
     try:
         cho, scale = equilibrated_cholesky(Sk)
-        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
     except SingularSystemError:
         cov = _covariance_via_eigen(Sk)
-    jf = names.index("f_mm")
+    else:
+        # f's variance alone decides (one triangular solve: e_f^T S^-1 e_f = |U^-T e_f|^2 with
+        # S = U^T U); all of S^-1 only for the diagnosis, or when that decision is a close call
+        y = scipy.linalg.solve_triangular(cho[0], np.eye(len(Sk))[jf], trans="T", lower=cho[1],
+                                          check_finite=False)
+        rel = np.sqrt(max(float(y @ y), 0.0)) * scale[jf] / max(abs(x[jf]), 1e-12)
+        if rel <= o.max_rel_sigma_f * (1.0 - _CLOSE_CALL_REL):
+            return
+        cov = scipy.linalg.cho_solve(cho, np.eye(len(Sk)), check_finite=False) * np.outer(scale, scale)
     var = np.maximum(np.diag(cov), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = cov[jf] / np.sqrt(var[jf] * var)

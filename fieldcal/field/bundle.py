@@ -31,6 +31,7 @@ Jacobian of ``x' = distort(q)``: with ``g(x'; p) = correct(x')``, the predicted 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +41,39 @@ from fieldcal.field.data import FieldData
 from fieldcal.model.camera import INDEX, Camera, correction_terms, distort, ideal_point_columns
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
 
-__all__ = ["BundleModel", "ObservationJacobian"]
+__all__ = ["BundleModel", "ObservationJacobian", "image_residuals"]
+
+
+def image_residuals(data: FieldData, params, R, C, X=None, *, implementation: str = "auto"):
+    """Measured minus predicted pixels (m, 2) [px] of every observation (active or not).
+
+    ``Xc = R_i (X_t - C_i)``, ``q = -f (Xc, Yc)/Zc``, :func:`fieldcal.model.camera.distort`
+    (Newton from ``q``), the pixel; NaN behind the camera (``Zc >= 0``) or where Newton does
+    not converge. ``R`` (n_images, 3, 3) world to camera, ``C`` (n_images, 3) [m], ``X``
+    (n_targets, 3) [m] (default: the surveyed coordinates). ``implementation``: ``"numba"``
+    (:func:`fieldcal.field.bundle_kernel.residuals_kernel`, the same arithmetic point by
+    point), ``"numpy"`` (the reference, here) or ``"auto"``.
+    """
+    d = data.obs
+    X = data.targets.xyz_m if X is None else X
+    kern = None if implementation == "numpy" else bundle_kernel.residuals_kernel()
+    if implementation == "numba" and kern is None:
+        raise RuntimeError(bundle_kernel.status())
+    if kern is not None:
+        s = data.sensor
+        out = np.empty((len(d.image), 2))
+        kern(np.ascontiguousarray(params, dtype=float), np.ascontiguousarray(R, dtype=float),
+             np.ascontiguousarray(C, dtype=float), np.ascontiguousarray(X, dtype=float),
+             np.ascontiguousarray(d.image, dtype=np.int64), np.ascontiguousarray(d.target, dtype=np.int64),
+             np.ascontiguousarray(d.uv_px, dtype=float), float(s.width_px), float(s.height_px),
+             float(s.pixel_mm), 1e-10, 30, out)
+        return out
+    Xc = np.einsum("kab,kb->ka", R[d.image], X[d.target] - C[d.image])
+    cam = Camera(data.sensor, params)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
+    uv = data.sensor.mm_to_pixel(cam.distort(q, check=False))
+    return d.uv_px - uv
 
 
 @dataclass
@@ -119,6 +152,22 @@ class BundleModel:
         self._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(self.n_images)
                               if bounds[i + 1] > bounds[i]]
         self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
+
+    def restricted(self, keep) -> BundleModel:
+        """A copy that evaluates only the active observations ``keep`` ((m_active,) bool, in this
+        model's order): the same unknowns, parameter layout and reference rotations, so
+        :meth:`residuals_and_blocks` gives exactly this model's rows ``keep`` (each point is
+        computed on its own). For evaluation only (e.g. images still iterating)."""
+        keep = np.asarray(keep, bool)
+        sub = copy.copy(self)
+        for name in ("k", "img", "tgt", "uv", "sigma_px", "_start_mm", "tgt_slot"):
+            setattr(sub, name, getattr(self, name)[keep])
+        sub.n_rows_image = 2 * len(sub.k)
+        sub.n_rows = sub.n_rows_image + 3 * len(sub.survey_k)
+        bounds = np.searchsorted(sub.img, np.arange(sub.n_images + 1))
+        sub._image_slices = [(i, slice(bounds[i], bounds[i + 1])) for i in range(sub.n_images)
+                             if bounds[i + 1] > bounds[i]]
+        return sub
 
     # ------------------------------------------------------------------ packing
     def pack(self, params, center_m, targets_m=None):

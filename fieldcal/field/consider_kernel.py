@@ -15,6 +15,10 @@ array): with ``S_t = sum_k P_k[:p]`` (the interior rows, shared by all its point
     M[int, ext(i_k)]     += S_t E_k^T          (and its transpose)
     M[ext(i_k), ext(i_l)] += E_k E_l^T          for every pair k, l of target t
 
+Each pair (k, l), k < l, is formed once and added to both ``M[ext(i_k), ext(i_l)]`` and its
+mirror (the two products are bit for bit the same); the order of the additions into an entry
+is that of the loop over all ordered pairs unless a target has two points in one image.
+
 The contract test (``tests/field/test_honest_uncertainty.py``) runs both implementations.
 Compilation, caching and the fallback: :mod:`fieldcal.solver.compiled`.
 """
@@ -68,12 +72,23 @@ def _consider(d_int, d_ext, sigma_m, image, order, ptr, M):
                     v = S[r, 0] * P[a, p + e, 0] + S[r, 1] * P[a, p + e, 1] + S[r, 2] * P[a, p + e, 2]
                     M[r, ok + e] += v
                     M[ok + e, r] += v
-            for b in range(a1 - a0):
+            # the pairs (a, b) and (b, a) give each other's transposed blocks with the same bits
+            # (products commute, the sums run over c in one order): each pair once, written twice
+            for e in range(6):
+                for f in range(e, 6):
+                    v = (P[a, p + e, 0] * P[a, p + f, 0] + P[a, p + e, 1] * P[a, p + f, 1]
+                         + P[a, p + e, 2] * P[a, p + f, 2])
+                    M[ok + e, ok + f] += v
+                    if f != e:
+                        M[ok + f, ok + e] += v
+            for b in range(a + 1, a1 - a0):
                 ol = p + 6 * image[order[a0 + b]]
                 for e in range(6):
                     for f in range(6):
-                        M[ok + e, ol + f] += (P[a, p + e, 0] * P[b, p + f, 0] + P[a, p + e, 1] * P[b, p + f, 1]
-                                              + P[a, p + e, 2] * P[b, p + f, 2])
+                        v = (P[a, p + e, 0] * P[b, p + f, 0] + P[a, p + e, 1] * P[b, p + f, 1]
+                             + P[a, p + e, 2] * P[b, p + f, 2])
+                        M[ok + e, ol + f] += v
+                        M[ol + f, ok + e] += v
 
 
 if compiled.numba is not None:

@@ -64,12 +64,13 @@ from fieldcal.field.geometry import (
 )
 from fieldcal.model.camera import Sensor
 from fieldcal.model.opencv_frames import FLIP_YZ
-from fieldcal.robust import robust_sigma
+from fieldcal.robust import MAD_TO_SIGMA, robust_sigma
 
 __all__ = [
     "DltResult",
     "dlt",
     "dlt_robust",
+    "dlt_robust_many",
     "zhang_focal",
 ]
 
@@ -445,6 +446,286 @@ class _InlierRule:
         e = np.linalg.norm(local, axis=1)
         sigma = _robust_sigma(local[finite])
         return finite & (e <= max(self.k_sigma * sigma, self.floor_px))
+
+
+# ---------------------------------------------------------------------------------------
+# many images at once
+# ---------------------------------------------------------------------------------------
+DECISION_MARGIN_REL = 1e-6
+""":func:`dlt_robust_many` takes a fast path itself only when none of the path's decisions
+(coplanarity, collinearity, the inlier limit, :data:`MAX_FAST_PATH_AFFINE`) is within this
+relative distance of its limit; closer calls go to :func:`dlt_robust`, so that the batch's
+round-off (a different order of the sums) cannot change a decision."""
+
+MAX_DETREND_CONDITION = 1e8
+"""Largest condition number of the detrend basis the batched fast path solves by QR; beyond
+it the image goes to :func:`dlt_robust` (whose least squares are SVD-based, minimum-norm)."""
+
+MIN_EIGEN_GAP_REL = 1e-6
+"""The batched fast path takes the least-squares DLT as the eigenvector of the smallest
+eigenvalue of the normal matrix ``G^T G`` only when the gap to the next eigenvalue is above
+this fraction of the largest (the eigenvector's round-off is about 1e-16 over this gap:
+1e-10 at the limit, ~1e-12 on the paper field); otherwise the image goes to
+:func:`dlt_robust`, which takes the SVD of ``G`` itself (squaring ``G`` doubles the condition
+number's exponent)."""
+
+
+def dlt_robust_many(
+    views,
+    sensor: Sensor,
+    *,
+    wheres=None,
+    seeds=None,
+    fallback: bool = True,
+    k_sigma: float = 5.0,
+    floor_px: float = 2.0,
+    detrend_degree: int = 3,
+    n_trials: int | None = None,
+    max_outlier_fraction: float = 0.3,
+    confidence: float = 0.999,
+    max_rounds: int = 20,
+    tol_rel: float = COPLANAR_TOL_REL,
+) -> list:
+    """:func:`dlt_robust` of many images, the fast path (step 0) batched over the images.
+
+    The fast path of every image (the geometry checks, Hartley normalisation, the
+    least-squares DLT, the detrended inlier test with all points, the decomposition and the
+    camera test) is computed for all images at once: images padded to the same point count
+    with zero rows, which change neither a least-squares DLT (zero rows of ``G``) nor the
+    detrend fit (zero rows of the basis and the residuals), and are left out of every mean and
+    median. The DLT is the eigenvector of the smallest eigenvalue of the normal matrices
+    ``G^T G`` (12 x 12, summed from the points' outer products without forming ``G``; only
+    with the eigenvalue gap of :data:`MIN_EIGEN_GAP_REL`), the detrend the QR of
+    ``[M | r]``: the same solutions as :func:`dlt_robust`'s SVD and ``lstsq`` up to round-off
+    (1e-12 relative in ``f`` on the paper field, 1e-11 in the principal point). Images with
+    fewer than three points per detrend coefficient (raw residuals), whose fast path is not
+    taken, or is within :data:`DECISION_MARGIN_REL` of one of its decisions, go to
+    :func:`dlt_robust` itself (bad inputs, too few, coplanar or collinear points, blunders:
+    the same result or the same error as one call of it).
+
+    Parameters
+    ----------
+    views : sequence of (X_world_m (n_i, 3), uv_px (n_i, 2))
+        Each image's control points [m] and pixels (as :func:`dlt_robust`).
+    sensor : Sensor
+    wheres : sequence of str, optional
+        Each image's name for the error messages (default ``""``).
+    seeds : sequence of int, optional
+        Each image's ``seed`` of :func:`dlt_robust` (default 0).
+    fallback : bool
+        ``False``: images whose fast path the batch does not take are ``None`` in the result
+        (the caller handles them; nothing is raised).
+    k_sigma, floor_px, detrend_degree, n_trials, max_outlier_fraction, confidence, max_rounds, tol_rel
+        As :func:`dlt_robust`.
+
+    Returns
+    -------
+    list
+        Per image, the :class:`DltResult` of :func:`dlt_robust` (up to round-off), or the
+        :class:`~fieldcal.errors.GeometryError` it raised (or ``None``, ``fallback=False``).
+
+    Raises
+    ------
+    InputError
+        As :func:`dlt_robust` (wrong shapes, NaN or infinite coordinates), for the first such image.
+    """
+    views = list(views)
+    m = len(views)
+    wheres = [""] * m if wheres is None else list(wheres)
+    seeds = [0] * m if seeds is None else list(seeds)
+    out: list = list(_fast_paths(views, sensor, k_sigma, floor_px, detrend_degree, tol_rel))
+    if not fallback:
+        return out
+    for i in range(m):
+        if out[i] is not None:
+            continue
+        X, uv = views[i]
+        try:
+            out[i] = dlt_robust(
+                X, uv, sensor, where=wheres[i], k_sigma=k_sigma, floor_px=floor_px,
+                detrend_degree=detrend_degree, n_trials=n_trials,
+                max_outlier_fraction=max_outlier_fraction, confidence=confidence,
+                max_rounds=max_rounds, seed=seeds[i], tol_rel=tol_rel,
+            )
+        except GeometryError as err:
+            out[i] = err
+    return out
+
+
+def _batch_normaliser(P, w, n):
+    """:func:`_normaliser` of padded point sets (B, n_max, k): valid rows ``w`` (B, n_max), counts ``n``."""
+    B, _, k = P.shape
+    c = (P * w[..., None]).sum(axis=1) / n[:, None]
+    mean_dist = (np.linalg.norm(P - c[:, None, :], axis=-1) * w).sum(axis=1) / n
+    pos = mean_dist > 0
+    s = np.where(pos, np.sqrt(k) / np.where(pos, mean_dist, 1.0), 1.0)
+    T = np.zeros((B, k + 1, k + 1))
+    T[:, np.arange(k), np.arange(k)] = s[:, None]
+    T[:, :k, k] = -s[:, None] * c
+    T[:, k, k] = 1.0
+    return T
+
+
+def _batch_median(values, valid, counts):
+    """``np.median`` of each row's valid entries (B, L); ``counts`` (B,) >= 1 of them per row."""
+    s = np.sort(np.where(valid, values, np.inf), axis=1)
+    rows = np.arange(len(s))
+    lo, hi = s[rows, (counts - 1) // 2], s[rows, counts // 2]
+    return np.where(counts % 2 == 1, hi, (lo + hi) / 2.0)
+
+
+def _normal_matrix(Xh, uv):
+    """``G^T G`` (B, 12, 12) of :func:`_design`'s G, from weighted sums of the points' outer products."""
+    B = Xh.shape[0]
+    u, v = uv[..., 0], uv[..., 1]
+    wts = np.stack([np.ones_like(u), u, v, u * u + v * v], axis=-1)        # (B, n, 4)
+    outer = (Xh[..., :, None] * Xh[..., None, :]).reshape(Xh.shape[:-1] + (16,))
+    S = (np.swapaxes(wts, -1, -2) @ outer).reshape(B, 4, 4, 4)
+    N = np.zeros((B, 12, 12))
+    N[:, 0:4, 0:4] = N[:, 4:8, 4:8] = S[:, 0]
+    N[:, 0:4, 8:12] = N[:, 8:12, 0:4] = -S[:, 1]
+    N[:, 4:8, 8:12] = N[:, 8:12, 4:8] = -S[:, 2]
+    N[:, 8:12, 8:12] = S[:, 3]
+    return N
+
+
+def _monomials(uvn, degree):
+    """:func:`_detrend_basis` of (..., n, 2) points, the same column order (powers by products)."""
+    x, y = [np.ones(uvn.shape[:-1])], [np.ones(uvn.shape[:-1])]
+    for _ in range(degree):
+        x.append(x[-1] * uvn[..., 0])
+        y.append(y[-1] * uvn[..., 1])
+    return np.stack([x[i] * y[j] for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)
+
+
+def _rq3(A):
+    """RQ decomposition of 3x3 matrices (B, 3, 3): ``A = R Q``, R upper triangular, Q orthogonal.
+
+    From the QR of the row-reversed transpose (``J A`` with ``J`` the exchange matrix:
+    ``(J A)^T = Q0 R0`` gives ``A = (J R0^T J)(J Q0^T)``). The signs are LAPACK's; the caller
+    makes the diagonal of R positive, which makes the decomposition unique.
+    """
+    Q0, R0 = np.linalg.qr(np.swapaxes(A[:, ::-1, :], -1, -2))
+    return np.swapaxes(R0, -1, -2)[:, ::-1, ::-1], np.swapaxes(Q0, -1, -2)[:, ::-1, :]
+
+
+def _near(a, limit):
+    """Whether ``a`` is within :data:`DECISION_MARGIN_REL` of ``limit`` (elementwise)."""
+    return np.abs(a - limit) <= DECISION_MARGIN_REL * np.abs(limit)
+
+
+def _all_points_kept(P, Xh, uvp, uvn, w, n, k_sigma, floor_px, detrend_degree, n_terms):
+    """The inlier rule (:class:`_InlierRule`) with every point an inlier, for padded images
+    (B, n_max, .): whether it keeps all of each image's points, clearly (no point within
+    :data:`DECISION_MARGIN_REL` of the limit, a detrend basis of condition below
+    :data:`MAX_DETREND_CONDITION`, every residual finite)."""
+    B, w3 = len(P), w[:, :, None]
+    h = Xh @ np.swapaxes(P, -1, -2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        res = uvp - h[..., :2] / h[..., 2:3]
+    finite = np.all(np.isfinite(res), axis=-1)
+    ok = np.all(finite | ~w, axis=1)
+    res = np.where(w3 & finite[..., None], res, 0.0)
+    local = res
+    if n_terms:
+        M = _monomials(uvn, detrend_degree) * w3
+        Rm = np.linalg.qr(np.concatenate([M, res], axis=-1), mode="r")
+        R11 = Rm[:, :n_terms, :n_terms]
+        s11 = np.linalg.svd(R11, compute_uv=False)
+        well = s11[:, -1] * MAX_DETREND_CONDITION > s11[:, 0]
+        ok &= well
+        R11 = np.where(well[:, None, None], R11, np.eye(n_terms))
+        coef = np.linalg.solve(R11, Rm[:, :n_terms, n_terms:])
+        local = res - M @ coef
+    e = np.sqrt(local[..., 0] ** 2 + local[..., 1] ** 2)
+    comp, valid2 = local.reshape(B, -1), np.repeat(w, 2, axis=1)
+    med = _batch_median(comp, valid2, 2 * n)
+    sigma = MAD_TO_SIGMA * _batch_median(np.abs(comp - med[:, None]), valid2, 2 * n)
+    limit = np.maximum(k_sigma * sigma, floor_px)
+    ok &= np.all((e <= limit[:, None]) | ~w, axis=1)
+    ok &= ~np.any(_near(e, limit[:, None]) & w, axis=1)
+    return ok
+
+
+def _fast_paths(views, sensor: Sensor, k_sigma, floor_px, detrend_degree, tol_rel):
+    """Step 0 of :func:`dlt_robust` for many images at once: a DltResult per image, or None."""
+    out = [None] * len(views)
+    n_terms = 0 if detrend_degree <= 0 else (detrend_degree + 1) * (detrend_degree + 2) // 2
+    idx, Xs, uvs = [], [], []
+    for i, (X, uv) in enumerate(views):
+        X, uv = np.asarray(X, dtype=float), np.asarray(uv, dtype=float)
+        if X.ndim != 2 or X.shape[1] != 3 or uv.ndim != 2 or uv.shape[1] != 2 or len(X) != len(uv):
+            continue
+        if len(X) < max(6, 3 * n_terms) or not (np.isfinite(X).all() and np.isfinite(uv).all()):
+            continue
+        idx.append(i)
+        Xs.append(X)
+        uvs.append(uv)
+    if not idx:
+        return out
+    n = np.array([len(X) for X in Xs])
+    B, n_max = len(idx), int(n.max())
+    w = np.arange(n_max) < n[:, None]                                  # (B, n_max) valid rows
+    rows, cols = np.nonzero(w)
+    Xp, uvp = np.zeros((B, n_max, 3)), np.zeros((B, n_max, 2))
+    Xp[rows, cols], uvp[rows, cols] = np.concatenate(Xs), np.concatenate(uvs)
+    w3 = w[:, :, None]
+    # the geometry checks of _check_dlt_geometry: clearly neither collinear nor coplanar
+    cX = Xp.sum(axis=1) / n[:, None]
+    sv = np.linalg.svd((Xp - cX[:, None, :]) * w3, compute_uv=False)     # (B, 3)
+    ok = (sv[:, 1] > tol_rel * sv[:, 0]) & (sv[:, 2] > tol_rel * sv[:, 0])
+    ok &= ~(_near(sv[:, 1], tol_rel * sv[:, 0]) | _near(sv[:, 2], tol_rel * sv[:, 0]))
+    # the least-squares DLT of all points (_solve_P), Hartley-normalised
+    Tw, Ti = _batch_normaliser(Xp, w, n), _batch_normaliser(uvp, w, n)
+    Xh = _homogeneous(Xp)
+    Xn = (Xh @ np.swapaxes(Tw, -1, -2)) * w3
+    uvn = (_homogeneous(uvp) @ np.swapaxes(Ti, -1, -2))[..., :2] * w3
+    lam, V = np.linalg.eigh(_normal_matrix(Xn, uvn))                   # ascending
+    ok &= lam[:, 1] - lam[:, 0] > MIN_EIGEN_GAP_REL * lam[:, -1]
+    P = np.linalg.solve(Ti, V[:, :, 0].reshape(B, 3, 4)) @ Tw
+    ok &= _all_points_kept(P, Xh, uvp, uvn, w, n, k_sigma, floor_px, detrend_degree, n_terms)
+    # the decomposition (_decompose) and the camera test (_camera_like)
+    det = np.linalg.det(P[:, :, :3])
+    ok &= np.isfinite(det) & (np.abs(det) >= 1e-300)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        P = P * (np.sign(det) / np.linalg.norm(P[:, 2, :3], axis=-1))[:, None, None]
+    P = np.where(ok[:, None, None], P, np.eye(3, 4))                    # keep the rest finite
+    K, R_cv = _rq3(P[:, :, :3])
+    D = np.sign(np.einsum("bii->bi", K))
+    K, R_cv = K * D[:, None, :], D[:, :, None] * R_cv
+    K = K / K[:, 2:3, 2:3]
+    c_h = np.linalg.svd(P)[2][:, -1, :]
+    ok &= ~(np.abs(c_h[:, 3]) < 1e-12 * np.linalg.norm(c_h[:, :3], axis=-1))
+    h = Xh @ np.swapaxes(P, -1, -2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        center = c_h[:, :3] / c_h[:, 3:4]
+        uv_hat = h[..., :2] / h[..., 2:3]
+    ok &= np.count_nonzero((h[..., 2] > 0) & w, axis=1) >= 0.5 * n
+    resid = uvp - uv_hat
+    rms = np.sqrt(np.sum(np.where(w3, resid, 0.0) ** 2, axis=(1, 2)) / n)
+    alpha, beta = K[:, 0, 0], K[:, 1, 1]
+    aspect, skew = beta / alpha, K[:, 0, 1] / alpha
+    ok &= (np.abs(aspect - 1.0) <= MAX_FAST_PATH_AFFINE) & (np.abs(skew) <= MAX_FAST_PATH_AFFINE)
+    ok &= ~(_near(np.abs(aspect - 1.0), MAX_FAST_PATH_AFFINE) | _near(np.abs(skew), MAX_FAST_PATH_AFFINE))
+    d = sensor.pixel_mm
+    R_world = FLIP_YZ @ R_cv
+    for b in np.flatnonzero(ok):
+        k = n[b]
+        out[idx[b]] = DltResult(
+            f_mm=float(0.5 * (alpha[b] + beta[b]) * d),
+            xp_mm=float((K[b, 0, 2] - (sensor.width_px - 1) / 2.0) * d),
+            yp_mm=float(-(K[b, 1, 2] - (sensor.height_px - 1) / 2.0) * d),
+            aspect=float(aspect[b]),
+            skew=float(skew[b]),
+            R_world_to_camera=R_world[b],
+            center_m=center[b],
+            P=P[b],
+            K_px=K[b],
+            residuals_px=resid[b, :k],
+            inliers=np.ones(k, bool),
+            rms_px=float(rms[b]),
+        )
+    return out
 
 
 # ---------------------------------------------------------------------------------------

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldcal.errors import GeometryError
-from fieldcal.field.bundle import BundleModel
+from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
-from fieldcal.field.dlt import dlt_robust, zhang_focal
+from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_coplanar
 from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import INDEX, Camera
@@ -69,7 +69,11 @@ def per_image(data: FieldData) -> list[np.ndarray]:
 
 
 def _dlts(data: FieldData, groups):
-    """Step 1: the robust DLT of every image that has non-coplanar targets (else NaN/None)."""
+    """Step 1: the robust DLT of every image that has non-coplanar targets (else NaN/None).
+
+    The fast paths of all images are taken in one batch (:func:`dlt_robust_many`); the images
+    it leaves (blunders, borderline geometry) get :func:`dlt_robust` one by one, as before.
+    """
     n_img = len(data.images)
     dlt_f, dlt_pp = np.full(n_img, np.nan), np.full((n_img, 2), np.nan)
     poses: list = [None] * n_img
@@ -77,14 +81,18 @@ def _dlts(data: FieldData, groups):
     X_all = data.targets.xyz_m
     if is_coplanar(X_all[np.unique(data.obs.target)]):
         return dlt_f, dlt_pp, poses, outliers
+    views = [(X_all[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
+    fast = dlt_robust_many(views, data.sensor, fallback=False)   # the fast paths, batched
     for i, k in enumerate(groups):
-        X, uv = X_all[data.obs.target[k]], data.obs.uv_px[k]
-        if is_coplanar(X):
-            continue
-        try:
-            res = dlt_robust(X, uv, data.sensor, where=data.images[i].file, seed=i)
-        except GeometryError:
-            continue
+        res = fast[i]
+        if res is None:                 # no fast path: this image's own robust DLT
+            X, uv = views[i]
+            if is_coplanar(X):
+                continue
+            try:
+                res = dlt_robust(X, uv, data.sensor, where=data.images[i].file, seed=i)
+            except GeometryError:
+                continue
         dlt_f[i], dlt_pp[i] = res.f_mm, (res.xp_mm, res.yp_mm)
         poses[i] = (res.R_world_to_camera, res.center_m)
         outliers[k[~res.inliers]] = True
@@ -185,7 +193,15 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         done |= -0.5 * np.einsum("ki,ki->k", h, g) <= tol * cost     # predicted decrease negligible
         h[done] = 0.0
         x_new = x + h.ravel()
-        r_new, jb_new, _ = model.residuals_and_blocks(x_new)
+        live = ~done[model.img]                     # points of the images still iterating
+        if live.sum() >= 0.8 * len(live):
+            r_new, jb_new, _ = model.residuals_and_blocks(x_new)
+            d_new = jb_new.d_ext
+        else:   # only those images (each point is computed on its own: the same numbers)
+            r_live, jb_live, _ = model.restricted(live).residuals_and_blocks(x_new)
+            r_new, d_new = r.copy(), np.empty_like(jb.d_ext)
+            r_new.reshape(-1, 2)[live] = r_live.reshape(-1, 2)
+            d_new[live] = jb_live.d_ext
         cost_new = _segment_sums(r_new.reshape(-1, 2) ** 2, starts, counts).sum(axis=1)
         better = np.isfinite(cost_new) & (cost_new < cost) & ~done
         done |= ~better & (mu > 1e10)
@@ -193,7 +209,7 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
         take = better[model.img]
         x = np.where(np.repeat(better, 6), x_new, x)
         r = np.where(np.repeat(take, 2), r_new, r)
-        jb.d_ext[take] = jb_new.d_ext[take]
+        np.copyto(jb.d_ext, d_new, where=take[:, None, None])
         cost = np.where(better, cost_new, cost)
     _, R_new, C_new, _ = model.unpack(x)
     sigma = _segment_sums(model.sigma_px ** 2, starts, counts) / np.maximum(counts, 1)
@@ -204,13 +220,7 @@ def refine_poses(data: FieldData, params, R, C, active, *, max_iter: int = 30, t
 
 def _image_residuals_px(data: FieldData, params, R, C):
     """|measured - projected| [px] of every observation (NaN behind the camera)."""
-    cam = Camera(data.sensor, params)
-    d = data.obs
-    Xc = np.einsum("kab,kb->ka", R[d.image], data.targets.xyz_m[d.target] - C[d.image])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = -cam.f_mm * Xc[:, :2] / np.where(Xc[:, 2] < 0, Xc[:, 2], np.nan)[:, None]
-    uv = data.sensor.mm_to_pixel(cam.distort(q, check=False))
-    return np.hypot(*(d.uv_px - uv).T)
+    return np.hypot(*image_residuals(data, params, R, C).T)
 
 
 def _orient(data: FieldData, groups, params, poses, outliers, threshold_px):

@@ -130,8 +130,11 @@ def parse_acquired(text: str, where: str) -> datetime:
         raise InputError(f"'acquired' is out of range in UTC: {text!r} (at /acquired)", where) from None
 
 
-def safe_path(folder: Path, relative: str, what: str) -> Path:
-    """``folder / relative``, refused if it leaves the folder (absolute, ``..``, links out)."""
+def safe_path(folder: Path, relative: str, what: str, *, base: Path | None = None) -> Path:
+    """``folder / relative``, refused if it leaves the folder (absolute, ``..``, links out).
+
+    ``base``: ``Path(folder).resolve()`` when the caller has it already (checking many
+    paths of one folder resolves the folder once)."""
     where = str(Path(folder) / MANIFEST)
     rel = str(relative).replace("\\", "/")
     if not rel or rel.startswith("/") or os.path.isabs(rel) or (len(rel) > 1 and rel[1] == ":"):
@@ -140,7 +143,7 @@ def safe_path(folder: Path, relative: str, what: str) -> Path:
         raise InputError(f"{what} path {relative!r} leaves the session folder", where)
     if "\x00" in rel:
         raise InputError(f"{what} path {relative!r} contains a NUL character", where)
-    base = Path(folder).resolve()
+    base = Path(folder).resolve() if base is None else base
     full = (base / rel)
     try:
         resolved = full.resolve()
@@ -163,15 +166,17 @@ def _resolve_images(folder: Path, spec, where: str) -> list[FieldImage]:
             raise InputError(f"images {shown(spec)} matches more than {MAX_IMAGES} files (fieldcal's "
                              "limit for one session) (at /images)", where)
         out = []
+        base = Path(folder).resolve()
         for rel in matches:
-            safe_path(folder, rel, "image")
+            safe_path(folder, rel, "image", base=base)
             if (folder / rel).is_file():
                 out.append(FieldImage(normal_file_name(rel, "image", where), None))
         return out
     first: dict[str, int] = {}
     out = []
+    base = Path(folder).resolve()
     for k, item in enumerate(spec):
-        safe_path(folder, item["file"].replace("\\", "/"), f"images[{k}]")
+        safe_path(folder, item["file"].replace("\\", "/"), f"images[{k}]", base=base)
         name = normal_file_name(item["file"], f"images[{k}]", where)
         if name in first:
             spelled = "" if item["file"] == name else f" (as {shown(item['file'])})"

@@ -276,6 +276,34 @@ def _unique_rows(rows, n_cols: int):
     return first, inv.reshape(-1)
 
 
+def _may_repeat_a_column(part_cols, n_params: int) -> bool:
+    """False when no group of a block repeats a column (then the full check is skipped),
+    True when one may: the shared parts' columns (one list for all groups) repeat, a group's
+    own columns (its per-group parts side by side) repeat, or one of them is a shared column.
+    Exact in the False case; the caller's sort of every group's columns decides the rest and
+    names the group."""
+    shared = [c for c in part_cols if c.ndim == 1]
+    own = [c for c in part_cols if c.ndim == 2]
+    s = np.concatenate(shared) if shared else np.zeros(0, np.intp)
+    if len(np.unique(s)) != len(s):
+        return True
+    if not own:
+        return False
+    g = own[0] if len(own) == 1 else np.concatenate(own, axis=1)
+    if g.size and (g.min() < 0 or g.max() >= n_params):
+        return True                       # out of range: the caller's check says so
+    if g.shape[1] > 1:
+        sg = np.sort(g, axis=1)
+        if (sg[:, 1:] == sg[:, :-1]).any():
+            return True
+    if len(s):
+        marked = np.zeros(n_params, bool)
+        marked[s[(s >= 0) & (s < n_params)]] = True
+        if marked[g].any():
+            return True
+    return False
+
+
 class _BlockLayout:
     """Index analysis of one residual block (see :class:`JacobianStructure`)."""
 
@@ -291,7 +319,7 @@ class _BlockLayout:
         if k and (cols.min() < 0 or cols.max() >= n_params):
             raise InputError(f"columns must lie in [0, {n_params}), got {cols.min()}..{cols.max()}",
                              where)
-        if k and c > 1:
+        if k and c > 1 and _may_repeat_a_column(block.part_cols, n_params):
             sc = np.sort(cols, axis=1)
             dup = np.flatnonzero((sc[:, 1:] == sc[:, :-1]).any(axis=1))
             if len(dup):
@@ -342,9 +370,18 @@ class _BlockLayout:
             self.e = e[:, 0].copy()
             self.local = ec - b * e
             self.full = self.c_e == b and bool(np.all(self.local == np.arange(b)))
-            self.V_dest = (self.e[:, None] * (b * b) + np.arange(b * b)).ravel()
+            self._b, self._V_dest = b, None
         else:
             self.c_e = 0
+
+    @property
+    def V_dest(self):
+        """Where each group's (b, b) product lands in the flattened V (the NumPy assembly's
+        ``bincount``; made on first use, the compiled assembly does not need it)."""
+        if self._V_dest is None:
+            b = self._b
+            self._V_dest = (self.e[:, None] * (b * b) + np.arange(b * b)).ravel()
+        return self._V_dest
 
     def reduced_values(self, values):
         return values[:, :, self.red_sel]
@@ -606,8 +643,16 @@ class BlockSparseJacobian:
         return np.sqrt(sq)
 
     def all_finite(self) -> bool:
-        """Whether every stored derivative is finite."""
-        return all(np.isfinite(v).all() for blk in self.blocks for v in blk.part_values)
+        """Whether every stored derivative is finite (a block's parts side by side in one
+        contiguous array, when it has them so, else part by part)."""
+        for blk in self.blocks:
+            v = blk._values
+            if v is not None:
+                if not np.isfinite(v).all():
+                    return False
+            elif not all(np.isfinite(p).all() for p in blk.part_values):
+                return False
+        return True
 
     def to_csr(self) -> scipy.sparse.csr_matrix:
         """J as a ``scipy.sparse.csr_matrix`` (m, n)."""
@@ -700,7 +745,7 @@ class NormalEquations:
         self.U = U.reshape(nr, nr)
         self.V = V.reshape(nb, b, b)
         self.W_slots = Ws.reshape(st.n_slots, b)
-        self._zero = self._WT = self._Cr = self._Cee = self._cross = None
+        self._zero = self._WT = self._Cr = self._Cee = self._cross = self._dense_cov = None
 
     def _assemble_compiled(self, kern, lay, values, V, Ws):
         """V and W_slots of one residual block by the compiled loop (U is formed by BLAS)."""
@@ -894,6 +939,8 @@ class NormalEquations:
         ``(N^-1)_rr = S^-1``, ``(N^-1)_re = -S^-1 Y``, ``(N^-1)_ee = V^-1 + Y^T S^-1 Y``
         with ``Y = W V^-1``; raises :class:`SingularSystemError` as :meth:`solve` does.
         """
+        if self._dense_cov is not None:          # made once per normal equations; a copy each call
+            return self._dense_cov.copy()
         Cr = self.covariance_reduced()
         nr, b, nb = self.n_reduced, self.b, self.n_blocks
         if not nb:
@@ -910,7 +957,8 @@ class NormalEquations:
         idx = np.arange(nb)[:, None] * b + np.arange(b)
         Cee[idx[:, :, None], idx[:, None, :]] += Vinv
         C[nr:, nr:] = 0.5 * (Cee + Cee.T)
-        return C
+        self._dense_cov = C
+        return C.copy()
 
     def covariance_elim_blocks(self) -> np.ndarray:
         """(n_blocks, b, b) the diagonal blocks of ``N^-1`` for the eliminated parameters."""

@@ -95,6 +95,15 @@ def _assemble_rows2(v, red_pos, elim_pos, e, local, slot_idx, V, Ws):
 
 def _gradient(v, rows, cols, res, out):
     k, r, c = v.shape
+    if r == 2:    # image points: the group's two residuals loaded once (the same sums, in order)
+        for g in range(k):
+            r0, r1 = res[rows[g, 0]], res[rows[g, 1]]
+            for j in range(c):
+                s = 0.0
+                s += v[g, 0, j] * r0
+                s += v[g, 1, j] * r1
+                out[cols[g, j]] += s
+        return
     for g in range(k):
         for j in range(c):
             s = 0.0
@@ -105,6 +114,16 @@ def _gradient(v, rows, cols, res, out):
 
 def _matvec(v, rows, cols, h, out):
     k, r, c = v.shape
+    if r == 2:    # image points: both rows in one pass over the columns (the same sums, in order)
+        for g in range(k):
+            s0, s1 = 0.0, 0.0
+            for j in range(c):
+                hj = h[cols[g, j]]
+                s0 += v[g, 0, j] * hj
+                s1 += v[g, 1, j] * hj
+            out[rows[g, 0]] = s0
+            out[rows[g, 1]] = s1
+        return
     for g in range(k):
         for q in range(r):
             s = 0.0
@@ -212,10 +231,14 @@ def _cr_times_y3(Y, slot_col, s0, s1, Cr, X):
 def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx, Cr, Cee, cross, Q):
     """``Q[g] = J_g N^-1 J_g^T`` from the reduced block ``Cr``, the eliminated diagonal blocks
     ``Cee`` and the cross blocks per slot ``cross`` (see ``NormalEquations.group_covariance``).
-    The reduced part as ``A (Cr_g A^T)``: ``u = Cr_g A^T`` first, each entry of ``Cr`` read once."""
+    The reduced part as ``A (Cr_g A^T)``: ``u = Cr_g A^T`` first, each entry of ``Cr`` read once.
+    The group's eliminated values and its blocks of ``Cee`` and ``cross`` are gathered once (not
+    once per entry of Q); the sums are the same, in the same order."""
     k, r = v.shape[0], v.shape[1]
     c_r, c_e = red_pos.shape[0], elim_pos.shape[0]
     u, vr = np.empty((r, max(c_r, 1))), np.empty((r, max(c_r, 1)))
+    ve = np.empty((r, max(c_e, 1)))
+    Cg, Xg = np.empty((max(c_e, 1), max(c_e, 1))), np.empty((max(c_r, 1), max(c_e, 1)))
     for g in range(k):
         if c_r:
             kc = key_cols[key_id[g]]
@@ -237,25 +260,34 @@ def _group_covariance(v, red_pos, elim_pos, key_cols, key_id, e, local, slot_idx
                         for jj in range(c_r):
                             acc += Cr[row, kc[jj]] * vr[q, jj]
                         u[q, ii] = acc
+        if c_e:
+            eg = e[g]
+            for q in range(r):
+                for jj in range(c_e):
+                    ve[q, jj] = v[g, q, elim_pos[jj]]
+            for ii in range(c_e):
+                li = local[g, ii]
+                for jj in range(c_e):
+                    Cg[ii, jj] = Cee[eg, li, local[g, jj]]
+            for ii in range(c_r):
+                sl = slot_idx[g, ii]
+                for jj in range(c_e):
+                    Xg[ii, jj] = cross[sl, local[g, jj]]
         for p in range(r):
             for q in range(p, r):
                 acc = 0.0
                 for ii in range(c_r):
                     acc += vr[p, ii] * u[q, ii]
                 if c_e:
-                    eg = e[g]
                     for ii in range(c_e):
-                        a = v[g, p, elim_pos[ii]]
+                        a = ve[p, ii]
                         row = 0.0
                         for jj in range(c_e):
-                            row += Cee[eg, local[g, ii], local[g, jj]] * v[g, q, elim_pos[jj]]
+                            row += Cg[ii, jj] * ve[q, jj]
                         acc += a * row
                     for ii in range(c_r):
-                        sl = slot_idx[g, ii]
                         for jj in range(c_e):
-                            c = cross[sl, local[g, jj]]
-                            acc += c * (v[g, p, red_pos[ii]] * v[g, q, elim_pos[jj]]
-                                        + v[g, q, red_pos[ii]] * v[g, p, elim_pos[jj]])
+                            acc += Xg[ii, jj] * (vr[p, ii] * ve[q, jj] + vr[q, ii] * ve[p, jj])
                 Q[g, p, q] = acc
                 Q[g, q, p] = acc
 

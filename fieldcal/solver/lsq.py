@@ -46,7 +46,11 @@ stored: the compact representation of Byrd, Nocedal & Schnabel (1994, Theorem 2.
 with ``S = [s_i]``, ``Y = [y_i]`` (n, k), ``R = triu(S^T Y)``, ``D = diag(S^T Y)``. With all
 pairs kept this is exactly the book's dense ``B``; more than ``memory`` (default 50) pairs
 drop the oldest (then it is L-BFGS). ``h^T y > 0`` is tested as
-``h^T y > eps ||h|| ||y||``, which differs from ``> 0`` only within round-off.
+``h^T y > eps ||h|| ||y||``, which differs from ``> 0`` only within round-off. The updates
+are computed when a QN step needs ``B`` (up to :data:`_MAX_PENDING_UPDATES` of them wait, in
+order, with the Jacobians they need): the same pairs in the same order as updating at once,
+without the three products per iteration (``J_new h``, ``J_new^T``, ``J^T r_new``) in the
+many solves that end without a QN step.
 
 The actual reduction ``F(x) - F(x_new)`` is computed as ``1/2 (r - r_new)^T (r + r_new)``,
 not as the difference of two large sums, so that near the optimum of a large-residual
@@ -356,6 +360,11 @@ def solve(problem, x0, *, method: str = "lmqn", eps1: float = 1e-10, eps2: float
                      message=STATUS_MESSAGES[status], method=method, history=history, mu=st.mu)
 
 
+_MAX_PENDING_UPDATES = 8
+"""The most BFGS updates :class:`_State` lets wait for a QN step (each holds its two Jacobians);
+beyond it the oldest is computed."""
+
+
 class _State:
     """The iterate and the method's memory: mu, nu, count, Delta, BFGS pairs."""
 
@@ -365,16 +374,18 @@ class _State:
         self.nfev = 1
         if not finite:
             raise InputError("the residuals or the Jacobian at x0 are not finite", "lsq.solve")
-        d = J.column_norms()
+        norms = J.column_norms()
+        d = norms.copy()
         d[~(np.isfinite(d) & (d > 0))] = 1.0
         self.d = d
         self._set(x, r, J, J.gradient(r))
-        self.mu = tau * float(((J.column_norms() / d) ** 2).max(initial=0.0))  # tau max diag(N_z)
+        self.mu = tau * float(((norms / d) ** 2).max(initial=0.0))  # tau max diag(N_z)
         if not self.mu > 0:
             self.mu = tau if tau > 0 else 1e-3
         self.nu = 2.0
         self.step, self.count, self.Delta = "lm", 0, np.nan
         self.bfgs = _CompactBFGS(self.n, memory)
+        self._pending: list[tuple] = []     # BFGS updates not computed yet, oldest first
 
     def _set(self, x, r, J, g):
         self.x, self.r, self.J, self.g = x, r, J, g
@@ -397,10 +408,23 @@ class _State:
         return x_new, r_new, J_new, J_new.gradient(r_new)
 
     def update_bfgs(self, x_new, r_new, J_new, g_new):
-        """BFGS update: ``h = x_new - x``, ``y = J_new^T J_new h + (J_new - J)^T r_new``."""
-        h = x_new - self.x
-        y = J_new.gradient(J_new.matvec(h)) + g_new - self.J.gradient(r_new)
+        """BFGS update: ``h = x_new - x``, ``y = J_new^T J_new h + (J_new - J)^T r_new``.
+
+        Queued: computed by :meth:`bfgs_matrix` (the same arithmetic, in the same order)."""
+        self._pending.append((x_new - self.x, self.J, r_new, J_new, g_new))
+        if len(self._pending) > _MAX_PENDING_UPDATES:
+            self._apply_update(*self._pending.pop(0))
+
+    def _apply_update(self, h, J, r_new, J_new, g_new):
+        y = J_new.gradient(J_new.matvec(h)) + g_new - J.gradient(r_new)
         self.bfgs.update(self.d * h, y / self.d)
+
+    def bfgs_matrix(self) -> _CompactBFGS:
+        """The BFGS matrix with every update so far."""
+        for update in self._pending:
+            self._apply_update(*update)
+        self._pending.clear()
+        return self.bfgs
 
     def lm_fail(self):
         """A rejected LM step: ``mu := mu nu``, ``nu := 2 nu``; status 4 if mu D^2 overflows."""
@@ -486,7 +510,7 @@ def _step_qn(st: _State, eps2: float, ftol: float = 0.0) -> _StepOutcome:
     if st.Delta <= small:
         out.status = 2
         return out
-    hz_full = -st.bfgs.apply_inverse(st.gz)               # B h = -g
+    hz_full = -st.bfgs_matrix().apply_inverse(st.gz)      # B h = -g
     nf = float(np.linalg.norm(hz_full))
     alpha = min(1.0, st.Delta / nf) if nf > 0 else 1.0
     hz = alpha * hz_full

@@ -535,3 +535,45 @@ def test_field_problem_returns_its_last_evaluation_at_the_same_point():
     assert J2 is not J0 and not np.array_equal(r2, r0)
     r3, _ = problem.evaluate(y, False)
     np.testing.assert_array_equal(r3, r2)
+
+
+def test_the_f_check_decides_as_the_full_inverse_does(monkeypatch):
+    # _check_f_determinable passes a network on f's variance from one triangular solve; at a
+    # limit just above or below the relative sigma of f from the full inverse of the reduced
+    # normal matrix (also within its close-call margin) it must decide as that inverse does
+    from fieldcal.field import adjustment as A
+
+    seen = []
+    orig = A._check_f_determinable
+    monkeypatch.setattr(A, "_check_f_determinable", lambda *a: (seen.append(a), orig(*a))[1])
+    adjust_field(wide_field(seed=0).data, AdjustmentOptions())
+    model, x, J, o = seen[0]
+    names = list(model.estimate)
+    S = A._reduced_normal_matrix(model, J.normal_equations())
+    keep = np.array([n in A.CORE_PARAMS for n in names] + [True] * (S.shape[0] - len(names)))
+    jf = names.index("f_mm")
+    rel = np.sqrt(np.linalg.inv(S[np.ix_(keep, keep)])[jf, jf]) / abs(x[jf])
+    assert 0 < rel < 0.02
+    for factor, refused in ((1.001, False), (0.999, True), (1 + 1e-9, False), (1 - 1e-9, True)):
+        opts = replace(o, max_rel_sigma_f=rel * factor)
+        if refused:
+            with pytest.raises(GeometryError, match="cannot determine the principal distance"):
+                orig(model, x, J, opts)
+        else:
+            orig(model, x, J, opts)
+
+
+def test_observation_blocks_of_the_kept_jacobian_are_those_of_an_evaluation():
+    sf = wide_field(seed=0)
+    m = BundleModel(sf.data, sf.camera.params, FIELD_PARAMS, sf.R_world_to_camera, targets_adjusted=False)
+    x = m.pack(sf.camera.params, sf.center_m, sf.data.targets.xyz_m)
+    problem = FieldProblem(m)
+    _, jb, _ = m.residuals_and_blocks(x, True)
+    problem.evaluate(x, True)
+    d_int, d_ext = problem.observation_blocks(x)          # kept: the Jacobian's own blocks
+    assert np.array_equal(d_int, jb.d_int) and np.array_equal(d_ext, jb.d_ext)
+    y = x.copy()
+    y[0] += 1e-3
+    d_int, d_ext = problem.observation_blocks(y)          # another point: evaluated there
+    _, jb_y, _ = m.residuals_and_blocks(y, True)
+    assert np.array_equal(d_int, jb_y.d_int) and np.array_equal(d_ext, jb_y.d_ext)

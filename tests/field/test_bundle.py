@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fieldcal.field import bundle_kernel
-from fieldcal.field.bundle import BundleModel
+from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.model.camera import FIELD_PARAMS
 from fieldcal.synthetic.field import paper_field, wide_field
 
@@ -106,6 +106,55 @@ def test_compiled_kernel_and_numpy_reference_agree(adjusted, estimate):
         if A.size:   # relative to the largest entry of the block: round-off of ~40 flops
             assert np.abs(A - B).max() <= 1e-12 * np.abs(A).max(), name
     assert np.array_equal(a[2], b[2])
+
+
+def test_image_residuals_kernel_and_numpy_reference_agree():
+    """The residuals of every observation (readmission, the result's table): the compiled loop
+    and the NumPy reference, on a distorted wide-angle camera, with a pose put behind the wall
+    (NaN) and a point far outside the invertible region (Newton does not converge: NaN)."""
+    if bundle_kernel.residuals_kernel() is None:
+        pytest.skip(bundle_kernel.status())
+    sf = wide_field(seed=0)
+    params = sf.camera.params.copy()
+    params[[3, 11, 12]] = (1e-4, 2e-5, -3e-5)
+    R, C = sf.R_world_to_camera, sf.center_m.copy()
+    C[4] = [0.0, 5.0, 2.0]                                   # image 4 behind the wall
+    X = sf.targets_true.xyz_m + np.random.default_rng(4).normal(0, 0.01, sf.targets_true.xyz_m.shape)
+    a = image_residuals(sf.data, params, R, C, X, implementation="numpy")
+    b = image_residuals(sf.data, params, R, C, X, implementation="numba")
+    assert np.isnan(a).any()
+    assert np.allclose(a, b, rtol=0, atol=1e-9, equal_nan=True)
+    assert np.array_equal(a, b, equal_nan=True)     # the same arithmetic, the same order of the sums
+    # beyond the invertible region of a strong barrel: both give NaN
+    wild = params.copy()
+    wild[4] = -5e-3
+    a = image_residuals(sf.data, wild, R, C, implementation="numpy")
+    b = image_residuals(sf.data, wild, R, C, implementation="numba")
+    assert np.isnan(a).any() and np.array_equal(np.isnan(a), np.isnan(b))
+    assert np.allclose(a, b, rtol=0, atol=1e-9, equal_nan=True)
+    # the default targets are the surveyed ones
+    assert np.array_equal(image_residuals(sf.data, params, R, C, implementation="numba"),
+                          image_residuals(sf.data, params, R, C, sf.data.targets.xyz_m, implementation="numba"),
+                          equal_nan=True)
+
+
+@pytest.mark.parametrize("implementation", ["numpy", "numba"])
+@pytest.mark.parametrize("adjusted", [False, True])
+def test_a_restricted_model_evaluates_exactly_the_kept_rows(implementation, adjusted):
+    if implementation == "numba" and bundle_kernel.kernel() is None:
+        pytest.skip(bundle_kernel.status())
+    sf = wide_field(seed=0)
+    m = BundleModel(sf.data, sf.camera.params, FIELD_PARAMS, sf.R_world_to_camera, targets_adjusted=adjusted)
+    x = m.pack(sf.camera.params, sf.center_m, sf.data.targets.xyz_m)
+    x[m.n_int:m.n_reduced] += np.random.default_rng(5).normal(0, 1e-3, 6 * m.n_images)
+    keep = np.isin(m.img, [1, 4, 5, 17])
+    r, jb, sd = m.residuals_and_blocks(x, implementation=implementation)
+    rs, jbs, sds = m.restricted(keep).residuals_and_blocks(x, implementation=implementation)
+    n_img = m.n_rows_image
+    assert np.array_equal(rs[: 2 * keep.sum()], r[:n_img].reshape(-1, 2)[keep].ravel())
+    assert np.array_equal(rs[2 * keep.sum():], r[n_img:]) and np.array_equal(sds, sd)
+    for name in ("d_int", "d_ext", "d_tgt"):
+        assert np.array_equal(getattr(jbs, name), getattr(jb, name)[keep]), name
 
 
 def test_without_numba_the_numpy_reference_runs_and_says_so():

@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.dlt import dlt, dlt_robust, zhang_focal
+from fieldcal.field.dlt import dlt, dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_collinear, is_coplanar, plane_frame
 from fieldcal.field.resection import planar_pose
 from fieldcal.model.camera import Camera, Sensor
@@ -466,3 +466,111 @@ def test_zhang_focal_refuses_degenerate_input():
     R, X, uv = wall_view(rng, IXU, POSES[0], 30)
     with pytest.raises(GeometryError, match="view 1: needs >= 4 coplanar"):
         zhang_focal([views[0], (X, uv)], WIDE_SENSOR)
+
+
+# --------------------------------------------------------------------------------------
+# many images at once (the batched fast path against the per-image reference)
+# --------------------------------------------------------------------------------------
+def _views_of(data):
+    groups = [np.flatnonzero(data.obs.image == i) for i in range(len(data.images))]
+    return [(data.targets.xyz_m[data.obs.target[k]], data.obs.uv_px[k]) for k in groups]
+
+
+def _assert_same_dlt(r, ref):
+    assert np.array_equal(r.inliers, ref.inliers)
+    for name in ("f_mm", "xp_mm", "yp_mm", "aspect", "skew", "rms_px"):
+        assert getattr(r, name) == pytest.approx(getattr(ref, name), rel=1e-9, abs=1e-9), name
+    for name, scale in (("R_world_to_camera", 1.0), ("K_px", np.abs(ref.K_px).max()), ("P", np.abs(ref.P).max()),
+                        ("center_m", 1.0), ("residuals_px", 1.0)):
+        assert np.allclose(getattr(r, name), getattr(ref, name), rtol=0, atol=1e-9 * scale), name
+
+
+def test_dlt_robust_many_is_dlt_robust_image_by_image():
+    # wide_field(0) with blunders in three images (swapped and shifted points: they leave the
+    # fast path), one with 2 % blunders everywhere (swapped ids and moved targets: none takes
+    # it), and degenerate images: coplanar, collinear, too few points, a mirrored image
+    sf = wide_field(seed=0)
+    d = sf.data
+    views = _views_of(d)
+    rng = np.random.default_rng(3)
+    for i in (2, 5, 11):
+        X, uv = views[i]
+        views[i] = (X, corrupt(rng, uv, 0.05)[0])
+    views += _views_of(add_blunders(sf, fraction=0.02, seed=10)[0].data)
+    X0, uv0 = views[0]
+    flat = X0.copy()
+    flat[:, 1] = 0.0
+    line = np.outer(np.linspace(0, 1, len(X0)), [1.0, 2.0, 3.0])
+    mirrored = uv0.copy()
+    mirrored[:, 0] = d.sensor.width_px - 1 - mirrored[:, 0]
+    views += [(flat, uv0), (line, uv0), (X0[:5], uv0[:5]), (X0, mirrored),
+              (X0[:20], uv0[:20] + rng.normal(0, 0.1, (20, 2)))]   # < 30 points: raw residuals
+    wheres = [f"img{i}" for i in range(len(views))]
+    seeds = list(range(len(views)))
+    many = dlt_robust_many(views, d.sensor, wheres=wheres, seeds=seeds)
+    fast = dlt_robust_many(views, d.sensor, wheres=wheres, seeds=seeds, fallback=False)
+    n_fast = sum(r is not None for r in fast)
+    assert n_fast == len(d.images) - 3             # the batch takes the clean ones, the blunders fall back
+    assert all(fast[i] is None for i in (2, 5, 11))
+    n_err = 0
+    for i, (X, uv) in enumerate(views):
+        try:
+            ref = dlt_robust(X, uv, d.sensor, where=wheres[i], seed=seeds[i])
+        except GeometryError as exc:
+            assert isinstance(many[i], GeometryError) and str(many[i]) == str(exc)
+            assert fast[i] is None
+            n_err += 1
+            continue
+        _assert_same_dlt(many[i], ref)
+        if fast[i] is not None:
+            assert ref.inliers.all()
+            _assert_same_dlt(fast[i], ref)
+        else:
+            assert many[i] is not fast[i]
+    assert n_err >= 3                              # coplanar, collinear, too few points
+    # bad input is refused as by dlt_robust
+    with pytest.raises(InputError, match="NaN"):
+        dlt_robust_many([views[1], (np.full((10, 3), np.nan), uv0[:10])], d.sensor)
+
+
+def test_dlt_robust_many_fast_path_on_clean_images_matches_the_reference_closely():
+    sf = wide_field(seed=0)
+    views = _views_of(sf.data)
+    fast = dlt_robust_many(views, sf.data.sensor, fallback=False)
+    assert all(r is not None for r in fast)        # clean: every image takes the fast path
+    for i, (X, uv) in enumerate(views):
+        _assert_same_dlt(fast[i], dlt_robust(X, uv, sf.data.sensor, seed=i))
+
+
+def test_batched_helpers_against_their_references():
+    import scipy.linalg
+
+    from fieldcal.field import dlt as D
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(20, 3, 3))
+    R, Q = D._rq3(A)
+    assert np.allclose(R @ Q, A, atol=1e-13)
+    assert np.allclose(np.tril(R, -1), 0.0)
+    assert np.allclose(Q @ np.swapaxes(Q, -1, -2), np.eye(3), atol=1e-13)
+    for a, r, q in zip(A, R, Q, strict=True):                   # unique once the diagonal is positive
+        r_ref, q_ref = scipy.linalg.rq(a)
+        s, s_ref = np.sign(np.diag(r)), np.sign(np.diag(r_ref))
+        assert np.allclose(r * s, r_ref * s_ref, atol=1e-12)
+        assert np.allclose(s[:, None] * q, s_ref[:, None] * q_ref, atol=1e-12)
+    counts = np.array([1, 2, 7, 8, 30])
+    vals = rng.normal(size=(5, 30))
+    valid = np.arange(30) < counts[:, None]
+    med = D._batch_median(vals, valid, counts)
+    assert np.array_equal(med, [np.median(v[:c]) for v, c in zip(vals, counts, strict=True)])
+    Xh = D._homogeneous(rng.normal(size=(4, 25, 3)))
+    uv = rng.normal(size=(4, 25, 2))
+    G = D._design(Xh, uv)
+    assert np.allclose(D._normal_matrix(Xh, uv), np.swapaxes(G, -1, -2) @ G, rtol=1e-13, atol=1e-12)
+    uvn = rng.normal(size=(25, 2))
+    assert np.allclose(D._monomials(uvn, 3), D._detrend_basis(uvn, 3), rtol=1e-14, atol=0)
+    Xp = rng.normal(size=(3, 25, 2)) * 100
+    w = np.arange(25) < np.array([25, 10, 7])[:, None]
+    T = D._batch_normaliser(Xp, w, w.sum(axis=1))
+    for t, x, m in zip(T, Xp, w, strict=True):
+        assert np.allclose(t, D._normaliser(x[m]), rtol=1e-13)

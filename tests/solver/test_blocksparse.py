@@ -266,3 +266,95 @@ def test_covariances_match_the_dense_inverse_with_blocks_of_six():
     for g in range(k):
         Jg = D[2 * g:2 * g + 2]
         assert np.allclose(Q[g], Jg @ Ninv @ Jg.T, atol=tol), g
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_all_finite_sees_a_bad_number_in_any_part_combined_or_not(bad):
+    J, _ = random_problem(seed=4)
+    assert J.all_finite()
+    b0 = J.blocks[0]
+    for part in range(len(b0.part_values)):
+        for combined in (False, True):
+            vals = [v.copy() for v in b0.part_values]
+            vals[part][-1, 1, -1] = bad
+            glued = np.concatenate(vals, axis=2)
+            views, at = [], 0                    # the parts as views of one array, as the bundle makes them
+            for v in vals:
+                views.append(glued[:, :, at:at + v.shape[2]])
+                at += v.shape[2]
+            blk = b0.with_values(*views, combined=glued) if combined else b0.with_values(*vals)
+            J2 = BlockSparseJacobian(J.n_rows, N_PAR, N_RED, B, [blk, *J.blocks[1:]], structure=J.structure)
+            assert not J2.all_finite(), (part, combined)
+    vals = [v.copy() for v in J.blocks[1].part_values]
+    vals[0][0, 0, 0] = bad
+    J3 = BlockSparseJacobian(J.n_rows, N_PAR, N_RED, B, [b0, J.blocks[1].with_values(*vals), J.blocks[2]],
+                             structure=J.structure)
+    assert not J3.all_finite()
+
+
+def test_repeated_columns_across_parts_are_found():
+    # the quick pre-check (_may_repeat_a_column) may only skip the full check when no group
+    # repeats a column: against brute force on random parts, shared and per group
+    from fieldcal.solver.blocksparse import _may_repeat_a_column
+
+    rng = np.random.default_rng(7)
+    for _ in range(400):
+        k, n = int(rng.integers(1, 6)), int(rng.integers(4, 12))
+        parts = []
+        for _ in range(int(rng.integers(1, 4))):
+            c = int(rng.integers(1, 4))
+            parts.append(rng.choice(n, c, replace=False) if rng.random() < 0.4
+                         else np.stack([rng.choice(n, c, replace=False) for _ in range(k)]))
+        full = np.concatenate([np.broadcast_to(p, (k, p.shape[-1])) for p in parts], axis=1)
+        repeats = any(len(set(row)) < len(row) for row in full.tolist())
+        if repeats:
+            assert _may_repeat_a_column(parts, n)
+    # and through the Jacobian: a group's own column that is also a shared one
+    rows = np.arange(4).reshape(2, 2)
+    blk = ResidualBlock.from_parts(rows, [(np.array([0, 1]), np.ones((2, 2, 2))),
+                                          (np.array([[3], [1]]), np.ones((2, 2, 1)))])
+    with pytest.raises(InputError, match=r"group 1 repeats a column \(\[0, 1, 1\]\)"):
+        BlockSparseJacobian(4, 6, 3, 3, [blk])
+
+
+def test_two_row_gradient_and_matvec_loops_sum_in_the_generic_order():
+    # the kernels' two-row paths (image points) keep the generic loop's order of the sums:
+    # bit-identical J^T r and J h (the generic loop here, in plain Python)
+    from fieldcal.solver import blocksparse_kernels as K
+
+    gr, mv = K.gradient(), K.matvec()
+    if gr is None:
+        pytest.skip("no compiled kernels")
+    rng = np.random.default_rng(11)
+    k, c, n = 50, 7, 30
+    v = rng.standard_normal((k, 2, c)) * 10.0 ** rng.integers(-8, 8, (k, 2, c))
+    rows = rng.permutation(2 * k).reshape(k, 2)
+    cols = np.stack([rng.choice(n, c, replace=False) for _ in range(k)])
+    res, h = rng.standard_normal(2 * k), rng.standard_normal(n)
+    g_ref, out_ref = np.zeros(n), np.zeros(2 * k)
+    for gi in range(k):
+        for j in range(c):
+            s = 0.0
+            for q in range(2):
+                s += v[gi, q, j] * res[rows[gi, q]]
+            g_ref[cols[gi, j]] += s
+        for q in range(2):
+            s = 0.0
+            for j in range(c):
+                s += v[gi, q, j] * h[cols[gi, j]]
+            out_ref[rows[gi, q]] = s
+    g, out = np.zeros(n), np.zeros(2 * k)
+    gr(v, rows, cols, res, g)
+    mv(v, rows, cols, h, out)
+    assert np.array_equal(g, g_ref) and np.array_equal(out, out_ref)
+
+
+def test_dense_covariance_is_made_once_and_handed_out_as_copies(problem):
+    J, D, _ = problem
+    ne = J.normal_equations()
+    a = ne.covariance_dense()
+    assert np.allclose(a, np.linalg.inv(D.T @ D), rtol=1e-8, atol=1e-10)
+    a[:] = 0.0                                   # a caller's change does not reach the next caller
+    b = ne.covariance_dense()
+    assert np.allclose(b, np.linalg.inv(D.T @ D), rtol=1e-8, atol=1e-10)
+    assert b is not ne.covariance_dense() and np.array_equal(b, ne.covariance_dense())

@@ -189,6 +189,27 @@ def test_lmqn_switches_to_qn_and_beats_linear_lm_on_a_large_residual_problem():
     assert qn.iterations < lm.iterations / 2
 
 
+@pytest.mark.parametrize("problem", ["madsen", "network"])
+def test_queued_bfgs_updates_are_the_updates_made_at_once(monkeypatch, problem):
+    # the updates wait for a QN step (at most _MAX_PENDING_UPDATES); with none allowed to
+    # wait every update is made at its iteration, as the book does: the same iterations, bit for bit
+    if problem == "madsen":
+        prob, x0 = madsen(0.7), [5.0]
+    else:
+        prob = Network(noise=5.0)
+        x0 = prob.x_true + 0.5 * np.random.default_rng(2).standard_normal(prob.n)
+    queued = lsq.solve(prob, x0, method="lmqn")
+    assert queued.qn_iterations > 0
+    monkeypatch.setattr(lsq, "_MAX_PENDING_UPDATES", 0)
+    at_once = lsq.solve(prob, x0, method="lmqn")
+    assert np.array_equal(queued.x, at_once.x)
+    assert [(h.method, h.F, h.mu, h.delta, h.accepted) for h in queued.history] == \
+        [(h.method, h.F, h.mu, h.delta, h.accepted) for h in at_once.history]
+    monkeypatch.setattr(lsq, "_MAX_PENDING_UPDATES", 1)        # the oldest computed when one more waits
+    one = lsq.solve(prob, x0, method="lmqn")
+    assert np.array_equal(queued.x, one.x) and len(one.history) == len(queued.history)
+
+
 def test_compact_bfgs_equals_the_dense_bfgs_sequence():
     rng = np.random.default_rng(0)
     n = 8
