@@ -158,7 +158,7 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
 def entry(s: FoundSession, status: str | None = None, reason: str | None = None) -> dict:
     """A session's line of the fleet's summary (before or without a run: ``status`` given)."""
     return {"folder": s.folder, "camera_id": s.camera_id, "session_id": s.session_id, "status": status,
-            "version": s.version, "new": False, "reason": reason, "seconds": 0.0}
+            "version": s.version, "new": False, "reason": reason, "seconds": 0.0, "retried": None}
 
 
 def summarize(lake: str, root: str, found: list[FoundSession], results: dict | None = None) -> dict:
@@ -172,7 +172,8 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
     -------
     dict
         ``lake``, ``root``, ``sessions`` (entries: ``folder``, ``camera_id``, ``session_id``,
-        ``status``, ``version``, ``new``, ``reason``, ``seconds``), ``n_found``,
+        ``status``, ``version``, ``new``, ``reason``, ``seconds``, ``retried``: the first
+        run's reason when a session was run again), ``n_found``,
         ``n_committed``, ``n_failed``, ``n_skipped``.
     """
     results = results or {}

@@ -177,7 +177,8 @@ def _fleet_table(summary: dict) -> str:
 
     rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": r["status"],
              "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
-             "reason": one_line(r["reason"] or "")} for r in summary["sessions"]]
+             "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried") else ""))}
+            for r in summary["sessions"]]
     schema = pa.schema([("camera_id", pa.string()), ("session_id", pa.string()), ("status", pa.string()),
                         ("version", pa.string()), ("seconds", pa.float64()), ("reason", pa.string())])
     return to_text(pa.Table.from_pylist(rows, schema=schema))

@@ -17,7 +17,11 @@
    the same workers. The cluster is the scheduler at ``dask_address`` (or
    ``$FIELDCAL_DASK_ADDRESS``), else a local cluster started for the run. Sessions on an
    object store are copied to a temporary local folder first. A failing session is
-   recorded with its reason and never stops the others.
+   recorded with its reason and never stops the others. A session that failed for a
+   reason outside fieldcal (not bad input, geometry, convergence or the lake: e.g. an
+   error of the Prefect API or a lost Dask connection) is run once more at once
+   (:data:`RETRIES`); the lake makes that safe (observations cached, one version per
+   fingerprint) and its summary entry keeps the first failure's reason (``retried``).
 4. **progress and summary**: "session 3 of 5: cam / session: committed VERSION (12.3 s)" in
    the flow run's logs (and on a terminal), and a summary with every session found and
    its version, new or existing.
@@ -35,7 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from fieldcal import fleet as fleet_lib
 from fieldcal import progress
-from fieldcal.errors import one_line
+from fieldcal.errors import FieldcalError, one_line
 from fieldcal.lake.store import Lake
 
 from . import cluster
@@ -49,6 +53,8 @@ DEFAULT_CRON = "0 2 * * *"
 DEPLOYMENT_NAME = "nightly"
 MAX_THREADS = 32
 """Threads of the fleet flow's task runner (each session's task mostly waits on the cluster)."""
+RETRIES = 1
+"""Further runs of a session whose run failed for a reason outside fieldcal (:func:`_worth_retrying`)."""
 
 
 @task(name="scan-sessions", cache_policy=NO_CACHE, persist_result=False)
@@ -70,7 +76,8 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
 
     Returns the session's summary entry: ``folder``, ``camera_id``, ``session_id``,
     ``status`` ("committed" | "unchanged" | "failed"), ``version``, ``new``, ``reason``,
-    ``seconds``.
+    ``seconds``, and ``retried`` (the first run's reason when the session was run again,
+    else None).
     """
     logger = get_run_logger()
     label = _label(index, total, found)
@@ -78,15 +85,13 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
     logger.info(f"{label}: started")
     progress.emit("note", text=f"{label}: started")
     t = time.perf_counter()
-    try:
-        with fleet_lib.local_copy(found.folder, root_options) as folder, progress.quiet():
-            runner = cluster.task_runner(address, n_workers)
-            state = calibrate_session.with_options(task_runner=runner)(
-                folder, lake, storage_options=storage_options, settings=settings, batch_size=batch_size,
-                return_state=True)
-            outcome = state.result(raise_on_failure=False)
-    except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
-        outcome = e
+    for attempt in range(1 + RETRIES):
+        outcome = _run_session(found.folder, lake, storage_options, root_options, address, n_workers, settings,
+                               batch_size)
+        if attempt == RETRIES or not _worth_retrying(outcome):
+            break
+        entry["retried"] = one_line(outcome)
+        logger.warning(f"{label}: {type(outcome).__name__}: {entry['retried']}; running it again")
     entry["seconds"] = round(time.perf_counter() - t, 3)
     if isinstance(outcome, BaseException):
         entry.update(status="failed", reason=one_line(outcome))
@@ -97,6 +102,28 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
         logger.info(f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
         progress.emit("note", text=f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
     return entry
+
+
+def _run_session(folder: str, lake: str, storage_options: dict | None, root_options: dict | None, address: str,
+                 n_workers: int, settings: dict | None, batch_size: int | None):
+    """One run of :func:`flows.calibrate.calibrate_session` on the cluster: its result, or
+    the exception that ended it (never raised)."""
+    try:
+        with fleet_lib.local_copy(folder, root_options) as local, progress.quiet():
+            runner = cluster.task_runner(address, n_workers)
+            state = calibrate_session.with_options(task_runner=runner)(
+                local, lake, storage_options=storage_options, settings=settings, batch_size=batch_size,
+                return_state=True)
+            return state.result(raise_on_failure=False)
+    except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
+        return e
+
+
+def _worth_retrying(outcome) -> bool:
+    """Whether a session's run ended in a failure from outside fieldcal: an exception that is
+    not a :class:`~fieldcal.errors.FieldcalError` (bad input, geometry, convergence and lake
+    errors give the same answer again)."""
+    return isinstance(outcome, Exception) and not isinstance(outcome, FieldcalError)
 
 
 @contextlib.contextmanager

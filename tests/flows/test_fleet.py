@@ -123,7 +123,7 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
                       (None, None): "failed"}, reasons
     assert (first["n_found"], first["n_committed"], first["n_failed"]) == (7, 5, 2)
     # the first two solves met: two sessions solved at once on the cluster
-    assert meet.met and len(meet.arrived) == 6
+    assert meet.met and len(meet.arrived) == 6 + sum(1 for s in first["sessions"] if s["retried"])
     few = next(s for s in first["sessions"] if s["camera_id"] == "cam-few")
     assert "at least 3" in few["reason"] and few["version"] is None
     # every session's version, and the lake agrees
@@ -148,3 +148,41 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
             assert again[(s["camera_id"], s["session_id"])] == ("calibrated already", s["version"])
     assert again[("cam-few", "2026-05-10")] == ("failed", None)
     assert (second["n_committed"], second["n_skipped"], second["n_failed"]) == (0, 5, 2)
+
+
+def test_a_session_failing_outside_fieldcal_is_run_again_and_a_geometry_failure_is_not(tmp_path, monkeypatch):
+    """A run that ends in an error from outside fieldcal (here a lost connection, raised by the
+    first solve of one session) is run once more and commits; its entry keeps the first
+    reason. A session that cannot calibrate (GeometryError) runs once."""
+    root = tmp_path / "sessions"
+    write_field_session(root / "cam-ok" / "2026-06-01", wide_field(seed=40), images=False, observations_csv=True,
+                        camera_id="cam-ok")
+    few = root / "cam-few" / "2026-06-02"
+    write_field_session(few, wide_field(seed=41), images=False, observations_csv=True, camera_id="cam-few")
+    lines = (few / "observations.csv").read_text().splitlines()
+    two = sorted({ln.split(",")[0] for ln in lines[1:]})[:2]
+    (few / "observations.csv").write_text("\n".join([lines[0]] + [ln for ln in lines[1:]
+                                                                   if ln.split(",")[0] in two]) + "\n")
+    calls: dict[str, int] = {}
+    lock = threading.Lock()
+    solve = pipeline.solve
+
+    def flaky_solve(prepared, *args, **kwargs):
+        camera = prepared.session.camera_id
+        with lock:
+            calls[camera] = calls.get(camera, 0) + 1
+            first = calls[camera] == 1
+        if camera == "cam-ok" and first:
+            raise ConnectionResetError("lost the connection to the scheduler")
+        return solve(prepared, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "solve", flaky_solve)
+    monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
+    summary = recalibrate_fleet(str(tmp_path / "lake"), str(root), n_workers=2)
+    entries = {s["camera_id"]: s for s in summary["sessions"]}
+    assert calls == {"cam-ok": 2, "cam-few": 1}
+    assert entries["cam-ok"]["status"] == "committed" and entries["cam-ok"]["version"]
+    assert "lost the connection to the scheduler" in entries["cam-ok"]["retried"]
+    assert entries["cam-few"]["status"] == "failed" and entries["cam-few"]["retried"] is None
+    assert "at least 3" in entries["cam-few"]["reason"]
+    assert (summary["n_committed"], summary["n_failed"]) == (1, 1)
