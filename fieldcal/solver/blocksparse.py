@@ -886,7 +886,7 @@ class NormalEquations:
             f = self._factor(None)
             nr = self.n_reduced
             if nr:
-                C = scipy.linalg.cho_solve(f.cho, np.eye(nr), check_finite=False)
+                C = _inverse_from_cholesky(f.cho)
                 C = f.s_scale[:, None] * C * f.s_scale[None, :]
                 self._Cr = 0.5 * (C + C.T)
             else:
@@ -1043,6 +1043,23 @@ def equilibrated_cholesky(S):
                                   f"of reduced parameter {j} (relative to its diagonal)", "reduced",
                                   j)
     return (c, low), s
+
+
+def _inverse_from_cholesky(cho) -> np.ndarray:
+    """``A^-1`` from the Cholesky factor ``(c, lower)`` of :func:`scipy.linalg.cho_factor`
+    by LAPACK ``potri`` (a third of the work of solving for the identity), both triangles."""
+    c, lower = cho
+    inv, info = scipy.linalg.lapack.dpotri(c, lower=lower)
+    if info != 0:
+        raise SingularSystemError(f"the reduced Schur complement cannot be inverted (LAPACK potri info {info})",
+                                  "reduced")
+    if lower:
+        full = np.tril(inv)
+        full += np.tril(inv, -1).T
+    else:
+        full = np.triu(inv)
+        full += np.triu(inv, 1).T
+    return full
 
 
 def _cho_solve(f: _Factor, rhs):
