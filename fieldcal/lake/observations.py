@@ -16,6 +16,7 @@ measured again either.
 
 from __future__ import annotations
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
@@ -126,15 +127,35 @@ def load_session(tables, camera_id: str, session_id: str) -> dict:
                            equal={"session_id": session_id})
         if not rows.num_rows:
             continue
-        images = rows["image"].to_pylist()
-        keys = rows["key"].to_pylist()
-        groups: dict[tuple, list[int]] = {}
-        for i, k in enumerate(zip(images, keys, strict=True)):
-            groups.setdefault(k, []).append(i)
-        numbers = rows["row"].to_pylist()
-        for k, idx in groups.items():
-            first = {}  # one copy of each row: two runs may have cached the same image at once
-            for i in idx:
-                first.setdefault(numbers[i], i)
-            out[k] = (kind, strip(kind, rows.take(sorted(first.values()))))
+        for k, part in _groups(rows):
+            out[k] = (kind, strip(kind, part))
     return out
+
+
+def _groups(rows: pa.Table):
+    """``((image, key), rows)`` per image and key, each part in row order and with one copy of
+    each row number (two runs may have cached the same image at once: the first one read is
+    kept). One stable sort of the whole table, then zero-copy slices (not a ``take`` per image)."""
+    order = pa.compute.sort_indices(rows, sort_keys=[("image", "ascending"), ("key", "ascending"),
+                                                      ("row", "ascending")])
+    rows = rows.take(order)
+    same = _same_as_previous(rows, ("image", "key"))
+    duplicate = same & _same_as_previous(rows, ("row",))
+    if duplicate.any():
+        rows = rows.filter(pa.array(~duplicate))
+        same = _same_as_previous(rows, ("image", "key"))
+    starts = np.flatnonzero(~same)
+    ends = np.append(starts[1:], rows.num_rows)
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        yield (rows["image"][a].as_py(), rows["key"][a].as_py()), rows.slice(a, b - a)
+
+
+def _same_as_previous(rows: pa.Table, columns) -> np.ndarray:
+    """Per row, whether its ``columns`` equal the previous row's (False for the first)."""
+    same = np.zeros(rows.num_rows, bool)
+    if rows.num_rows > 1:
+        same[1:] = True
+        for name in columns:
+            values = rows[name].to_numpy(zero_copy_only=False)
+            same[1:] &= values[1:] == values[:-1]
+    return same

@@ -658,6 +658,24 @@ def test_observations_cache_round_trip_and_rerun_reads_no_image(tmp_path):
     assert probe._obs_cache == {}                                                       # no session was read
 
 
+def test_an_image_cached_twice_reads_back_once_in_row_order(tmp_path):
+    """Two runs caching the same image at once leave its rows twice in the table; a session's
+    read gives each image's rows once, in row order, beside the other images' (written in
+    between and in one batch with them)."""
+    lake = Lake(tmp_path)
+    a, b, c = (field_measurements(f"images/{n}.tif", n=k, seed=k) for n, k in (("A", 5), ("B", 7), ("C", 0)))
+    lake.write_observations("cam-a", "s1", "images/A.tif", "a" * 64, a)
+    lake.write_observations_many("cam-a", "s1", [("images/B.tif", "b" * 64, b), ("images/A.tif", "a" * 64, a),
+                                                 ("images/C.tif", "c" * 64, c)])
+    lake.write_observations("cam-a", "s1", "images/B.tif", "b" * 64, b)
+    n = history.sql(lake, "SELECT count(*) AS n FROM observations_field")["n"].to_pylist()
+    assert n == [2 * 5 + 2 * 7 + 1]                       # C, with nothing found, is one marker row
+    fresh = Lake(tmp_path)
+    for name, sha, table in (("images/A.tif", "a", a), ("images/B.tif", "b", b), ("images/C.tif", "c", c)):
+        back = fresh.read_observations("cam-a", "s1", name, sha * 64)
+        assert back.num_rows == table.num_rows and same_rows(back, table), name
+
+
 def test_goniometer_spots_have_their_own_table(tmp_path):
     lake = Lake(tmp_path)
     for i in range(3):
