@@ -24,6 +24,13 @@ The server is Prefect's own application (:func:`prefect.server.api.server.create
 under uvicorn, with its services (the scheduler of ``fieldcal serve``'s deployment among
 them) and without the web UI (use ``prefect server start`` for the UI).
 
+Flow-run heartbeats are off for the flows a command runs against that local server.
+Prefect's heartbeat thread sleeps in steps of a second and is joined when a flow run ends,
+which made every run ~1 s longer (``bench/README_flow.md``), and nothing on the local server
+reads the heartbeats (they feed automations that detect crashed runs, which one sets up
+on a server of one's own). Against a configured ``PREFECT_API_URL`` they stay on, and so
+do the runs of a deployment (``fieldcal serve``), which run in processes of their own.
+
 :func:`prepare_environment` runs first in every command: with an unwritable or missing
 ``HOME`` it moves Prefect's home and Matplotlib's cache to a private temporary folder and
 turns the image-hash cache off, instead of failing later with many lines.
@@ -339,7 +346,12 @@ def prefect_api(note=None):
     str
         The API URL in use.
     """
-    from prefect.settings import PREFECT_API_URL, get_current_settings, temporary_settings
+    from prefect.settings import (
+        PREFECT_API_URL,
+        PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
+        get_current_settings,
+        temporary_settings,
+    )
 
     settings = get_current_settings()
     if settings.api.url:
@@ -349,7 +361,7 @@ def prefect_api(note=None):
     home.mkdir(parents=True, exist_ok=True)
     with _flock(home / CLIENTS_FILE, fcntl.LOCK_SH, "the local Prefect server to stop"):
         url = local_server(home, note=note)["url"]
-        with temporary_settings(updates={PREFECT_API_URL: url}):
+        with temporary_settings(updates={PREFECT_API_URL: url, PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}):
             try:
                 yield url
             finally:

@@ -147,3 +147,25 @@ def test_server_start_status_stop(world):
     assert not alive(pid) and server_pids(home) == []
     status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
     assert status.returncode == 0 and status.stdout == f"no local Prefect server under {home}\n"
+
+
+def test_flows_against_the_local_server_have_no_heartbeat_thread_a_configured_api_keeps_it(monkeypatch, tmp_path):
+    """Prefect joins a flow run's heartbeat thread at its end (~1 s, the thread sleeps in steps
+    of a second); nothing reads heartbeats on fieldcal's local server, so they are off there
+    and stay on against a configured ``PREFECT_API_URL``. (The local server is replaced by its
+    address: what is tested is the settings of the block.)"""
+    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, get_current_settings, temporary_settings
+
+    from flows import server
+
+    monkeypatch.setattr(server, "local_server", lambda home, note=None: {"url": "http://127.0.0.1:9/api"})
+    default = get_current_settings().flows.heartbeat_frequency
+    assert default is not None
+    with temporary_settings(updates={PREFECT_API_URL: None, PREFECT_HOME: str(tmp_path)}):
+        with server.prefect_api() as url:
+            assert url == "http://127.0.0.1:9/api"
+            assert get_current_settings().flows.heartbeat_frequency is None
+        assert get_current_settings().flows.heartbeat_frequency == default
+    with temporary_settings(updates={PREFECT_API_URL: "http://127.0.0.1:9/api"}):
+        with server.prefect_api():
+            assert get_current_settings().flows.heartbeat_frequency == default
