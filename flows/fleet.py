@@ -99,8 +99,12 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
         progress.emit("note", text=f"{label}: failed ({entry['seconds']:.1f} s): {entry['reason']}")
     else:
         entry.update(status=outcome["status"], version=outcome["version"], new=bool(outcome["new"]))
-        logger.info(f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
-        progress.emit("note", text=f"{label}: {outcome['status']} {outcome['version']} ({entry['seconds']:.1f} s)")
+        if entry["retried"] and outcome["status"] == "unchanged":
+            # the session had no version when the fleet started: the first run committed this
+            # one and failed after its commit (e.g. closing its connection to the cluster)
+            entry.update(status="committed", new=True)
+        logger.info(f"{label}: {entry['status']} {entry['version']} ({entry['seconds']:.1f} s)")
+        progress.emit("note", text=f"{label}: {entry['status']} {entry['version']} ({entry['seconds']:.1f} s)")
     return entry
 
 

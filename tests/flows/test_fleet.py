@@ -116,7 +116,8 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
     assert cli.main(["fleet", str(root), "--lake", lake, "--format", "json"]) == 1          # 2 failed
     first = json.loads(capsys.readouterr().out)
     status = {(s["camera_id"], s["session_id"]): s["status"] for s in first["sessions"]}
-    reasons = {(s["camera_id"], s["session_id"]): s["reason"] for s in first["sessions"] if s["reason"]}
+    reasons = {(s["camera_id"], s["session_id"]): s["reason"] or f"run again after: {s['retried']}"
+               for s in first["sessions"] if s["reason"] or s["retried"]}
     assert status == {("cam-w0", "2026-05-01"): "committed", ("cam-w1", "2026-05-02"): "committed",
                       ("cam-w0", "2026-05-03"): "committed", ("cam-w1", "2026-05-04"): "committed",
                       ("cam-lab", "2026-05-09"): "committed", ("cam-few", "2026-05-10"): "failed",
@@ -152,11 +153,25 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
 
 def test_a_session_failing_outside_fieldcal_is_run_again_and_a_geometry_failure_is_not(tmp_path, monkeypatch):
     """A run that ends in an error from outside fieldcal (here a lost connection, raised by the
-    first solve of one session) is run once more and commits; its entry keeps the first
-    reason. A session that cannot calibrate (GeometryError) runs once."""
+    first solve of one session, and after the first commit of another) is run once more and
+    commits, or finds its first run's version; its entry keeps the first reason. A session
+    that cannot calibrate (GeometryError) runs once."""
     root = tmp_path / "sessions"
     write_field_session(root / "cam-ok" / "2026-06-01", wide_field(seed=40), images=False, observations_csv=True,
                         camera_id="cam-ok")
+    write_field_session(root / "cam-late" / "2026-06-03", wide_field(seed=42), images=False, observations_csv=True,
+                        camera_id="cam-late")
+    commit = Lake.commit
+    commits: list[str] = []
+
+    def commit_then_lose_the_connection(self, document, *args, **kwargs):
+        version = commit(self, document, *args, **kwargs)
+        commits.append(document["camera_id"])
+        if document["camera_id"] == "cam-late" and commits.count("cam-late") == 1:
+            raise ConnectionResetError("lost the connection after the commit")
+        return version
+
+    monkeypatch.setattr(Lake, "commit", commit_then_lose_the_connection)
     few = root / "cam-few" / "2026-06-02"
     write_field_session(few, wide_field(seed=41), images=False, observations_csv=True, camera_id="cam-few")
     lines = (few / "observations.csv").read_text().splitlines()
@@ -180,9 +195,15 @@ def test_a_session_failing_outside_fieldcal_is_run_again_and_a_geometry_failure_
     monkeypatch.setenv("FIELDCAL_HASH_CACHE", str(tmp_path / "hashes.sqlite"))
     summary = recalibrate_fleet(str(tmp_path / "lake"), str(root), n_workers=2)
     entries = {s["camera_id"]: s for s in summary["sessions"]}
-    assert calls == {"cam-ok": 2, "cam-few": 1}
+    assert calls == {"cam-ok": 2, "cam-few": 1, "cam-late": 1}       # cam-late's second run: no solve
     assert entries["cam-ok"]["status"] == "committed" and entries["cam-ok"]["version"]
     assert "lost the connection to the scheduler" in entries["cam-ok"]["retried"]
     assert entries["cam-few"]["status"] == "failed" and entries["cam-few"]["retried"] is None
     assert "at least 3" in entries["cam-few"]["reason"]
-    assert (summary["n_committed"], summary["n_failed"]) == (1, 1)
+    # the second run found the version the first committed: one version, reported as this run's
+    late = entries["cam-late"]
+    assert (late["status"], late["new"]) == ("committed", True) and "after the commit" in late["retried"]
+    catalog = Lake(str(tmp_path / "lake")).catalog()
+    assert catalog["camera_id"].to_pylist().count("cam-late") == 1 and commits.count("cam-late") == 1
+    assert late["version"] in catalog["version"].to_pylist()
+    assert (summary["n_committed"], summary["n_failed"]) == (2, 1)
