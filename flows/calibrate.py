@@ -420,8 +420,6 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     else:
         with cluster.task_runner(dask_address, n_workers, cluster_kwargs) as own:
             run.measured = _measure_on(own, *args)
-            t_exit = time.perf_counter()
-        run.measured["exit_s"] = time.perf_counter() - t_exit     # a local cluster's shutdown
     run.lap("measure_s", t)
     stamps = []
     for r in run.measured["rows"]:

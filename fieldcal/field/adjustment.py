@@ -270,7 +270,6 @@ class FieldProblem:
         self._last = (np.array(x, float), r, J)
         return r, J
 
-
     def observation_blocks(self, x):
         """``(d_int, d_ext)`` (m, 2, n_int), (m, 2, 6) of the image residuals at ``x``: those of the
         kept Jacobian when ``x`` is its point (the same numbers), else evaluated."""

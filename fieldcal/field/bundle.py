@@ -38,7 +38,15 @@ import numpy as np
 
 from fieldcal.field import bundle_kernel
 from fieldcal.field.data import FieldData
-from fieldcal.model.camera import INDEX, Camera, correction_terms, distort, ideal_point_columns
+from fieldcal.model.camera import (
+    INDEX,
+    NEWTON_MAX_ITER,
+    NEWTON_TOL_MM,
+    Camera,
+    correction_terms,
+    distort,
+    ideal_point_columns,
+)
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
 
 __all__ = ["BundleModel", "ObservationJacobian", "image_residuals"]
@@ -66,7 +74,7 @@ def image_residuals(data: FieldData, params, R, C, X=None, *, implementation: st
              np.ascontiguousarray(C, dtype=float), np.ascontiguousarray(X, dtype=float),
              np.ascontiguousarray(d.image, dtype=np.int64), np.ascontiguousarray(d.target, dtype=np.int64),
              np.ascontiguousarray(d.uv_px, dtype=float), float(s.width_px), float(s.height_px),
-             float(s.pixel_mm), 1e-10, 30, out)
+             float(s.pixel_mm), NEWTON_TOL_MM, NEWTON_MAX_ITER, out)
         return out
     Xc = np.einsum("kab,kb->ka", R[d.image], X[d.target] - C[d.image])
     cam = Camera(data.sensor, params)
@@ -232,7 +240,7 @@ class BundleModel:
             d_int = d_ext = d_tgt = np.empty((0, 2, 0))
         kern(params, self.int_index, R, Jl, np.ascontiguousarray(C), np.ascontiguousarray(X), self.img,
              self.tgt, self.uv, self.sigma_px, self._start_mm, float(s.width_px), float(s.height_px),
-             float(s.pixel_mm), 1e-10, 30, bool(jacobian), res, d_int, d_ext, d_tgt)
+             float(s.pixel_mm), NEWTON_TOL_MM, NEWTON_MAX_ITER, bool(jacobian), res, d_int, d_ext, d_tgt)
         return res, (ObservationJacobian(d_int, d_ext, d_tgt, combined) if jacobian else None)
 
     def _predict(self, x, jacobian):

@@ -42,6 +42,10 @@ GONIOMETER_PARAMS: tuple[str, ...] = (
 """What the goniometer method estimates; ``a1, a2`` are fixed at 0."""
 
 INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
+NEWTON_TOL_MM = 1e-10
+"""Step size [mm] at which :func:`distort`'s Newton iteration (and the compiled kernels' copy of it) has converged."""
+NEWTON_MAX_ITER = 30
+"""Newton steps :func:`distort` takes at most (beyond them: NaN, not converged)."""
 F, XP, YP, K0, K1, K2, K3, P1, P2, A1, A2, B1, B2 = range(13)
 
 
@@ -267,7 +271,7 @@ def correct_jacobian(xy_mm, params, columns=None):
     return q, G, Q
 
 
-def distort(q_mm, params, *, tol_mm: float = 1e-10, max_iter: int = 30, check: bool = True,
+def distort(q_mm, params, *, tol_mm: float = NEWTON_TOL_MM, max_iter: int = NEWTON_MAX_ITER, check: bool = True,
             start_mm=None):
     """Ideal points ``q`` (..., 2) [mm] -> measured image points (..., 2) [mm].
 

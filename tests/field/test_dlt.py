@@ -1,5 +1,7 @@
 """DLT, robust DLT, planar pose and Zhang's focal length against exact synthetic truth, OpenCV."""
 
+import inspect
+
 import cv2
 import numpy as np
 import pytest
@@ -574,3 +576,12 @@ def test_batched_helpers_against_their_references():
     T = D._batch_normaliser(Xp, w, w.sum(axis=1))
     for t, x, m in zip(T, Xp, w, strict=True):
         assert np.allclose(t, D._normaliser(x[m]), rtol=1e-13)
+
+
+def test_dlt_robust_many_takes_dlt_robusts_options_with_the_same_defaults():
+    """The batched function repeats :func:`dlt_robust`'s keyword options (it passes them on to
+    it for the images it does not take): the same names and the same defaults."""
+    one, many = inspect.signature(dlt_robust).parameters, inspect.signature(dlt_robust_many).parameters
+    shared = set(one) - {"X_world_m", "uv_px", "sensor", "where", "seed"}
+    assert shared <= set(many)
+    assert {n: many[n].default for n in shared} == {n: one[n].default for n in shared}
