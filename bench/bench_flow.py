@@ -187,6 +187,8 @@ def analyse(result: dict, wall_s: float) -> dict:
             "in tasks, besides hashing / measuring / writing (per worker)": (task_s - hash_s - measure_s - write_s) / w,
             **_waiting(m, w),
         })
+    out["first_rows"] = [{k: r.get(k) for k in ("image", "status", "hash_s", "measure_s", "write_s")}
+                         for r in rows[:w]]
     out["timeline"] = sorted((str(task["worker"]), round(task["start_unix"] - m["start_unix"], 3),
                               round(task["end_unix"] - m["start_unix"], 3), task["n"], round(task["submit_s"], 3))
                              for task in m["tasks"])

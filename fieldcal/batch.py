@@ -39,7 +39,7 @@ from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
            "unchanged_version", "cached_observations", "measure_into_lake", "measure_many_into_lake",
            "read_observations",
-           "plan_batches", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
+           "plan_batches", "assign_batches", "prior_costs", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
 
 TASKS_PER_WORKER = 1
 """Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left.
@@ -48,6 +48,13 @@ TASKS_PER_WORKER = 1
 runs (bench/README_flow.md)."""
 MAX_TASK_S = 60.0
 """Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
+PRIOR_BYTES_PER_S = 300e6
+"""Work per image before any is measured: the file's bytes at this rate [bytes/s]. The bench
+frames (60-103 MB) take 0.19-0.38 s each to read, hash, decode and measure on one core
+(``bench/README_flow.md``): 270-540 MB/s."""
+PRIOR_TASK_OVERHEAD_S = 0.3
+"""Cost of a task besides its images [s]: Prefect's task run, Dask's dispatch, one append
+to the lake (0.05-0.3 s measured on the bench's timelines)."""
 MISSING = "missing"
 """The stand-in hash of a listed image whose file is absent (part of the fingerprint)."""
 UNREADABLE = "unreadable"
@@ -325,13 +332,14 @@ def read_observations(prepared: pipeline.Prepared, lake, keys: dict[str, str]) -
 # --------------------------------------------------------------------------------------
 def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
                  tasks_per_worker: int = TASKS_PER_WORKER, max_task_s: float = MAX_TASK_S) -> list[int]:
-    """Batch sizes (images per task) for ``n`` images, from the measured costs.
+    """Batch sizes (images per task) for ``n`` images, from their expected costs.
 
     Guided self-scheduling: each batch takes ``ceil(left / (tasks_per_worker * n_workers))``
     of the images still left, so batches are large first and shrink towards the end and
     the workers finish together; but no batch is smaller than ``ceil(overhead_s /
-    image_s)`` (a task at least as long as its own overhead) or, beyond that, larger than
-    ``max_task_s`` of work (progress and retries stay fine-grained).
+    image_s)`` (a task at least as long as its own overhead; that floor itself at most
+    ``ceil(n / n_workers)``, so that every worker gets some of the images) or, beyond that,
+    larger than ``max_task_s`` of work (progress and retries stay fine-grained).
 
     Parameters
     ----------
@@ -340,9 +348,9 @@ def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
     n_workers : int
         Worker threads of the cluster.
     image_s : float
-        Measured work per image [s] (hashing, reading, extraction, writing).
+        Work per image [s] (hashing, reading, extraction, writing; :func:`prior_costs`).
     overhead_s : float
-        Measured overhead per task [s] (from submission to result, minus the work).
+        Overhead per task [s] (from submission to result, minus the work).
 
     Returns
     -------
@@ -353,7 +361,7 @@ def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
         return []
     w = max(1, int(n_workers))
     if image_s > 0:
-        floor_ = max(1, math.ceil(max(overhead_s, 0.0) / image_s))
+        floor_ = max(1, min(math.ceil(max(overhead_s, 0.0) / image_s), math.ceil(n / w)))
         cap = max(floor_, int(max_task_s // image_s))
     else:                       # no work to speak of (cached images): one task
         floor_ = cap = n
@@ -363,3 +371,49 @@ def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
         sizes.append(b)
         left -= b
     return sizes
+
+
+def prior_costs(file_bytes: list[int]) -> tuple[float, float]:
+    """``(image_s, overhead_s)`` for :func:`plan_batches` from the image files' sizes.
+
+    The work per image from the mean size at :data:`PRIOR_BYTES_PER_S`, the overhead per
+    task :data:`PRIOR_TASK_OVERHEAD_S`: known before any image is read, so every batch can be
+    submitted at once. (The flow used to measure one image per worker first; those probes
+    cost ~0.4 s of idle workers per run and measured the process's start, 0.8-1.3 s per
+    image against 0.2-0.4 s afterwards.) A factor of two off changes only the smallest and
+    largest batch sizes allowed.
+    """
+    sizes = [int(b) for b in file_bytes if b and b > 0]
+    image_s = (sum(sizes) / len(sizes)) / PRIOR_BYTES_PER_S if sizes else 0.0
+    return image_s, PRIOR_TASK_OVERHEAD_S
+
+
+def assign_batches(sizes: list[int], n_slots: int) -> list[int]:
+    """The worker thread (slot) each batch is placed on: every batch, in order, on the slot
+    with the fewest images so far (the first such slot on a tie).
+
+    A Dask scheduler places tasks it cannot tell apart (one key prefix, one mean duration)
+    on the worker with the fewest tasks, so a guided sequence 35, 18, 9, 4, 2, 1, 1 over
+    two workers became 35 + 9 + 2 + 1 images against 18 + 4 + 1, and a batch waited behind
+    the long one while the other worker idled, until work stealing moved it 1-2 s later
+    (``bench/README_flow.md``). Placed by images instead: 35 against 18 + 9 + 4 + 2 + 1 + 1.
+
+    Parameters
+    ----------
+    sizes : list of int
+        Images per batch, in submission order (:func:`plan_batches`).
+    n_slots : int
+        Worker threads.
+
+    Returns
+    -------
+    list of int
+        Per batch, its slot (0 .. n_slots - 1).
+    """
+    load = [0] * max(1, int(n_slots))
+    slots = []
+    for size in sizes:
+        k = load.index(min(load))
+        load[k] += size
+        slots.append(k)
+    return slots

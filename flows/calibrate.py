@@ -13,7 +13,7 @@ what is cached, the no-op check, batch sizes):
    with the same fingerprint committed: that version is returned; ``force=True`` makes a
    new one).
 3. **measure** (tasks :func:`measure_batch` on Dask, one per image or small batch, the
-   sizes chosen by measurement, :func:`fan_out`): each task hashes its images (unless
+   sizes planned from the files' sizes, :func:`fan_out`): each task hashes its images (unless
    known), skips those cached under that hash and measures the others
    (:func:`fieldcal.batch.measure_into_lake`), their observations into the lake. A
    bad image is reported and left out; the run goes on. Where the tasks run:
@@ -34,13 +34,14 @@ what is cached, the no-op check, batch sizes):
    first, its catalog row last. A run killed before this point leaves no visible version;
    the rerun finds the observations cached and completes the work.
 
-Batch sizes (:func:`fieldcal.batch.plan_batches`): the first wave is one single-image task
-per worker (probes). From the first probe back, the flow knows the work per image
-``t_img`` (timed inside the task) and the per-task overhead ``t_ovh`` (time from
-submitting the task to having its result, minus its work); the remaining images are split
-by guided self-scheduling, never below ``ceil(t_ovh / t_img)`` images per task.
-Full-size images (``t_img`` ~1 s, ``t_ovh`` ~0.3 s) go in batches of 18, 13, 10, ... down
-to 1; the 5 ms frames of a goniometer session in a few batches of 50 or more.
+Batch sizes (:func:`fieldcal.batch.plan_batches`): guided self-scheduling from the
+files' sizes (:func:`fieldcal.batch.prior_costs`: ``t_img`` the mean file size at 300 MB/s,
+``t_ovh`` 0.3 s per task), never below ``ceil(t_ovh / t_img)`` images per task nor above
+60 s of work. All batches are submitted at once, each placed on a worker thread so that
+the threads get equal shares of the images (:func:`fieldcal.batch.assign_batches`; another
+worker may still take a batch, one that left or work stealing). 72 full-size images on two
+threads go in batches of 36, 18, 9, 5, 2, 1, 1: 36 on one thread, the rest on the other;
+the small frames of a goniometer session (a few MB, ~5 ms each) in two or three batches.
 
 Progress goes to :mod:`fieldcal.progress` (the command line shows it on a terminal) and to
 the Prefect logger (the flow run's logs on the Prefect server).
@@ -50,12 +51,12 @@ from __future__ import annotations
 
 import os
 import resource
-import statistics
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import dask
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from prefect.context import FlowRunContext
@@ -66,6 +67,7 @@ from prefect_dask import DaskTaskRunner
 from fieldcal import batch, pipeline, progress
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.store import Lake
+from fieldcal.measure.heap import keep_freed_memory
 
 from . import cluster
 from .hashcache import HashCache, file_stamp, known_hashes
@@ -118,17 +120,19 @@ _WARMED: set[str] = set()
 
 
 def _warm(method: str, nthreads: int | None) -> None:
-    """Import the measuring code (and load the compiled disc kernel) before the work is timed,
-    once per process (threads wait for a warm-up in progress instead of repeating it); one
-    OpenCV thread and one codec thread per Dask thread."""
+    """Import and run the measuring code once (:func:`fieldcal.measure.warm.warm_up_measuring`)
+    before the work is timed, once per process (threads wait for a warm-up in progress instead of repeating it); one
+    OpenCV thread and one codec thread per Dask thread; freed memory kept for the next
+    image (:func:`fieldcal.measure.heap.keep_freed_memory`)."""
+    keep_freed_memory()
     with _WARM_LOCK:
         if method not in _WARMED:
             if method == "goniometer":
                 import fieldcal.goniometer.method  # noqa: F401
             else:
-                from fieldcal.measure import disc_kernel
+                from fieldcal.measure.warm import warm_up_measuring
 
-                disc_kernel.warm_up()
+                warm_up_measuring()
             _WARMED.add(method)
     if nthreads:
         import cv2
@@ -142,8 +146,10 @@ def _warm(method: str, nthreads: int | None) -> None:
 
 def warm_in_background(method: str) -> threading.Thread:
     """Start :func:`_warm` in a thread of this process: with in-process Dask workers (the
-    default), the imports and the kernel load (~0.5 s) then overlap the cluster's start
-    instead of delaying the first measuring task."""
+    default), the imports, the kernel load and the first use of the codecs and OpenCV
+    (0.6-0.9 s) then overlap the cluster's start instead of delaying the first measuring
+    task."""
+    keep_freed_memory()                 # before the worker threads' first allocation
     thread = threading.Thread(target=_warm, args=(method, None), name="fieldcal-warm-up", daemon=True)
     thread.start()
     return thread
@@ -260,6 +266,10 @@ def _cluster_threads(runner: DaskTaskRunner) -> tuple[int, float]:
     return cluster.worker_count(client), time.perf_counter() - t
 
 
+_PLACING = threading.Lock()
+"""Held while a batch is submitted under ``dask.annotate`` (:meth:`_Collector.submit`)."""
+
+
 class _Collector:
     """Results of the measuring tasks as they come back: rows, per-task figures, progress."""
 
@@ -272,13 +282,22 @@ class _Collector:
         self.submitted: dict = {}
         progress.emit("images", total=total, **self.counts)
 
-    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present):
+    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None):
+        """Submit one batch, placed on ``worker`` (an address) when given; another worker may
+        still take it (a worker that left, work stealing)."""
         t0 = time.perf_counter()
         mine = set(batch_names)
-        fut = runner.submit(measure_batch, {"prepared": prepared, "names": batch_names,
-                                            "known": {n: known[n] for n in batch_names if n in known},
-                                            "lake": lake, "storage_options": storage_options,
-                                            "present": [p for p in present if p[0] in mine]})
+        params = {"prepared": prepared, "names": batch_names,
+                  "known": {n: known[n] for n in batch_names if n in known},
+                  "lake": lake, "storage_options": storage_options,
+                  "present": [p for p in present if p[0] in mine]}
+        if worker is None:
+            fut = runner.submit(measure_batch, params)
+        else:
+            # dask.annotate sets process-wide configuration: one thread at a time (the
+            # fleet's sessions submit from threads of one process)
+            with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True):
+                fut = runner.submit(measure_batch, params)
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
 
@@ -301,50 +320,53 @@ class _Collector:
 
 
 def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str], known: dict[str, str],
-            lake: str, storage_options: dict | None, batch_size: int | None, n_workers: int,
+            lake: str, storage_options: dict | None, batch_size: int | None,
             present: list | None = None) -> dict:
     """Submit :func:`measure_batch` tasks to ``runner`` (entered) and collect them.
 
-    With ``batch_size`` every task takes that many images; otherwise the first wave is
-    one image per worker (probes) and the rest follows :func:`fieldcal.batch.plan_batches`
-    from the first probe's figures. Call it inside a flow. Returns ``rows`` (per image, in
-    ``names`` order), ``tasks`` (per task: ``n``, ``wall_s``, ``task_s``, ``submit_s``,
-    ``worker``, ``pid``, ``rss_peak_mb``, ``start_unix``, ``end_unix``), ``batches`` (the
-    sizes planned after the probes), ``batch_size`` (the largest), ``estimate``
-    (``image_s``, ``overhead_s``, or None) and ``start_unix`` / ``end_unix`` of the fan-out.
+    All batches are submitted at once, each placed on a worker thread so that every thread
+    gets an equal share of the images (:func:`fieldcal.batch.assign_batches`). Their sizes:
+    ``batch_size`` images each, or else :func:`fieldcal.batch.plan_batches` (guided
+    self-scheduling) from the files' sizes (:func:`fieldcal.batch.prior_costs`). Call it
+    inside a flow. Returns ``rows`` (per image, in ``names`` order), ``tasks`` (per task:
+    ``n``, ``wall_s``, ``task_s``, ``submit_s``, ``worker``, ``pid``, ``rss_peak_mb``,
+    ``start_unix``, ``end_unix``), ``batches`` (the sizes), ``batch_size`` (the largest),
+    ``estimate`` (``image_s``, ``overhead_s`` the sizes were planned with, or None) and
+    ``start_unix`` / ``end_unix`` of the fan-out.
     """
     logger = get_run_logger()
     start_unix = time.time()
     c = _Collector(len(names), logger)
-    queue, first, sizes, estimate = list(names), [], [], None
+    slots = cluster.worker_slots(runner.client) or [None]
+    estimate = None
     if batch_size:
         b = max(1, int(batch_size))
-        sizes = [min(b, len(queue) - i) for i in range(0, len(queue), b)]
+        sizes = [min(b, len(names) - i) for i in range(0, len(names), b)]
     else:
-        first = [c.submit(runner, prepared, [n], known, lake, storage_options, present or [])
-                 for n in queue[:n_workers]]
-        queue = queue[n_workers:]
-        if queue:
-            probe = next(iter(as_completed(first)))
-            first.remove(probe)
-            res = c.collect(probe)
-            work = [r["hash_s"] + r["measure_s"] + r["write_s"] for r in res["rows"]]
-            image_s = statistics.median(work) if work else 0.0
-            overhead_s = max(0.0, c.tasks[-1]["wall_s"] - res["task_s"])
-            sizes = batch.plan_batches(len(queue), n_workers, image_s, overhead_s)
-            estimate = {"image_s": image_s, "overhead_s": overhead_s}
-            logger.info(f"probe: {image_s:.3f} s per image, {overhead_s:.3f} s overhead per task "
-                        f"-> {len(sizes)} batches of {sizes[0]} down to {sizes[-1]} images")
-    rest, i = [], 0
-    for size in sizes:
-        rest.append(c.submit(runner, prepared, queue[i:i + size], known, lake, storage_options, present or []))
+        image_s, overhead_s = batch.prior_costs([_file_bytes(prepared, n) for n in names])
+        sizes = batch.plan_batches(len(names), len(slots), image_s, overhead_s)
+        estimate = {"image_s": image_s, "overhead_s": overhead_s}
+        logger.info(f"{len(names)} image(s), ~{image_s:.2f} s each: {len(sizes)} batches of {sizes[0]} "
+                    f"down to {sizes[-1]} on {len(slots)} worker thread(s)")
+    futures, i = [], 0
+    for size, slot in zip(sizes, batch.assign_batches(sizes, len(slots)), strict=True):
+        futures.append(c.submit(runner, prepared, names[i:i + size], known, lake, storage_options,
+                                present or [], slots[slot]))
         i += size
-    for fut in as_completed(first + rest):
+    for fut in as_completed(futures):
         c.collect(fut)
     order = {n: k for k, n in enumerate(names)}
     c.rows.sort(key=lambda r: order[r["image"]])
     return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),
             "estimate": estimate, "start_unix": start_unix, "end_unix": time.time()}
+
+
+def _file_bytes(prepared: pipeline.Prepared, name: str) -> int:
+    """Size of an image file [bytes]; 0 when it cannot be read (its task reports why)."""
+    try:
+        return os.stat(prepared.session.image_path(name)).st_size
+    except (OSError, ValueError):
+        return 0
 
 
 def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size,
@@ -354,7 +376,7 @@ def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_op
     n_workers, cluster_s = _cluster_threads(runner)
     get_run_logger().info(f"{len(names)} image(s) to measure on {n_workers} worker thread(s) "
                           f"(cluster ready in {cluster_s:.1f} s)")
-    out = fan_out(runner, prepared, names, known, lake, storage_options, batch_size, n_workers, present)
+    out = fan_out(runner, prepared, names, known, lake, storage_options, batch_size, present)
     out.update(n_workers=n_workers, cluster_s=cluster_s, body_s=time.perf_counter() - t_body)
     return out
 

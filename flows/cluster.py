@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 
 __all__ = ["THREAD_ENV", "DEFAULT_WORKERS", "dask_address", "task_runner", "local_cluster_kwargs",
-           "in_process", "worker_count"]
+           "in_process", "worker_count", "worker_slots"]
 
 ADDRESS_ENV = "FIELDCAL_DASK_ADDRESS"
 DEFAULT_WORKERS = 2
@@ -82,3 +82,10 @@ def worker_count(client, timeout_s: float = 60.0) -> int:
                            f"within {timeout_s:g} s") from None
     workers = client.scheduler_info(n_workers=-1).get("workers", {})
     return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+
+
+def worker_slots(client) -> list[str]:
+    """The worker threads of the cluster behind a Dask ``client``: each worker's address
+    once per thread, sorted (the slots :func:`fieldcal.batch.assign_batches` places batches on)."""
+    workers = client.scheduler_info(n_workers=-1).get("workers", {})
+    return sorted(addr for addr, info in workers.items() for _ in range(max(1, int(info.get("nthreads", 1)))))

@@ -3,9 +3,10 @@
 ``dask worker --preload flows.worker`` (and the local clusters the flows start) load this
 module in every worker process, so the first measuring task does not pay for importing
 Prefect's task engine, fieldcal and OpenCV (several seconds per process), nor for
-compiling the disc kernel (:func:`fieldcal.measure.disc_kernel.warm_up` loads it from
-Numba's cache), and the batch size the flow derives from its first tasks measures the
-work rather than the imports. It also gives OpenCV and the TIFF codecs as many threads as
+loading the disc kernel, the TIFF codecs and OpenCV's detector
+(:func:`fieldcal.measure.warm.warm_up_measuring`; the kernel comes from Numba's cache),
+and the batch size the flow derives from its first tasks measures the work rather than
+the imports. It also gives OpenCV and the TIFF codecs as many threads as
 the worker has Dask threads (one by default), so that workers sharing a machine do not
 oversubscribe its cores.
 """
@@ -20,14 +21,17 @@ import fieldcal.goniometer.method  # noqa: F401
 import fieldcal.measure.targets  # noqa: F401
 import fieldcal.pipeline  # noqa: F401
 import flows.calibrate  # noqa: F401
-from fieldcal.measure import disc_kernel
+from fieldcal.measure.heap import keep_freed_memory
 from fieldcal.measure.imageio import set_decode_threads
+from fieldcal.measure.warm import warm_up_measuring
 
 
 def dask_setup(worker) -> None:
     """Called by Dask when the worker starts: one OpenCV and one codec thread per Dask
-    thread, and the compiled disc kernel loaded (or the one-line reason it cannot be)."""
+    thread, freed memory kept for the next image, and the measuring path warmed up (the
+    compiled disc kernel loaded, or the one-line reason it cannot be)."""
+    keep_freed_memory()
     threads = max(1, int(worker.state.nthreads))
     cv2.setNumThreads(threads)
     set_decode_threads(threads)
-    disc_kernel.warm_up()
+    warm_up_measuring()

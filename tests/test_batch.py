@@ -80,8 +80,11 @@ def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
     assert sizes == sorted(sizes, reverse=True)
     # two tasks per worker: each takes a quarter of what is left
     assert batch.plan_batches(70, 2, 1.0, 0.3, tasks_per_worker=2)[:4] == [18, 13, 10, 8]
-    # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames)
-    assert batch.plan_batches(178, 2, 0.005, 0.5) == [100, 78]
+    # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames) ...
+    assert batch.plan_batches(378, 2, 0.005, 0.5) == [189, 100, 89]
+    # ... unless a worker would get nothing: then half each
+    assert batch.plan_batches(178, 2, 0.005, 0.5) == [89, 89]
+    assert batch.plan_batches(3, 2, 0.001, 0.3) == [2, 1]
     # slow images and cheap tasks: the guided sizes alone, at most 60 s of work each
     assert batch.plan_batches(8, 2, 30.0, 0.1) == [2, 2, 2, 1, 1]
     assert batch.plan_batches(8, 2, 10.0, 0.1) == [4, 2, 1, 1]
@@ -89,6 +92,30 @@ def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
     assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 60
     assert batch.plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
     assert batch.plan_batches(0, 2, 1.0, 0.3) == []
+
+
+def test_before_any_image_is_read_the_costs_come_from_the_files_sizes():
+    image_s, overhead_s = batch.prior_costs([103_093_472, 0, 59_000_000])   # 0: unreadable, ignored
+    assert image_s == pytest.approx((103_093_472 + 59_000_000) / 2 / batch.PRIOR_BYTES_PER_S)
+    assert overhead_s == batch.PRIOR_TASK_OVERHEAD_S
+    assert batch.prior_costs([]) == (0.0, batch.PRIOR_TASK_OVERHEAD_S)
+    # 72 bench frames on two threads: the guided sizes, one of 36 for each thread's first task
+    sizes = batch.plan_batches(72, 2, *batch.prior_costs([103_093_472] * 36 + [79_850_000] * 36))
+    assert sizes == [36, 18, 9, 5, 2, 1, 1]
+
+
+def test_batches_are_placed_by_images_so_each_worker_gets_an_equal_share():
+    sizes = batch.plan_batches(70, 2, 1.0, 0.3)
+    slots = batch.assign_batches(sizes, 2)
+    per_slot = [sum(n for n, k in zip(sizes, slots, strict=True) if k == s) for s in (0, 1)]
+    assert slots == [0, 1, 1, 1, 1, 1, 1] and per_slot == [35, 35]
+    # by count of tasks, the scheduler's view, the same sequence would be 47 against 23
+    by_count = [sum(sizes[0::2]), sum(sizes[1::2])]
+    assert by_count == [47, 23]
+    # four slots; a tie goes to the first; one slot: everything on it
+    assert batch.assign_batches([5, 5, 5, 5, 3, 2], 4) == [0, 1, 2, 3, 0, 1]
+    assert batch.assign_batches([3, 2, 1], 1) == [0, 0, 0]
+    assert batch.assign_batches([], 2) == []
 
 
 def _appends(lake: Lake) -> list[dict]:

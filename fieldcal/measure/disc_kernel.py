@@ -872,7 +872,8 @@ def _call(img, y0, x0, su, sv, S, *, sign, step, method, upsample, sat_level, no
 def warm_up() -> bool:
     """Compile the kernels (or load them from Numba's cache) for uint8 and uint16 images.
 
-    Runs each on a small made-up window, both polarities and both methods. Call it once
+    Runs each on a small made-up window, both polarities and both methods, writable and
+    read-only images (each a specialisation Numba compiles and caches). Call it once
     per process before the first image (a Dask worker does, ``flows.worker``). Returns
     :func:`available`.
     """
@@ -887,8 +888,12 @@ def warm_up() -> bool:
             for sign in (-1, 1):
                 img = np.where(disc == (sign < 0), hi // 4, hi).astype(dtype)
                 component_sums(img, hi // 2, 0.0)
-                for method in ("ellipse", "centroid"):
-                    _call(img, np.zeros(1, int), np.zeros(1, int), np.array([12.2]), np.array([11.7]),
+                # a read-only image is another specialisation (an uncompressed TIFF is
+                # measured in place, as a read-only view of the file's bytes)
+                frozen = img.copy()
+                frozen.flags.writeable = False
+                for pixels, method in ((img, "ellipse"), (img, "centroid"), (frozen, "ellipse")):
+                    _call(pixels, np.zeros(1, int), np.zeros(1, int), np.array([12.2]), np.array([11.7]),
                           np.array([24]), sign=sign, step=3, method=method, upsample=4,
                           sat_level=np.iinfo(dtype).max, noise_dn=1.0)
     except Exception as err:  # noqa: BLE001 - any compiler failure: fall back to the reference

@@ -165,7 +165,7 @@ KILLER = textwrap.dedent("""
             raise SystemExit(f"unknown point {point}")
         from flows.calibrate import calibrate_session
 
-        calibrate_session(session, lake)
+        calibrate_session(session, lake, batch_size=10)   # several appends: a kill between them
 """)
 
 

@@ -82,7 +82,7 @@ def test_goniometer_flow_on_a_local_cluster_passes_the_accuracy_checks(first_run
     assert r["status"] == "committed" and r["new"] is True
     assert r["images"] == {"total": 180, "measured": 180, "cached": 0, "bad": 0, "hashed": 180}
     # the fan-out ran as Prefect tasks on both workers of the cluster the flow started,
-    # in batches chosen from the probes (5 ms frames: far more than one image per task)
+    # in batches planned from the files' sizes (small frames: far more than one image per task)
     m = r["measure"]
     assert sum(t["n"] for t in m["tasks"]) == 180 and m["n_workers"] == 2
     assert len({t["worker"] for t in m["tasks"]}) == 2

@@ -43,7 +43,7 @@ def test_flow_runs_its_tasks_on_an_existing_scheduler_and_its_two_worker_process
     n_frames = truth.frames.num_rows
     assert out["status"] == "committed" and out["images"]["measured"] == n_frames
     used = {t["worker"] for t in m["tasks"]}
-    # every task ran on the two worker processes the test started (one probe on each)
+    # every task ran on the two worker processes the test started (batches placed on both)
     assert used == set(workers)
     assert m["n_workers"] == 2 and m["cluster_s"] < 10.0       # connecting, not starting a cluster
     assert len({t["pid"] for t in m["tasks"]}) == 2 and os.getpid() not in {t["pid"] for t in m["tasks"]}

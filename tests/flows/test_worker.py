@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import cv2
 
-from fieldcal.measure import disc_kernel
+from fieldcal.measure import disc_kernel, warm
 from fieldcal.measure.imageio import decode_threads, set_decode_threads
 from flows import worker
 
@@ -29,7 +29,7 @@ def test_in_process_workers_are_warmed_once_in_the_background_and_tasks_wait_for
     assert not cluster.in_process("tcp://127.0.0.1:8786", None)
     calls = []
     monkeypatch.setattr(calibrate, "_WARMED", set())
-    monkeypatch.setattr(disc_kernel, "warm_up", lambda: calls.append(1) or True)
+    monkeypatch.setattr(warm, "warm_up_measuring", lambda: calls.append(1) or True)
     thread = calibrate.warm_in_background("field")
     calibrate._warm("field", None)       # a task starting now waits for the warm-up, not a second one
     thread.join(timeout=10)

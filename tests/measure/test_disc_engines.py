@@ -216,7 +216,42 @@ def test_warm_up_loads_the_compiled_kernels_from_the_cache():
     assert second.returncode == 0, second.stderr
     out = json.loads(second.stdout.strip().splitlines()[-1])
     assert any("uint8" in s for s in out["sigs"]) and any("uint16" in s for s in out["sigs"])
+    assert sum("'C', True" in s.split("),")[0] for s in out["sigs"]) == 2     # read-only uint8, uint16
     assert out["misses"] == {}                                   # loaded, not compiled
+
+
+@needs_kernel
+def test_after_the_warm_up_measuring_real_files_loads_or_compiles_nothing_more(tmp_path):
+    # every layout: an uncompressed TIFF is measured in place (a read-only view, another
+    # specialisation of the kernel than a decoded image)
+    code = f"""
+        import json
+        import tifffile
+        from fieldcal.measure import disc_kernel as k
+        from fieldcal.measure.imageio import read_file
+        from fieldcal.measure.targets import measure_image
+        from fieldcal.measure.warm import warm_up_measuring
+        from tests.measure.test_targets import render_discs
+        assert warm_up_measuring()
+        kernels = [k._measure_all, k._component_sums]
+        before = [sorted(map(str, d.signatures)) for d in kernels]
+        img = render_discs((240, 320), [(80.3, 90.6), (200.2, 150.4)], 14.0)
+        found = []
+        for i, kw in enumerate([dict(compression="zstd", tile=(64, 64)), dict(rowsperstrip=16),
+                                dict(compression="adobe_deflate", tile=(64, 64), bigtiff=True)]):
+            path = {str(tmp_path)!r} + f"/img{{i}}.tif"
+            tifffile.imwrite(path, img, photometric="minisblack", metadata=None, **kw)
+            found.append(measure_image(read_file(path)).num_rows)
+        after = [sorted(map(str, d.signatures)) for d in kernels]
+        print(json.dumps({{"same": before == after, "found": found, "before": before}}))
+    """
+    assert _python(code).returncode == 0                        # the first process may compile
+    out = _python(code)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["found"] == [2, 2, 2]
+    assert got["same"], got["before"]
+    assert any("Array(uint16, 2, 'C', True" in s for s in got["before"][0])   # read-only
 
 
 def test_without_numba_the_reference_runs_and_one_line_says_why():
