@@ -120,10 +120,10 @@ _WARMED: set[str] = set()
 
 
 def _warm(method: str, nthreads: int | None) -> None:
-    """Import and run the measuring code once (:func:`fieldcal.measure.warm.warm_up_measuring`)
-    before the work is timed, once per process (threads wait for a warm-up in progress instead of repeating it); one
-    OpenCV thread and one codec thread per Dask thread; freed memory kept for the next
-    image (:func:`fieldcal.measure.heap.keep_freed_memory`)."""
+    """Import and run the measuring code (:func:`fieldcal.measure.warm.warm_up_measuring`)
+    before the work is timed, once per process (threads wait for a warm-up in progress
+    instead of repeating it); one OpenCV thread and one codec thread per Dask thread;
+    freed memory kept for the next image (:func:`fieldcal.measure.heap.keep_freed_memory`)."""
     keep_freed_memory()
     with _WARM_LOCK:
         if method not in _WARMED:
@@ -144,15 +144,11 @@ def _warm(method: str, nthreads: int | None) -> None:
             cv2.setNumThreads(nthreads)
 
 
-def warm_in_background(method: str) -> threading.Thread:
-    """Start :func:`_warm` in a thread of this process: with in-process Dask workers (the
-    default), the imports, the kernel load and the first use of the codecs and OpenCV
-    (0.6-0.9 s) then overlap the cluster's start instead of delaying the first measuring
-    task."""
-    keep_freed_memory()                 # before the worker threads' first allocation
-    thread = threading.Thread(target=_warm, args=(method, None), name="fieldcal-warm-up", daemon=True)
-    thread.start()
-    return thread
+def _runner_in_process(runner: DaskTaskRunner) -> bool:
+    """Whether a Dask task runner's workers will be threads of this process (a local cluster
+    with ``processes=False``, :func:`flows.cluster.local_cluster_kwargs`'s default)."""
+    kwargs = getattr(runner, "cluster_kwargs", None) or {}
+    return getattr(runner, "address", None) is None and kwargs.get("processes", True) is False
 
 
 def _transient(task_, task_run, state) -> bool:
@@ -282,9 +278,11 @@ class _Collector:
         self.submitted: dict = {}
         progress.emit("images", total=total, **self.counts)
 
-    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None):
+    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None,
+               priority=0):
         """Submit one batch, placed on ``worker`` (an address) when given; another worker may
-        still take it (a worker that left, work stealing)."""
+        still take it (a worker that left, work stealing). A worker runs its batches by
+        ``priority``, highest first (without one, in the order of their random keys)."""
         t0 = time.perf_counter()
         mine = set(batch_names)
         params = {"prepared": prepared, "names": batch_names,
@@ -296,7 +294,7 @@ class _Collector:
         else:
             # dask.annotate sets process-wide configuration: one thread at a time (the
             # fleet's sessions submit from threads of one process)
-            with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True):
+            with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True, priority=priority):
                 fut = runner.submit(measure_batch, params)
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
@@ -349,9 +347,9 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
         logger.info(f"{len(names)} image(s), ~{image_s:.2f} s each: {len(sizes)} batches of {sizes[0]} "
                     f"down to {sizes[-1]} on {len(slots)} worker thread(s)")
     futures, i = [], 0
-    for size, slot in zip(sizes, batch.assign_batches(sizes, len(slots)), strict=True):
+    for k, (size, slot) in enumerate(zip(sizes, batch.assign_batches(sizes, len(slots)), strict=True)):
         futures.append(c.submit(runner, prepared, names[i:i + size], known, lake, storage_options,
-                                present or [], slots[slot]))
+                                present or [], slots[slot], priority=len(sizes) - k))   # large ones first
         i += size
     for fut in as_completed(futures):
         c.collect(fut)
@@ -433,8 +431,12 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     mine = set(todo)
     present = sorted(p for p in plan.present if p[0] in mine)   # cached under another content, maybe this one
     runner = _dask_runner()
-    if runner is None and todo and cluster.in_process(dask_address, cluster_kwargs):
-        warm_in_background(run.prepared.method)
+    in_process = cluster.in_process(dask_address, cluster_kwargs) if runner is None else _runner_in_process(runner)
+    if todo and in_process:
+        # the workers will be threads of this process: warm it up now, before the cluster
+        # starts (a warm-up thread beside the cluster's start and the submissions made the
+        # 72-frame run 1.02-1.12x as long: the imports fight for the GIL; bench/README_flow.md)
+        _warm(run.prepared.method, None)
     args = (run.prepared, todo, known, run.lake, run.storage_options, batch_size, present)
     if runner is not None:
         run.on_cluster = True

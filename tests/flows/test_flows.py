@@ -87,6 +87,10 @@ def test_goniometer_flow_on_a_local_cluster_passes_the_accuracy_checks(first_run
     assert sum(t["n"] for t in m["tasks"]) == 180 and m["n_workers"] == 2
     assert len({t["worker"] for t in m["tasks"]}) == 2
     assert m["batch_size"] > 1 and len(m["tasks"]) < 180
+    per_worker = {}
+    for t in m["tasks"]:
+        per_worker[t["worker"]] = per_worker.get(t["worker"], 0) + t["n"]
+    assert sorted(per_worker.values()) == [90, 90]          # placed: an equal share each
 
     doc = Lake(lake_dir).load_document(r["version"])
     p = np.array([doc["parameters"][n] for n in PARAM_NAMES])

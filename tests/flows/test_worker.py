@@ -20,17 +20,26 @@ def test_worker_setup_gives_each_dask_thread_one_opencv_and_one_codec_thread_and
         set_decode_threads(before[1])
 
 
-def test_in_process_workers_are_warmed_once_in_the_background_and_tasks_wait_for_it(monkeypatch):
+def test_in_process_workers_are_warmed_once_and_a_task_does_not_warm_again(monkeypatch):
+    import threading
+
     from flows import calibrate, cluster
 
     monkeypatch.delenv(cluster.ADDRESS_ENV, raising=False)
     assert cluster.in_process(None, None) and cluster.in_process(None, {"processes": False})
     assert not cluster.in_process(None, {"processes": True})
     assert not cluster.in_process("tcp://127.0.0.1:8786", None)
+    # the same question of a task runner the command line hands to the flow
+    assert calibrate._runner_in_process(cluster.task_runner(None, 2, None))
+    assert not calibrate._runner_in_process(cluster.task_runner(None, 2, {"processes": True}))
+    assert not calibrate._runner_in_process(cluster.task_runner("tcp://127.0.0.1:8786"))
     calls = []
     monkeypatch.setattr(calibrate, "_WARMED", set())
     monkeypatch.setattr(warm, "warm_up_measuring", lambda: calls.append(1) or True)
-    thread = calibrate.warm_in_background("field")
-    calibrate._warm("field", None)       # a task starting now waits for the warm-up, not a second one
-    thread.join(timeout=10)
+    calibrate._warm("field", None)                 # the flow, before the cluster starts
+    tasks = [threading.Thread(target=calibrate._warm, args=("field", 1)) for _ in range(2)]
+    for t in tasks:
+        t.start()
+    for t in tasks:
+        t.join(timeout=10)
     assert calls == [1] and "field" in calibrate._WARMED
