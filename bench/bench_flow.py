@@ -171,7 +171,7 @@ def analyse(result: dict, wall_s: float) -> dict:
         per_worker[task["worker"]] = max(per_worker.get(task["worker"], 0.0), task["rss_peak_mb"])
     measured = [r for r in rows if r["status"] == "measured"]
     out.update(
-        n_workers=w, batches=m.get("batches"), n_tasks=len(m["tasks"]), probe=m["estimate"],
+        n_workers=w, batches=m.get("batches"), n_tasks=len(m["tasks"]), estimate=m["estimate"],
         cluster_s=m["cluster_s"], hash_s_sum=hash_s, measure_s_sum=measure_s, parquet_write_s_sum=write_s,
         measure_s_median=statistics.median([r["measure_s"] for r in measured]) if measured else None,
         useful_s=useful, outside_s=wall_s - useful, outside_share=(wall_s - useful) / wall_s,
@@ -183,7 +183,9 @@ def analyse(result: dict, wall_s: float) -> dict:
             "commit (Zarr, Parquet, JSON)": t.get("commit_s", 0.0),
             "validate + lookup": t.get("validate_s", 0.0) + t.get("lookup_s", 0.0),
             "flow run start + end": wall_s - t.get("total_s", wall_s),
-            "cluster shutdown (before: and the sub-flow's start + end)": t.get("measure_s", 0.0) - m.get("body_s", 0.0),
+            "warm-up of the flow's process (imports, kernels; in-process workers)": t.get("warm_s", 0.0),
+            "cluster shutdown (before: and the sub-flow's start + end)":
+                t.get("measure_s", 0.0) - m.get("body_s", 0.0) - t.get("warm_s", 0.0),
             "in tasks, besides hashing / measuring / writing (per worker)": (task_s - hash_s - measure_s - write_s) / w,
             **_waiting(m, w),
         })
@@ -241,7 +243,8 @@ def table(results: dict) -> str:
     row("solver [s]", lambda d: f"{d['timings']['solver_s']:.1f}")
     row("outside reading / extraction / solving [s]", lambda d: f"{d['outside_s']:.1f}")
     row("**share outside**", lambda d: f"**{d['outside_share']:.1%}**" if d.get("measure_s_sum") else None)
-    for key in ("cluster start", "cluster shutdown (before: and the sub-flow's start + end)", "flow run start + end",
+    for key in ("warm-up of the flow's process (imports, kernels; in-process workers)", "cluster start",
+                "cluster shutdown (before: and the sub-flow's start + end)", "flow run start + end",
                 "Delta appends of observations (per worker)", "observations read back (Parquet)",
                 "commit (Zarr, Parquet, JSON)",
                 "validate + lookup", "in tasks, besides hashing / measuring / writing (per worker)",
@@ -249,7 +252,7 @@ def table(results: dict) -> str:
                 "workers idle after their last task (per worker)",
                 "the rest (flow bookkeeping)"):
         row(f"&nbsp;&nbsp;{key} [s]", lambda d, key=key: f"{d['outside_items'][key]:.2f}")
-    row("tasks (images per task)", lambda d: f"{d['n_tasks']} (probes 1, 1; then {_sizes(d)})")
+    row("tasks (images per task)", lambda d: f"{d['n_tasks']} ({_sizes(d)})")
     row("peak RSS per worker process [MiB] (threads: of the whole flow process, solver included)",
         lambda d: ", ".join(f"{v:.0f}" for v in d["peak_rss_mb_per_worker"].values()) or None)
     row("time / first run", lambda d: f"**{d['wall_s'] / results['cold']['wall_s']:.1%}**")

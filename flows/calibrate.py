@@ -436,7 +436,9 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
         # the workers will be threads of this process: warm it up now, before the cluster
         # starts (a warm-up thread beside the cluster's start and the submissions made the
         # 72-frame run 1.02-1.12x as long: the imports fight for the GIL; bench/README_flow.md)
+        t_warm = time.perf_counter()
         _warm(run.prepared.method, None)
+        run.lap("warm_s", t_warm)
     args = (run.prepared, todo, known, run.lake, run.storage_options, batch_size, present)
     if runner is not None:
         run.on_cluster = True
@@ -573,7 +575,8 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
         ``total``, ``measured``, ``cached``, ``bad``, ``hashed``), ``left_out`` (``{image,
         status, reason}``), ``summary`` (the solver's lines), ``measure`` (the fan-out's
         figures, or None), ``timings`` (seconds per step: ``validate_s``, ``lookup_s``,
-        ``measure_s`` (cluster start included), ``solve_s`` (of it ``read_observations_s``
+        ``measure_s`` (cluster start included; of it ``warm_s``, the warm-up of this
+        process when its threads measure), ``solve_s`` (of it ``read_observations_s``
         and ``solver_s``), ``commit_s``, ``total_s``).
     """
     run = _Run(session, lake, storage_options, settings, get_run_logger())
