@@ -67,7 +67,6 @@ from prefect_dask import DaskTaskRunner
 from fieldcal import batch, pipeline, progress
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.store import Lake
-from fieldcal.measure.heap import keep_freed_memory
 
 from . import cluster
 from .hashcache import HashCache, file_stamp, known_hashes
@@ -122,9 +121,7 @@ _WARMED: set[str] = set()
 def _warm(method: str, nthreads: int | None) -> None:
     """Import and run the measuring code (:func:`fieldcal.measure.warm.warm_up_measuring`)
     before the work is timed, once per process (threads wait for a warm-up in progress
-    instead of repeating it); one OpenCV thread and one codec thread per Dask thread;
-    freed memory kept for the next image (:func:`fieldcal.measure.heap.keep_freed_memory`)."""
-    keep_freed_memory()
+    instead of repeating it); one OpenCV thread and one codec thread per Dask thread."""
     with _WARM_LOCK:
         if method not in _WARMED:
             if method == "goniometer":

@@ -8,6 +8,5 @@
 - :mod:`.coded`: ArUco coded targets.
 - :mod:`.targets`: the per-image composition (coded targets, then discs).
 - :mod:`.spots`: the goniometer's collimated spot centroids.
-- :mod:`.heap`: the memory of one image kept for the next (glibc's allocator).
 - :mod:`.warm`: the measuring path loaded and run once in a process before its first image.
 """
