@@ -4,22 +4,28 @@ Modules, in the order the method runs: :mod:`~fieldcal.goniometer.frames` (frame
 spot of each frame, the mean per angle), :mod:`~fieldcal.goniometer.minsum` (principal
 distance and point per sweep, eq. 1-7), :mod:`~fieldcal.goniometer.chain` (the distortion
 fit, eq. 8-10, and the precision), :mod:`~fieldcal.goniometer.result` (the calibration) and
-:mod:`~fieldcal.goniometer.method` (:func:`calibrate`, the steps in order).
+:mod:`~fieldcal.goniometer.method` (:func:`calibrate`, the steps in order);
+:mod:`~fieldcal.goniometer.schema` the columns of a frame's measurement.
 """
 
-from fieldcal.goniometer.chain import along_axis_difference_px
-from fieldcal.goniometer.frames import (
-    MEASUREMENT_SCHEMA,
-    average_frames,
-    measure_frame,
-    measure_session,
-    measurements_table,
-    read_frames_csv,
-)
-from fieldcal.goniometer.method import calibrate
-from fieldcal.goniometer.minsum import min_sum_linear, min_sum_rigorous
-from fieldcal.goniometer.result import GoniometerResult
+import importlib
 
-__all__ = ["MEASUREMENT_SCHEMA", "GoniometerResult", "along_axis_difference_px", "average_frames",
-           "calibrate", "measure_frame", "measure_session", "measurements_table", "min_sum_linear",
-           "min_sum_rigorous", "read_frames_csv"]
+_EXPORTS = {"along_axis_difference_px": "chain", "MEASUREMENT_SCHEMA": "schema", "average_frames": "frames",
+            "measure_frame": "frames", "measure_session": "frames", "measurements_table": "frames",
+            "read_frames_csv": "frames", "calibrate": "method", "min_sum_linear": "minsum",
+            "min_sum_rigorous": "minsum", "GoniometerResult": "result"}
+"""Names of the package and the module that defines each, imported on first use (PEP 562):
+importing a light module of the package (:mod:`~fieldcal.goniometer.schema`) does not
+import the method's SciPy and OpenCV."""
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"fieldcal.goniometer.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'fieldcal.goniometer' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -21,6 +21,7 @@ import numpy as np
 import pyarrow as pa
 
 from fieldcal.errors import ImageError, InputError
+from fieldcal.goniometer.schema import MEASUREMENT_SCHEMA
 from fieldcal.measure.imageio import read_image
 from fieldcal.measure.spots import FLAGS, measure_spot
 from fieldcal.model.camera import Sensor
@@ -34,23 +35,6 @@ AXES: tuple[str, ...] = ("x", "y")
 FRAME_FLAGS: tuple[str, ...] = FLAGS + ("unreadable",)
 """Flags of a measured frame: those of :data:`fieldcal.measure.spots.FLAGS`, and ``unreadable``
 (the file is missing, corrupt, not the sensor's size, ...)."""
-
-MEASUREMENT_SCHEMA = pa.schema([
-    pa.field("file", pa.string(), nullable=False,
-             metadata={"doc": "frame path relative to the session folder, as frames.csv names it"}),
-    pa.field("u_px", pa.float64(), metadata={"doc": "spot centroid, column [px]; NaN if none"}),
-    pa.field("v_px", pa.float64(), metadata={"doc": "spot centroid, row [px]; NaN if none"}),
-    pa.field("peak_dn", pa.float64(), metadata={"doc": "brightest pixel of the spot [DN]"}),
-    pa.field("background_dn", pa.float64(), metadata={"doc": "median background [DN]"}),
-    pa.field("noise_dn", pa.float64(), metadata={"doc": "robust background sigma [DN]"}),
-    pa.field("threshold_dn", pa.float64(), metadata={"doc": "iterative threshold [DN]"}),
-    pa.field("n_pixels", pa.int32(), metadata={"doc": "pixels in the spot's region"}),
-    pa.field("snr", pa.float64(), metadata={"doc": "(peak - background) / noise"}),
-    pa.field("flag", pa.string(), nullable=False, metadata={"doc": "one of FRAME_FLAGS"}),
-    pa.field("reason", pa.string(), nullable=False, metadata={"doc": "empty when ok"}),
-], metadata={"name": "fieldcal.goniometer_measurements/1",
-             "doc": "One row per goniometer frame: the spot centroid and its quality flag."})
-
 
 # --------------------------------------------------------------------------- frames.csv
 def read_frames_csv(path, *, strict: bool = True) -> pa.Table:

@@ -81,7 +81,7 @@ def _plain(schema: pa.Schema) -> list[pa.Field]:
 
 def goniometer_spot_schema() -> pa.Schema:
     """The columns of a goniometer frame's measurement (``fieldcal.goniometer``)."""
-    from fieldcal.goniometer.method import MEASUREMENT_SCHEMA
+    from fieldcal.goniometer.schema import MEASUREMENT_SCHEMA
 
     return MEASUREMENT_SCHEMA
 

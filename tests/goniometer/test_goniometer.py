@@ -428,3 +428,26 @@ def test_lake_residuals_follow_the_residuals_schema(solved):
     x = t.filter(pa.array([a == "x" for a in t["axis"].to_pylist()]))
     assert np.allclose(x["du_px"].to_numpy(), -res.residuals["residual_px"].to_numpy()[:45])
     assert np.isnan(x["dv_px"].to_numpy()).all()
+
+
+def test_the_lake_names_the_frame_schema_without_importing_the_method():
+    # the first commit of a field session writes the data dictionary, which lists the
+    # goniometer observations' columns: no SciPy optimisers, no OpenCV for that
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import sys
+        from fieldcal.lake.dictionary import data_dictionary
+        from fieldcal.lake.tables import table_schema
+        table_schema("observations_goniometer")
+        data_dictionary()
+        heavy = [m for m in ("cv2", "scipy.optimize", "fieldcal.goniometer.method") if m in sys.modules]
+        import fieldcal.goniometer as g
+        same = g.MEASUREMENT_SCHEMA.equals(g.calibrate.__globals__["MEASUREMENT_SCHEMA"])
+        print(heavy, same, all(getattr(g, name) is not None for name in g.__all__))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["[]", "True", "True"]
