@@ -72,7 +72,7 @@ from . import cluster
 from .hashcache import HashCache, file_stamp, known_hashes
 
 __all__ = ["calibrate_session", "measure_batch", "validate_session", "solve_session",
-           "commit_version", "fan_out"]
+           "commit_version", "fan_out", "submit_placed"]
 
 
 # --------------------------------------------------------------------------------------
@@ -260,7 +260,19 @@ def _cluster_threads(runner: DaskTaskRunner) -> tuple[int, float]:
 
 
 _PLACING = threading.Lock()
-"""Held while a batch is submitted under ``dask.annotate`` (:meth:`_Collector.submit`)."""
+"""Held while a task is submitted under ``dask.annotate`` (:func:`submit_placed`)."""
+
+
+def submit_placed(runner: DaskTaskRunner, task_, params: dict, worker: str | None = None, priority: int = 0):
+    """Submit a Prefect task to an entered Dask task runner, placed on ``worker`` (an address)
+    when given, with Dask ``priority`` (a worker runs its higher ones first). Another worker
+    may still take it (one that left, work stealing): ``allow_other_workers``."""
+    if worker is None:
+        return runner.submit(task_, params)
+    # dask.annotate sets process-wide configuration: one thread at a time (the fleet's
+    # sessions submit from threads of one process)
+    with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True, priority=priority):
+        return runner.submit(task_, params)
 
 
 class _Collector:
@@ -277,22 +289,15 @@ class _Collector:
 
     def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None,
                priority=0):
-        """Submit one batch, placed on ``worker`` (an address) when given; another worker may
-        still take it (a worker that left, work stealing). A worker runs its batches by
-        ``priority``, highest first (without one, in the order of their random keys)."""
+        """Submit one batch (:func:`submit_placed`; without a priority a worker runs its
+        batches in the order of their random keys)."""
         t0 = time.perf_counter()
         mine = set(batch_names)
         params = {"prepared": prepared, "names": batch_names,
                   "known": {n: known[n] for n in batch_names if n in known},
                   "lake": lake, "storage_options": storage_options,
                   "present": [p for p in present if p[0] in mine]}
-        if worker is None:
-            fut = runner.submit(measure_batch, params)
-        else:
-            # dask.annotate sets process-wide configuration: one thread at a time (the
-            # fleet's sessions submit from threads of one process)
-            with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True, priority=priority):
-                fut = runner.submit(measure_batch, params)
+        fut = submit_placed(runner, measure_batch, params, worker, priority)
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
 

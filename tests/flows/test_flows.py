@@ -347,3 +347,27 @@ def test_hash_store_recognises_unchanged_files_and_forgets_rewritten_ones(tmp_pa
         assert store.lookup([str(f)]) == {}
         assert store.remember([(str(f), "h2", stamp)]) == 0      # stale stamp: not remembered
     assert HashCache(None).lookup([str(f)]) == {}                # disabled
+
+
+def test_a_task_placed_on_a_worker_runs_there(prefect_server):
+    # the fan-out places each batch on a worker thread (fieldcal.batch.assign_batches);
+    # one task at a time on an idle cluster: nothing to steal, each runs where it was put
+    from prefect import flow, task
+
+    from flows import calibrate, cluster
+
+    @task(persist_result=False)
+    def where() -> str:
+        from distributed import get_worker
+
+        return get_worker().address
+
+    @flow(persist_result=False)
+    def placing() -> tuple[list[str], list[str]]:
+        with cluster.task_runner(None, 2, None) as runner:
+            slots = sorted(set(cluster.worker_slots(runner.client)))
+            wanted = [slots[1], slots[0], slots[1], slots[1], slots[0]]
+            return wanted, [calibrate.submit_placed(runner, where, {}, w, priority=1).result() for w in wanted]
+
+    wanted, ran = placing()
+    assert len(set(wanted)) == 2 and ran == wanted
