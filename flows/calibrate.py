@@ -259,19 +259,15 @@ def _cluster_threads(runner: DaskTaskRunner) -> tuple[int, float]:
     return cluster.worker_count(client), time.perf_counter() - t
 
 
-_PLACING = threading.Lock()
-"""Held while a task is submitted under ``dask.annotate`` (:func:`submit_placed`)."""
-
-
 def submit_placed(runner: DaskTaskRunner, task_, params: dict, worker: str | None = None, priority: int = 0):
     """Submit a Prefect task to an entered Dask task runner, placed on ``worker`` (an address)
     when given, with Dask ``priority`` (a worker runs its higher ones first). Another worker
     may still take it (one that left, work stealing): ``allow_other_workers``."""
     if worker is None:
         return runner.submit(task_, params)
-    # dask.annotate sets process-wide configuration: one thread at a time (the fleet's
-    # sessions submit from threads of one process)
-    with _PLACING, dask.annotate(workers=[worker], allow_other_workers=True, priority=priority):
+    # dask.annotate holds its annotations in a context variable: this thread's submission
+    # only (the fleet's sessions submit from threads of one process)
+    with dask.annotate(workers=[worker], allow_other_workers=True, priority=priority):
         return runner.submit(task_, params)
 
 

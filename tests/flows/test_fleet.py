@@ -123,8 +123,11 @@ def test_fleet_calibrates_sessions_at_once_and_a_failing_one_does_not_stop_the_o
                       ("cam-lab", "2026-05-09"): "committed", ("cam-few", "2026-05-10"): "failed",
                       (None, None): "failed"}, reasons
     assert (first["n_found"], first["n_committed"], first["n_failed"]) == (7, 5, 2)
-    # the first two solves met: two sessions solved at once on the cluster
-    assert meet.met and len(meet.arrived) == 6 + sum(1 for s in first["sessions"] if s["retried"])
+    # the first two solves met: two sessions solved at once on the cluster; six sessions
+    # reach the solve, a session run again (a failure outside fieldcal, e.g. the Prefect
+    # server's "database is locked" under load) a second time if its first run had got there
+    retried = sum(1 for s in first["sessions"] if s["retried"])
+    assert meet.met and 6 <= len(meet.arrived) <= 6 + retried, (meet.arrived, reasons)
     few = next(s for s in first["sessions"] if s["camera_id"] == "cam-few")
     assert "at least 3" in few["reason"] and few["version"] is None
     # every session's version, and the lake agrees
