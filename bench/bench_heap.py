@@ -14,10 +14,8 @@ threads read, hash, decode and measure the frames of ``bench/out/flow/paper72`` 
 process: wall time, CPU time, the first frame of each thread, minor page faults and peak
 resident memory.
 
-An experiment (``bench/README_flow.md``, fourth stop): the setting is not in fieldcal. Set at
-a process's start it cut this benchmark's CPU time by a quarter, but in the flow it did not
-shorten the run, and set later (once threads have their own malloc arenas) it does not take
-effect at all.
+The same setting as :func:`fieldcal.measure.heap.keep_freed_memory`, which a Dask worker
+process applies at its start (``flows.worker``); see ``bench/README_flow.md``, fourth stop.
 """
 
 from __future__ import annotations

@@ -21,14 +21,17 @@ import fieldcal.goniometer.method  # noqa: F401
 import fieldcal.measure.targets  # noqa: F401
 import fieldcal.pipeline  # noqa: F401
 import flows.calibrate  # noqa: F401
+from fieldcal.measure.heap import keep_freed_memory
 from fieldcal.measure.imageio import set_decode_threads
 from fieldcal.measure.warm import warm_up_measuring
 
 
 def dask_setup(worker) -> None:
     """Called by Dask when the worker starts: one OpenCV and one codec thread per Dask
-    thread, and the measuring path warmed up (the compiled disc kernel loaded, or the
-    one-line reason it cannot be)."""
+    thread, freed frame memory kept for the next frame
+    (:func:`fieldcal.measure.heap.keep_freed_memory`), and the measuring path warmed up
+    (the compiled disc kernel loaded, or the one-line reason it cannot be)."""
+    keep_freed_memory()             # before the worker's threads first allocate
     threads = max(1, int(worker.state.nthreads))
     cv2.setNumThreads(threads)
     set_decode_threads(threads)

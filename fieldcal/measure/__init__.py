@@ -8,5 +8,6 @@
 - :mod:`.coded`: ArUco coded targets.
 - :mod:`.targets`: the per-image composition (coded targets, then discs).
 - :mod:`.spots`: the goniometer's collimated spot centroids.
+- :mod:`.heap`: a worker process's freed frame memory kept for the next frame (glibc).
 - :mod:`.warm`: the measuring path loaded and run once in a process before its first image.
 """

@@ -1,10 +1,11 @@
 """The Dask worker preload: threads for OpenCV and the TIFF codecs, the compiled kernel loaded."""
 
+import sys
 from types import SimpleNamespace
 
 import cv2
 
-from fieldcal.measure import disc_kernel, warm
+from fieldcal.measure import disc_kernel, heap, warm
 from fieldcal.measure.imageio import decode_threads, set_decode_threads
 from flows import worker
 
@@ -15,6 +16,8 @@ def test_worker_setup_gives_each_dask_thread_one_opencv_and_one_codec_thread_and
         worker.dask_setup(SimpleNamespace(state=SimpleNamespace(nthreads=2)))
         assert cv2.getNumThreads() == 2 and decode_threads() == 2
         assert disc_kernel.problem() is None and disc_kernel.available()   # loaded before any task
+        if sys.platform.startswith("linux"):
+            assert heap.keep_freed_memory() is True           # glibc keeps freed frame memory
     finally:
         cv2.setNumThreads(before[0])
         set_decode_threads(before[1])
