@@ -5,9 +5,8 @@ Usage::
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_heap.py [--rounds 3] [--frames 72]
 
 Each round runs two fresh processes, alternated: ``default`` (glibc's allocator as it
-comes) and ``kept`` (``mallopt`` first, before any thread exists: one malloc arena, blocks
-up to 1 GiB from the heap instead of ``mmap``, no trimming, so a freed frame's memory is
-reused by the next instead of coming back from the kernel as fresh pages). Each process
+comes) and ``kept`` (:func:`fieldcal.measure.heap.keep_freed_memory` first, before any
+thread exists). Each process
 warms the measuring path up (:func:`fieldcal.measure.warm.warm_up_measuring`), then two
 threads read, hash, decode and measure the frames of ``bench/out/flow/paper72`` (written by
 ``bench_flow.py``), odd and even ones, as two in-process Dask workers would. Reported per
@@ -33,10 +32,9 @@ ROOT = HERE.parent
 CHILD = """
 import json, resource, sys, threading, time
 mode, folder, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
-if mode == "kept":            # glibc: one arena, large blocks from the heap, no trimming
-    import ctypes
-    libc = ctypes.CDLL("libc.so.6")
-    assert libc.mallopt(-8, 1) == libc.mallopt(-3, 1 << 30) == libc.mallopt(-1, 2**31 - 1) == 1
+if mode == "kept":            # before any thread exists (and before NumPy's import)
+    from fieldcal.measure.heap import keep_freed_memory
+    assert keep_freed_memory()
 from pathlib import Path
 from fieldcal.measure.imageio import read_file
 from fieldcal.measure.targets import measure_image

@@ -72,7 +72,7 @@ from . import cluster
 from .hashcache import HashCache, file_stamp, known_hashes
 
 __all__ = ["calibrate_session", "measure_batch", "validate_session", "solve_session",
-           "commit_version", "fan_out", "submit_placed"]
+           "commit_version", "fan_out", "submit_placed", "warm_process"]
 
 
 # --------------------------------------------------------------------------------------
@@ -118,10 +118,12 @@ _WARM_LOCK = threading.Lock()
 _WARMED: set[str] = set()
 
 
-def _warm(method: str, nthreads: int | None) -> None:
+def warm_process(method: str, nthreads: int | None) -> None:
     """Import and run the measuring code (:func:`fieldcal.measure.warm.warm_up_measuring`)
     before the work is timed, once per process (threads wait for a warm-up in progress
-    instead of repeating it); one OpenCV thread and one codec thread per Dask thread."""
+    instead of repeating it); one OpenCV thread and one codec thread per Dask thread.
+    Called by the flow before an in-process cluster starts, by every measuring task, and by
+    a worker process's preload (:mod:`flows.worker`)."""
     with _WARM_LOCK:
         if method not in _WARMED:
             if method == "goniometer":
@@ -139,13 +141,6 @@ def _warm(method: str, nthreads: int | None) -> None:
         set_decode_threads(nthreads)
         if cv2.getNumThreads() != nthreads:
             cv2.setNumThreads(nthreads)
-
-
-def _runner_in_process(runner: DaskTaskRunner) -> bool:
-    """Whether a Dask task runner's workers will be threads of this process (a local cluster
-    with ``processes=False``, :func:`flows.cluster.local_cluster_kwargs`'s default)."""
-    kwargs = getattr(runner, "cluster_kwargs", None) or {}
-    return getattr(runner, "address", None) is None and kwargs.get("processes", True) is False
 
 
 def _transient(task_, task_run, state) -> bool:
@@ -196,7 +191,7 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
         memory of the process the task ran in so far [MiB].
     """
     worker, nthreads = _worker_info()
-    _warm(prepared.method, nthreads)
+    warm_process(prepared.method, nthreads)
     t_task, start_unix = time.perf_counter(), time.time()
     stamps = {name: file_stamp(prepared.session.image_path(name)) for name in names if name not in known}
     # the plan's view of the lake, unless this is a retry that may find its first try's rows
@@ -429,13 +424,14 @@ def _measure(run: _Run, dask_address, n_workers, cluster_kwargs, batch_size) -> 
     mine = set(todo)
     present = sorted(p for p in plan.present if p[0] in mine)   # cached under another content, maybe this one
     runner = _dask_runner()
-    in_process = cluster.in_process(dask_address, cluster_kwargs) if runner is None else _runner_in_process(runner)
+    in_process = (cluster.in_process(dask_address, cluster_kwargs) if runner is None
+                  else cluster.runner_in_process(runner))
     if todo and in_process:
         # the workers will be threads of this process: warm it up now, before the cluster
         # starts (a warm-up thread beside the cluster's start and the submissions made the
         # 72-frame run 1.02-1.12x as long: the imports fight for the GIL; bench/README_flow.md)
         t_warm = time.perf_counter()
-        _warm(run.prepared.method, None)
+        warm_process(run.prepared.method, None)
         run.lap("warm_s", t_warm)
     args = (run.prepared, todo, known, run.lake, run.storage_options, batch_size, present)
     if runner is not None:

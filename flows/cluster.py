@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 
 __all__ = ["THREAD_ENV", "DEFAULT_WORKERS", "dask_address", "task_runner", "local_cluster_kwargs",
-           "in_process", "worker_count", "worker_slots"]
+           "in_process", "runner_in_process", "worker_count", "worker_slots"]
 
 ADDRESS_ENV = "FIELDCAL_DASK_ADDRESS"
 DEFAULT_WORKERS = 2
@@ -65,6 +65,14 @@ def task_runner(address: str | None = None, n_workers: int = DEFAULT_WORKERS,
 def in_process(address: str | None = None, cluster_kwargs: dict | None = None) -> bool:
     """Whether :func:`task_runner` would run the workers as threads of this process."""
     return dask_address(address) is None and not (cluster_kwargs or {}).get("processes", False)
+
+
+def runner_in_process(runner) -> bool:
+    """:func:`in_process` asked of a :class:`prefect_dask.DaskTaskRunner` made already (the
+    command line hands the flow one): no address, and a local cluster with ``processes=False``
+    (``LocalCluster``'s own default is processes)."""
+    kwargs = getattr(runner, "cluster_kwargs", None) or {}
+    return getattr(runner, "address", None) is None and kwargs.get("processes", True) is False
 
 
 def worker_count(client, timeout_s: float = 60.0) -> int:

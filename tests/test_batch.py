@@ -109,9 +109,11 @@ def test_batches_are_placed_by_images_so_each_worker_gets_an_equal_share():
     slots = batch.assign_batches(sizes, 2)
     per_slot = [sum(n for n, k in zip(sizes, slots, strict=True) if k == s) for s in (0, 1)]
     assert slots == [0, 1, 1, 1, 1, 1, 1] and per_slot == [35, 35]
-    # by count of tasks, the scheduler's view, the same sequence would be 47 against 23
+    # by count of tasks, the scheduler's view (alternating), the same sequence would be 47
+    # against 23: placed by images, neither slot gets more than half
     by_count = [sum(sizes[0::2]), sum(sizes[1::2])]
     assert by_count == [47, 23]
+    assert slots != [k % 2 for k in range(len(sizes))] and max(per_slot) < max(by_count)
     # four slots; a tie goes to the first; one slot: everything on it
     assert batch.assign_batches([5, 5, 5, 5, 3, 2], 4) == [0, 1, 2, 3, 0, 1]
     assert batch.assign_batches([3, 2, 1], 1) == [0, 0, 0]

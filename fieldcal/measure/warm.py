@@ -5,8 +5,9 @@ The first image a fresh process measured cost 0.3-0.6 s more than the next ones 
 module), TIFF codecs loaded on first use, OpenCV's first ArUco detection, Numba's kernels
 loaded from their cache. :func:`warm_up_measuring` pays all of it at once on a small
 made-up image written in memory in each TIFF layout the renderer and cameras use (tiled
-zstd, tiled deflate, striped uncompressed), so a Dask worker (``flows.worker``) or the
-flow's warm-up thread can do it while the cluster starts, and the first measuring task
+zstd, tiled deflate, striped uncompressed), once per process
+(:func:`flows.calibrate.warm_process`: a Dask worker process when it starts, the flow's
+own process before it starts in-process workers), so that the first measuring task
 measures the work, not the start.
 """
 

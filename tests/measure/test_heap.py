@@ -1,5 +1,6 @@
 """The memory of one image kept for the next (:mod:`fieldcal.measure.heap`)."""
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -11,10 +12,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 ALLOCATE = """
     import json, resource, sys, threading
-    import numpy as np
     from fieldcal.measure.heap import keep_freed_memory
 
-    kept = keep_freed_memory() if sys.argv[1] == "keep" else None
+    kept = keep_freed_memory() if sys.argv[1] == "keep" else None   # before any other thread exists
+    import numpy as np
     faults = []
 
     def frames():                 # three 100 MB frames in a worker thread, one after the other
@@ -34,8 +35,9 @@ ALLOCATE = """
 def _run(mode: str) -> dict:
     import json
 
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")   # no BLAS threads either
     out = subprocess.run([sys.executable, "-c", textwrap.dedent(ALLOCATE), mode], capture_output=True, text=True,
-                         cwd=ROOT, timeout=120)
+                         cwd=ROOT, timeout=120, env=env)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.strip().splitlines()[-1])
 
