@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from fieldcal import pipeline
@@ -229,7 +230,8 @@ def measure_into_lake(prepared: pipeline.Prepared, name: str, lake, sha256: str 
 
 def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
                            known: dict[str, str] | None = None, *,
-                           present: set[tuple[str, str]] | None = None) -> list[dict]:
+                           present: set[tuple[str, str]] | None = None,
+                           on_image: Callable[[dict], None] | None = None) -> list[dict]:
     """:func:`measure_into_lake` for several images, their observations in one lake append.
 
     Parameters
@@ -241,6 +243,9 @@ def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
         (:attr:`SessionPlan.present`): an image is looked up there instead of in the lake
         (one Delta scan per image). None: ask the lake for each image. An image measured by
         two runs at once is stored twice and read once (:mod:`fieldcal.lake.observations`).
+    on_image : callable, optional
+        Called with each image's row as soon as the image is done (progress; its
+        observations are written with the others at the end).
 
     The observations measured so far are written (one append per table,
     :meth:`Lake.write_observations_many`) when the list is done, and also when measuring
@@ -255,6 +260,8 @@ def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
             rows.append(row)
             if table is not None:
                 pending.append((row, table))
+            if on_image is not None:
+                on_image(row)
     finally:
         _write_pending(prepared, lake, pending)
     return rows

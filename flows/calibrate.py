@@ -68,7 +68,7 @@ from fieldcal import batch, pipeline, progress
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.store import Lake
 
-from . import cluster
+from . import cluster, image_events
 from .hashcache import HashCache, file_stamp, known_hashes
 
 __all__ = ["calibrate_session", "measure_batch", "validate_session", "solve_session",
@@ -164,7 +164,8 @@ def validate_session(session: str, settings: dict | None = None) -> pipeline.Pre
 @task(name="measure-batch", cache_policy=NO_CACHE, persist_result=False, retries=1,
       retry_delay_seconds=2, retry_condition_fn=_transient)
 def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
-                  storage_options: dict | None = None, present: list | None = None) -> dict:
+                  storage_options: dict | None = None, present: list | None = None,
+                  progress_run: str | None = None) -> dict:
     """Hash and measure a batch of images; their observations go to the lake in one append
     (:func:`fieldcal.batch.measure_many_into_lake`; the images were looked up by the plan).
 
@@ -180,6 +181,9 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     present : list, optional
         ``(image, key)`` of these images cached in the lake when the run was planned
         (:attr:`fieldcal.batch.SessionPlan.present`).
+    progress_run : str, optional
+        The flow's token for image-by-image progress (:mod:`flows.image_events`): each
+        image is reported as soon as it is done. None: no reports.
 
     Returns
     -------
@@ -196,7 +200,9 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str
     stamps = {name: file_stamp(prepared.session.image_path(name)) for name in names if name not in known}
     # the plan's view of the lake, unless this is a retry that may find its first try's rows
     rows = batch.measure_many_into_lake(prepared, names, Lake(lake, storage_options), known,
-                                        present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()})
+                                        present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()},
+                                        on_image=lambda row: image_events.report_image(progress_run, row["image"],
+                                                                                       row["status"]))
     for row in rows:
         row["stamp"] = stamps.get(row["image"])
     return {"rows": rows, "task_s": time.perf_counter() - t_task, "worker": worker, "pid": os.getpid(),
@@ -267,16 +273,21 @@ def submit_placed(runner: DaskTaskRunner, task_, params: dict, worker: str | Non
 
 
 class _Collector:
-    """Results of the measuring tasks as they come back: rows, per-task figures, progress."""
+    """Results of the measuring tasks as they come back: rows, per-task figures, progress.
 
-    def __init__(self, total: int, logger):
+    Progress counts each image when its worker reports it (:mod:`flows.image_events`), or
+    at the latest when its task's result comes back."""
+
+    def __init__(self, total: int, logger, client=None):
         self.rows: list[dict] = []
         self.tasks: list[dict] = []
-        self.counts = {"done": 0, "cached": 0, "bad": 0}
         self.total = total
         self.logger = logger
         self.submitted: dict = {}
-        progress.emit("images", total=total, **self.counts)
+        progress.emit("images", total=total, done=0, cached=0, bad=0)
+        self.images = image_events.ImageCounts(
+            total, lambda **counts: progress.emit("images", total=total, **counts),
+            None if progress.is_quiet() else client)
 
     def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None,
                priority=0):
@@ -287,7 +298,7 @@ class _Collector:
         params = {"prepared": prepared, "names": batch_names,
                   "known": {n: known[n] for n in batch_names if n in known},
                   "lake": lake, "storage_options": storage_options,
-                  "present": [p for p in present if p[0] in mine]}
+                  "present": [p for p in present if p[0] in mine], "progress_run": self.images.run}
         fut = submit_placed(runner, measure_batch, params, worker, priority)
         self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
         return fut
@@ -300,13 +311,10 @@ class _Collector:
                            "submit_s": submit_s, "worker": res["worker"], "pid": res["pid"],
                            "rss_peak_mb": res["rss_peak_mb"], "start_unix": res["start_unix"],
                            "end_unix": res["end_unix"]})
-        self.counts["done"] += len(names)
+        self.images.add([(r["image"], r["status"]) for r in res["rows"]])
         for r in res["rows"]:
-            if r["status"] in ("cached", "bad"):
-                self.counts[r["status"]] += 1
             if r["status"] == "bad":
                 self.logger.warning(f"{r['image']}: {r['reason']} (left out)")
-        progress.emit("images", total=self.total, **self.counts)
         return res
 
 
@@ -327,7 +335,7 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
     """
     logger = get_run_logger()
     start_unix = time.time()
-    c = _Collector(len(names), logger)
+    c = _Collector(len(names), logger, runner.client)
     slots = cluster.worker_slots(runner.client) or [None]
     estimate = None
     if batch_size:
@@ -344,8 +352,11 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
         futures.append(c.submit(runner, prepared, names[i:i + size], known, lake, storage_options,
                                 present or [], slots[slot], priority=len(sizes) - k))   # large ones first
         i += size
-    for fut in as_completed(futures):
-        c.collect(fut)
+    try:
+        for fut in as_completed(futures):
+            c.collect(fut)
+    finally:
+        c.images.close()
     order = {n: k for k, n in enumerate(names)}
     c.rows.sort(key=lambda r: order[r["image"]])
     return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),

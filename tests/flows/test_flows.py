@@ -19,7 +19,7 @@ import tifffile
 import yaml
 import zarr
 
-from fieldcal import batch
+from fieldcal import batch, progress
 from fieldcal.errors import InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.lake import history
@@ -195,9 +195,14 @@ def test_rendered_field_session_with_a_corrupt_image_passes_the_solver_checks(da
     manifest["images"].append({"file": "images/corrupt.tif"})
     (folder / "session.json").write_text(json.dumps(manifest))
 
-    out = calibrate_session(str(folder), str(tmp_path / "lake"), dask_address=dask_cluster)
+    seen = []
+    with progress.listening(lambda event, **f: seen.append(f) if event == "images" else None):
+        out = calibrate_session(str(folder), str(tmp_path / "lake"), dask_address=dask_cluster)
     assert out["status"] == "committed"
     assert out["images"] == {"total": 13, "measured": 12, "cached": 0, "bad": 1, "hashed": 13}
+    # progress image by image, from the workers' reports or the tasks' results, each image once
+    done = [f["done"] for f in seen]
+    assert done == sorted(set(done)) and done[0] == 0 and seen[-1] == {"total": 13, "done": 13, "cached": 0, "bad": 1}
     (left,) = out["left_out"]
     assert left["image"] == "images/corrupt.tif" and "corrupt.tif" not in left["reason"] and left["reason"]
     doc = Lake(tmp_path / "lake").load_document(out["version"])
@@ -371,3 +376,48 @@ def test_a_task_placed_on_a_worker_runs_there(prefect_server):
 
     wanted, ran = placing()
     assert len(set(wanted)) == 2 and ran == wanted
+
+
+def test_images_are_counted_as_their_worker_reports_them_while_the_task_still_runs(dask_cluster):
+    # image-by-image progress (flows.image_events): the task reports a.tif, then waits until
+    # the flow has counted it; a.tif can only be counted from the worker's event
+    import threading
+
+    import distributed
+    from prefect import flow, task
+
+    from flows import cluster, image_events
+
+    @task(persist_result=False)
+    def two_images(run: str) -> bool:
+        image_events.report_image(run, "a.tif", "measured")
+        counted = distributed.Event("fieldcal-test-a-counted").wait(timeout=60)
+        image_events.report_image(run, "b.tif", "bad")
+        return counted
+
+    @flow(persist_result=False)
+    def counting():
+        with cluster.task_runner(dask_cluster) as runner:
+            changes, changed = [], threading.Condition()
+
+            def on_change(**counts):         # in the client's event loop: no blocking calls here
+                with changed:
+                    changes.append(counts)
+                    changed.notify_all()
+
+            counts = image_events.ImageCounts(2, on_change, runner.client)
+            fut = runner.submit(two_images, {"run": counts.run})
+            with changed:
+                assert changed.wait_for(lambda: changes, timeout=60), "a.tif was not reported"
+            distributed.Event("fieldcal-test-a-counted", client=runner.client).set()
+            assert fut.result() is True
+            with changed:                    # b.tif's event may come after the task's result
+                changed.wait_for(lambda: len(changes) == 2, timeout=60)
+            counts.add([("a.tif", "measured"), ("b.tif", "bad")])   # the task's rows: counted already
+            counts.close()
+            counts.add([("c.tif", "measured")])                        # after close: ignored
+            return changes, counts.counts()
+
+    changes, final = counting()
+    assert changes == [{"done": 1, "cached": 0, "bad": 0}, {"done": 2, "cached": 0, "bad": 1}]
+    assert final == {"done": 2, "cached": 0, "bad": 1}
