@@ -264,6 +264,8 @@ def main() -> int:
     ap.add_argument("--out", default=str(HERE / "out" / "flow"))
     ap.add_argument("--images", type=int, default=72)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--batch-size", type=int, default=None,
+                    help="images per measuring task in the cold run (default: the flow's plan)")
     ap.add_argument("--render-procs", type=int, default=2)
     ap.add_argument("--skip", action="append", default=[], choices=("cold", "rerun", "threads", "warm"))
     args = ap.parse_args()
@@ -303,7 +305,7 @@ def main() -> int:
             shutil.rmtree(lake, ignore_errors=True)
             Path(os.environ["FIELDCAL_HASH_CACHE"]).unlink(missing_ok=True)
             t = time.perf_counter()
-            r = calibrate_session(str(session), str(lake), n_workers=args.workers)
+            r = calibrate_session(str(session), str(lake), n_workers=args.workers, batch_size=args.batch_size)
             results["cold"] = analyse(r, time.perf_counter() - t)
             print(f"cold: {results['cold']['wall_s']:.1f} s, outside share {results['cold']['outside_share']:.1%}",
                   flush=True)

@@ -14,11 +14,13 @@ the Prefect flows (``flows/``) and the command line make them the same way:
   a version with the same fingerprint of inputs and settings is committed already).
 - :func:`measure_into_lake`: hash (when unknown), look up and measure one image, and write
   its observations into the lake; a bad image is a row with status ``"bad"``, not an
-  exception. :func:`measure_many_into_lake`: the same for a batch of images, with one lake
-  append for all of them.
+  exception. :func:`measure_many_into_lake`: the same for a sequence of images, with one
+  lake append for all of them (or one per ``append_every_s`` of measuring).
 - :func:`read_observations`: the cached observations of the measured images, for the solve.
-- :func:`plan_batches`: how many images each measuring task takes (guided
-  self-scheduling, from the measured cost per image and per task).
+- :func:`pull_chunks`: the images in the pieces that measuring tasks pull, one at a
+  time, from a queue they share (self-scheduling: one task per worker thread, the
+  threads finish within one piece of each other); :func:`assign_batches`: where fixed
+  batches go (``--batch-size``).
 
 The lake is used through its public methods only (``find_committed``, ``cached_keys``,
 ``has_observations``, ``write_observations_many``, ``read_observations``).
@@ -29,7 +31,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from fieldcal import pipeline
@@ -40,22 +42,24 @@ from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
            "unchanged_version", "cached_observations", "measure_into_lake", "measure_many_into_lake",
            "read_observations",
-           "plan_batches", "assign_batches", "prior_costs", "TASKS_PER_WORKER", "MAX_TASK_S", "MISSING", "UNREADABLE"]
+           "pull_chunks", "assign_batches", "image_seconds", "PRIOR_IMAGE_S", "MIN_PULL_S", "APPEND_EVERY_S", "MISSING",
+           "UNREADABLE"]
 
-TASKS_PER_WORKER = 1
-"""Guided batch sizing: each batch takes 1 / (TASKS_PER_WORKER x workers) of the images left.
-1 (guided self-scheduling proper) rather than 2: each Prefect task run costs its worker
-~0.15-0.2 s, and 8-9 tasks instead of 15 made the 72-frame flow 0.85x as long in alternating
-runs (bench/README_flow.md)."""
-MAX_TASK_S = 60.0
-"""Largest measured work per task [s] (beyond the overhead floor): progress, retries."""
 PRIOR_BYTES_PER_S = 300e6
 """Work per image before any is measured: the file's bytes at this rate [bytes/s]. The bench
 frames (60-103 MB) take 0.19-0.38 s each to read, hash, decode and measure on one core
 (``bench/README_flow.md``): 270-540 MB/s."""
-PRIOR_TASK_OVERHEAD_S = 0.3
-"""Cost of a task besides its images [s]: Prefect's task run, Dask's dispatch, one append
-to the lake (0.05-0.3 s measured on the bench's timelines)."""
+PRIOR_IMAGE_S = 0.004
+"""Work per image besides its bytes [s]: opening, the TIFF's header, detection (a goniometer
+session's 180 frames of 5 kB measure in ~4 ms each)."""
+MIN_PULL_S = 0.25
+"""Least expected work in one piece a measuring task pulls [s] (:func:`pull_chunks`): a
+pull is a round trip to the Dask scheduler (~1-5 ms), negligible against a full-size frame
+(one per pull) but not against a goniometer's 5 ms frames (~50 per pull)."""
+APPEND_EVERY_S = 30.0
+"""A measuring task appends its observations to the lake after this much measuring [s] (and
+at its end): a task killed late loses at most this much work (``fieldcal run`` picks the
+rest up again from the lake)."""
 MISSING = "missing"
 """The stand-in hash of a listed image whose file is absent (part of the fingerprint)."""
 UNREADABLE = "unreadable"
@@ -228,16 +232,18 @@ def measure_into_lake(prepared: pipeline.Prepared, name: str, lake, sha256: str 
     return measure_many_into_lake(prepared, [name], lake, {name: sha256} if sha256 else None)[0]
 
 
-def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
+def measure_many_into_lake(prepared: pipeline.Prepared, names: Iterable[str], lake,
                            known: dict[str, str] | None = None, *,
                            present: set[tuple[str, str]] | None = None,
-                           on_image: Callable[[dict], None] | None = None) -> list[dict]:
+                           on_image: Callable[[dict], None] | None = None,
+                           append_every_s: float | None = None) -> list[dict]:
     """:func:`measure_into_lake` for several images, their observations in one lake append.
 
     Parameters
     ----------
-    names : list of str
-        Images to hash (unless their hash is in ``known``), look up and measure, in order.
+    names : iterable of str
+        Images to hash (unless their hash is in ``known``), look up and measure, in order
+        (a list, or a generator that pulls them from a queue).
     present : set, optional
         ``(image, key)`` cached in the lake, as read by :func:`plan_session`
         (:attr:`SessionPlan.present`): an image is looked up there instead of in the lake
@@ -246,6 +252,9 @@ def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
     on_image : callable, optional
         Called with each image's row as soon as the image is done (progress; its
         observations are written with the others at the end).
+    append_every_s : float, optional
+        Also append what is measured so far once this much time [s] went into measuring
+        since the last append (a long sequence does not hold all its work until the end).
 
     The observations measured so far are written (one append per table,
     :meth:`Lake.write_observations_many`) when the list is done, and also when measuring
@@ -253,15 +262,19 @@ def measure_many_into_lake(prepared: pipeline.Prepared, names: list[str], lake,
     (see :func:`measure_into_lake`); ``write_s`` is the append's time shared by the
     images written.
     """
-    rows, pending = [], []
+    rows, pending, work_s = [], [], 0.0
     try:
         for name in names:
             row, table = _measure_one(prepared, name, lake, (known or {}).get(name), present)
             rows.append(row)
+            work_s += row["hash_s"] + row["measure_s"]
             if table is not None:
                 pending.append((row, table))
             if on_image is not None:
                 on_image(row)
+            if append_every_s is not None and work_s >= append_every_s and pending:
+                _write_pending(prepared, lake, pending)
+                pending, work_s = [], 0.0
     finally:
         _write_pending(prepared, lake, pending)
     return rows
@@ -337,62 +350,38 @@ def read_observations(prepared: pipeline.Prepared, lake, keys: dict[str, str]) -
 # --------------------------------------------------------------------------------------
 # batch sizes
 # --------------------------------------------------------------------------------------
-def plan_batches(n: int, n_workers: int, image_s: float, overhead_s: float, *,
-                 tasks_per_worker: int = TASKS_PER_WORKER, max_task_s: float = MAX_TASK_S) -> list[int]:
-    """Batch sizes (images per task) for ``n`` images, from their expected costs.
+def image_seconds(file_bytes: list[int]) -> float:
+    """Expected work per image [s] before any is measured: :data:`PRIOR_IMAGE_S` and the mean
+    file size at :data:`PRIOR_BYTES_PER_S` (files of size 0, unreadable, are left out; none
+    left: 0)."""
+    sizes = [int(b) for b in file_bytes if b and b > 0]
+    return PRIOR_IMAGE_S + (sum(sizes) / len(sizes)) / PRIOR_BYTES_PER_S if sizes else 0.0
 
-    Guided self-scheduling: each batch takes ``ceil(left / (tasks_per_worker * n_workers))``
-    of the images still left, so batches are large first and shrink towards the end and
-    the workers finish together; but no batch is smaller than ``ceil(overhead_s /
-    image_s)`` (a task at least as long as its own overhead; that floor itself at most
-    ``ceil(n / n_workers)``, so that every worker gets some of the images) or, beyond that,
-    larger than ``max_task_s`` of work (progress and retries stay fine-grained).
+
+def pull_chunks(names: list[str], image_s: float, min_pull_s: float | None = None) -> list[list[str]]:
+    """The images, in order, in the pieces measuring tasks pull from their shared queue.
+
+    Self-scheduling: the flow starts one measuring task per worker thread, and each takes
+    the next piece whenever it is ready for one, so the threads stay busy to the end and
+    finish within one piece of each other whatever the images cost, with one task (one
+    Prefect task run, ~0.25 s of the worker's CPU) per thread. Each piece holds
+    ``ceil(min_pull_s / image_s)`` images (one full-size frame, or ~50 of a goniometer's
+    small frames), so that the pull's round trip stays small against the work.
 
     Parameters
     ----------
-    n : int
-        Images to distribute.
-    n_workers : int
-        Worker threads of the cluster.
+    names : list of str
+        Images to measure, in the order they are to be taken.
     image_s : float
-        Work per image [s] (hashing, reading, extraction, writing; :func:`prior_costs`).
-    overhead_s : float
-        Overhead per task [s] (from submission to result, minus the work).
-
-    Returns
-    -------
-    list of int
-        Sizes summing to ``n``, in submission order (non-increasing).
+        Expected work per image [s] (:func:`image_seconds`); 0: everything in one piece.
+    min_pull_s : float, optional
+        Default :data:`MIN_PULL_S`.
     """
-    if n <= 0:
+    if not names:
         return []
-    w = max(1, int(n_workers))
-    if image_s > 0:
-        floor_ = max(1, min(math.ceil(max(overhead_s, 0.0) / image_s), math.ceil(n / w)))
-        cap = max(floor_, int(max_task_s // image_s))
-    else:                       # no work to speak of (cached images): one task
-        floor_ = cap = n
-    sizes, left = [], n
-    while left > 0:
-        b = min(left, cap, max(floor_, math.ceil(left / (tasks_per_worker * w))))
-        sizes.append(b)
-        left -= b
-    return sizes
-
-
-def prior_costs(file_bytes: list[int]) -> tuple[float, float]:
-    """``(image_s, overhead_s)`` for :func:`plan_batches` from the image files' sizes.
-
-    The work per image from the mean size at :data:`PRIOR_BYTES_PER_S`, the overhead per
-    task :data:`PRIOR_TASK_OVERHEAD_S`: known before any image is read, so every batch can be
-    submitted at once. (The flow used to measure one image per worker first; those probes
-    cost ~0.4 s of idle workers per run and measured the process's start, 0.8-1.3 s per
-    image against 0.2-0.4 s afterwards.) A factor of two off changes only the smallest and
-    largest batch sizes allowed.
-    """
-    sizes = [int(b) for b in file_bytes if b and b > 0]
-    image_s = (sum(sizes) / len(sizes)) / PRIOR_BYTES_PER_S if sizes else 0.0
-    return image_s, PRIOR_TASK_OVERHEAD_S
+    min_pull_s = MIN_PULL_S if min_pull_s is None else min_pull_s
+    k = len(names) if image_s <= 0 else max(1, math.ceil(min_pull_s / image_s))
+    return [names[i:i + k] for i in range(0, len(names), k)]
 
 
 def assign_batches(sizes: list[int], n_slots: int) -> list[int]:
@@ -400,15 +389,17 @@ def assign_batches(sizes: list[int], n_slots: int) -> list[int]:
     with the fewest images so far (the first such slot on a tie).
 
     A Dask scheduler places tasks it cannot tell apart (one key prefix, one mean duration)
-    on the worker with the fewest tasks, so a guided sequence 35, 18, 9, 4, 2, 1, 1 over
-    two workers became 35 + 9 + 2 + 1 images against 18 + 4 + 1, and a batch waited behind
+    on the worker with the fewest tasks, so a sequence 35, 18, 9, 4, 2, 1, 1 over two
+    workers became 35 + 9 + 2 + 1 images against 18 + 4 + 1, and a batch waited behind
     the long one while the other worker idled, until work stealing moved it 1-2 s later
     (``bench/README_flow.md``). Placed by images instead: 35 against 18 + 9 + 4 + 2 + 1 + 1.
+    (The flow's default, the images pulled from a queue by one task per thread, needs no
+    placement of batches: :func:`pull_chunks`.)
 
     Parameters
     ----------
     sizes : list of int
-        Images per batch, in submission order (:func:`plan_batches`).
+        Images per batch, in submission order.
     n_slots : int
         Worker threads.
 

@@ -12,8 +12,8 @@ what is cached, the no-op check, batch sizes):
    observations, the images left to measure, and the no-op (every hash known and a version
    with the same fingerprint committed: that version is returned; ``force=True`` makes a
    new one).
-3. **measure** (tasks :func:`measure_batch` on Dask, one per image or small batch, the
-   sizes planned from the files' sizes, :func:`fan_out`): each task hashes its images (unless
+3. **measure** (tasks :func:`measure_batch` on Dask, one per worker thread pulling the
+   images from a queue, :func:`fan_out`): each task hashes its images (unless
    known), skips those cached under that hash and measures the others
    (:func:`fieldcal.batch.measure_into_lake`), their observations into the lake. A
    bad image is reported and left out; the run goes on. Where the tasks run:
@@ -34,14 +34,15 @@ what is cached, the no-op check, batch sizes):
    first, its catalog row last. A run killed before this point leaves no visible version;
    the rerun finds the observations cached and completes the work.
 
-Batch sizes (:func:`fieldcal.batch.plan_batches`): guided self-scheduling from the
-files' sizes (:func:`fieldcal.batch.prior_costs`: ``t_img`` the mean file size at 300 MB/s,
-``t_ovh`` 0.3 s per task), never below ``ceil(t_ovh / t_img)`` images per task nor above
-60 s of work. All batches are submitted at once, each placed on a worker thread so that
-the threads get equal shares of the images (:func:`fieldcal.batch.assign_batches`; another
-worker may still take a batch, one that left or work stealing). 72 full-size images on two
-threads go in batches of 36, 18, 9, 5, 2, 1, 1: 36 on one thread, the rest on the other;
-the small frames of a goniometer session (a few MB, ~5 ms each) in two or three batches.
+Where the images go (:func:`fan_out`): one measuring task per worker thread, placed on it,
+and every task pulls the images from a Dask queue of the run, a full-size frame (or ~0.25 s
+of a goniometer's small frames) at a time (:func:`fieldcal.batch.pull_chunks`), until the
+queue's end marker: the threads stay busy to the last image and finish within one image of
+each other, with one Prefect task run each (~0.25 s of a worker's CPU per task run; the
+guided batches 36, 18, 9, 5, 2, 1, 1 of 72 frames before made seven). Each task appends its
+observations to the lake every 30 s of measuring and at its end; an image no task returned
+(a worker lost) is measured again by a task of its own. ``batch_size`` (``--batch-size``)
+gives fixed batches instead, placed so that each thread gets an equal share.
 
 Progress goes to :mod:`fieldcal.progress` (the command line shows it on a terminal) and to
 the Prefect logger (the flow run's logs on the Prefect server).
@@ -53,6 +54,7 @@ import os
 import resource
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,6 +116,8 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # Linux: KiB
 
 
+PULL_TIMEOUT_S = 60.0
+"""A measuring task that finds its queue empty this long stops (:func:`_pulled`)."""
 _WARM_LOCK = threading.Lock()
 _WARMED: set[str] = set()
 
@@ -163,50 +167,90 @@ def validate_session(session: str, settings: dict | None = None) -> pipeline.Pre
 
 @task(name="measure-batch", cache_policy=NO_CACHE, persist_result=False, retries=1,
       retry_delay_seconds=2, retry_condition_fn=_transient)
-def measure_batch(prepared: pipeline.Prepared, names: list[str], known: dict[str, str], lake: str,
+def measure_batch(prepared: pipeline.Prepared, names: list[str] | None, known: dict[str, str], lake: str,
                   storage_options: dict | None = None, present: list | None = None,
-                  progress_run: str | None = None) -> dict:
-    """Hash and measure a batch of images; their observations go to the lake in one append
+                  progress_run: str | None = None, queue: str | None = None) -> dict:
+    """Hash and measure images, their observations into the lake
     (:func:`fieldcal.batch.measure_many_into_lake`; the images were looked up by the plan).
 
     Parameters
     ----------
     prepared : fieldcal.pipeline.Prepared
-    names : list of str
-        Image names (session-relative paths).
+    names : list of str, or None
+        Image names (session-relative paths): a fixed batch. None: pull them from ``queue``.
     known : dict
         ``{name: sha256}`` of images whose hash is known already (not read for hashing).
     lake, storage_options
-        Where the observations go (the lake's observation tables).
+        Where the observations go (the lake's observation tables): one append at the end,
+        and one after every :data:`fieldcal.batch.APPEND_EVERY_S` of measuring.
     present : list, optional
         ``(image, key)`` of these images cached in the lake when the run was planned
         (:attr:`fieldcal.batch.SessionPlan.present`).
     progress_run : str, optional
         The flow's token for image-by-image progress (:mod:`flows.image_events`): each
         image is reported as soon as it is done. None: no reports.
+    queue : str, optional
+        Name of the run's Dask queue (with ``names`` None): pieces of the image list
+        (:func:`fieldcal.batch.pull_chunks`), taken one at a time until the end marker,
+        None (:func:`fan_out`).
 
     Returns
     -------
     dict
         ``rows``: per image the row of :func:`fieldcal.batch.measure_into_lake` plus
         ``stamp`` (the file's stamp before hashing, for the hash store; None when the hash
-        was known); ``task_s`` the time of the whole batch [s]; ``worker`` the Dask
+        was known); ``task_s`` the time of the whole task [s]; ``worker`` the Dask
         worker's address (None outside Dask); ``pid``; ``rss_peak_mb`` the peak resident
         memory of the process the task ran in so far [MiB].
     """
     worker, nthreads = _worker_info()
     warm_process(prepared.method, nthreads)
     t_task, start_unix = time.perf_counter(), time.time()
-    stamps = {name: file_stamp(prepared.session.image_path(name)) for name in names if name not in known}
-    # the plan's view of the lake, unless this is a retry that may find its first try's rows
-    rows = batch.measure_many_into_lake(prepared, names, Lake(lake, storage_options), known,
-                                        present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()},
-                                        on_image=lambda row: image_events.report_image(progress_run, row["image"],
-                                                                                       row["status"]))
+    stamps = {}
+
+    def stamped(images):
+        for name in images:
+            if name not in known:
+                stamps[name] = file_stamp(prepared.session.image_path(name))
+            yield name
+
+    source = names if queue is None else _pulled(queue)
+    images = stamped(source)
+    try:
+        # the plan's view of the lake, unless this is a retry that may find its first try's rows
+        rows = batch.measure_many_into_lake(
+            prepared, images, Lake(lake, storage_options), known,
+            present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()},
+            on_image=lambda row: image_events.report_image(progress_run, row["image"], row["status"]),
+            append_every_s=batch.APPEND_EVERY_S)
+    finally:
+        images.close()
+        if queue is not None:
+            source.close()                   # gives the queue back (_pulled's finally)
     for row in rows:
         row["stamp"] = stamps.get(row["image"])
     return {"rows": rows, "task_s": time.perf_counter() - t_task, "worker": worker, "pid": os.getpid(),
             "rss_peak_mb": _peak_rss_mb(), "start_unix": start_unix, "end_unix": time.time()}
+
+
+def _pulled(queue: str, timeout_s: float = PULL_TIMEOUT_S):
+    """Image names from the Dask queue ``queue``, a piece at a time, until the end marker
+    (None) or ``timeout_s`` without one (the flow gives the images no task returned to
+    another task)."""
+    from distributed import Queue
+
+    q = Queue(queue)
+    try:
+        while True:
+            try:
+                piece = q.get(timeout=timeout_s)
+            except TimeoutError:
+                return
+            if piece is None:
+                return
+            yield from piece
+    finally:
+        q.close()
 
 
 @task(name="solve", cache_policy=NO_CACHE, persist_result=False)
@@ -289,25 +333,19 @@ class _Collector:
             total, lambda **counts: progress.emit("images", total=total, **counts),
             None if progress.is_quiet() else client)
 
-    def submit(self, runner, prepared, batch_names, known, lake, storage_options, present, worker=None,
-               priority=0):
-        """Submit one batch (:func:`submit_placed`; without a priority a worker runs its
-        batches in the order of their random keys)."""
+    def submit(self, runner, params: dict, worker=None, priority=0):
+        """Submit one measuring task (:func:`submit_placed`; without a priority a worker
+        runs its tasks in the order of their random keys)."""
         t0 = time.perf_counter()
-        mine = set(batch_names)
-        params = {"prepared": prepared, "names": batch_names,
-                  "known": {n: known[n] for n in batch_names if n in known},
-                  "lake": lake, "storage_options": storage_options,
-                  "present": [p for p in present if p[0] in mine], "progress_run": self.images.run}
-        fut = submit_placed(runner, measure_batch, params, worker, priority)
-        self.submitted[fut] = (batch_names, t0, time.perf_counter() - t0)
+        fut = submit_placed(runner, measure_batch, dict(params, progress_run=self.images.run), worker, priority)
+        self.submitted[fut] = (t0, time.perf_counter() - t0)
         return fut
 
     def collect(self, fut) -> dict:
-        names, t0, submit_s = self.submitted[fut]
+        t0, submit_s = self.submitted[fut]
         res = fut.result()
         self.rows.extend(res["rows"])
-        self.tasks.append({"n": len(names), "wall_s": time.perf_counter() - t0, "task_s": res["task_s"],
+        self.tasks.append({"n": len(res["rows"]), "wall_s": time.perf_counter() - t0, "task_s": res["task_s"],
                            "submit_s": submit_s, "worker": res["worker"], "pid": res["pid"],
                            "rss_peak_mb": res["rss_peak_mb"], "start_unix": res["start_unix"],
                            "end_unix": res["end_unix"]})
@@ -317,50 +355,99 @@ class _Collector:
                 self.logger.warning(f"{r['image']}: {r['reason']} (left out)")
         return res
 
+    def collect_all(self, futures) -> None:
+        for fut in as_completed(futures):
+            self.collect(fut)
+
+
+def _batch_params(prepared, names, known, lake, storage_options, present) -> dict:
+    """:func:`measure_batch`'s parameters for a fixed batch ``names``."""
+    mine = set(names)
+    return {"prepared": prepared, "names": names, "known": {n: known[n] for n in names if n in known},
+            "lake": lake, "storage_options": storage_options, "present": [p for p in present if p[0] in mine]}
+
+
+def _fixed_batches(c: _Collector, runner, slots, names, batch_size, params) -> None:
+    """``batch_size`` images per task, placed by images (:func:`fieldcal.batch.assign_batches`)."""
+    b = max(1, int(batch_size))
+    sizes = [min(b, len(names) - i) for i in range(0, len(names), b)]
+    futures = []
+    for k, slot in enumerate(batch.assign_batches(sizes, len(slots))):
+        part = names[k * b:(k + 1) * b]
+        futures.append(c.submit(runner, _batch_params(params["prepared"], part, **params["rest"]), slots[slot],
+                                priority=len(sizes) - k))
+    c.collect_all(futures)
+
+
+def _pulled_from_queue(c: _Collector, runner, slots, names, params, image_s: float) -> int:
+    """One task per worker thread, each pulling pieces of ``names`` from a Dask queue of this
+    run until its end marker (:func:`fieldcal.batch.pull_chunks`); returns images per piece."""
+    from distributed import Queue
+
+    pieces = batch.pull_chunks(names, image_s)
+    slots = slots[:len(pieces)]                       # no more tasks than pieces
+    queue = Queue(f"fieldcal-images-{uuid.uuid4().hex}", client=runner.client)
+    try:
+        everything = dict(_batch_params(params["prepared"], names, **params["rest"]), names=None,
+                          queue=queue.name)
+        futures = [c.submit(runner, everything, slot, priority=1) for slot in slots]
+        for piece in pieces:                          # while the tasks start (a round trip each)
+            queue.put(piece)
+        for _ in slots:
+            queue.put(None)                           # one end marker per task
+        c.collect_all(futures)
+    finally:
+        queue.close()
+    return len(pieces[0]) if pieces else 0
+
 
 def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str], known: dict[str, str],
             lake: str, storage_options: dict | None, batch_size: int | None,
             present: list | None = None) -> dict:
-    """Submit :func:`measure_batch` tasks to ``runner`` (entered) and collect them.
+    """Run :func:`measure_batch` tasks on ``runner`` (entered) for the images ``names``.
 
-    All batches are submitted at once, each placed on a worker thread so that every thread
-    gets an equal share of the images (:func:`fieldcal.batch.assign_batches`). Their sizes:
-    ``batch_size`` images each, or else :func:`fieldcal.batch.plan_batches` (guided
-    self-scheduling) from the files' sizes (:func:`fieldcal.batch.prior_costs`). Call it
-    inside a flow. Returns ``rows`` (per image, in ``names`` order), ``tasks`` (per task:
-    ``n``, ``wall_s``, ``task_s``, ``submit_s``, ``worker``, ``pid``, ``rss_peak_mb``,
-    ``start_unix``, ``end_unix``), ``batches`` (the sizes), ``batch_size`` (the largest),
-    ``estimate`` (``image_s``, ``overhead_s`` the sizes were planned with, or None) and
+    By default one task per worker thread, placed on it, all pulling the images from a Dask
+    queue of this run, one full-size frame (or ~0.25 s of small ones) at a time
+    (:func:`fieldcal.batch.pull_chunks`): the threads stay busy until the last image, with
+    one Prefect task run each. With ``batch_size``: fixed batches of that many images,
+    placed so that each thread gets an equal share (:func:`fieldcal.batch.assign_batches`).
+    An image that no task returned (its worker lost while it held it) is measured by a
+    task of its own afterwards. Call it inside a flow.
+
+    Returns ``rows`` (per image, in ``names`` order), ``tasks`` (per task: ``n``,
+    ``wall_s``, ``task_s``, ``submit_s``, ``worker``, ``pid``, ``rss_peak_mb``,
+    ``start_unix``, ``end_unix``), ``batches`` (images per task, largest first), ``pulled``
+    (whether the tasks pulled from a queue), ``estimate`` (``image_s`` the expected work per
+    image and ``per_pull`` the images per piece; None with ``batch_size``) and
     ``start_unix`` / ``end_unix`` of the fan-out.
     """
     logger = get_run_logger()
     start_unix = time.time()
     c = _Collector(len(names), logger, runner.client)
     slots = cluster.worker_slots(runner.client) or [None]
+    params = {"prepared": prepared, "rest": {"known": known, "lake": lake, "storage_options": storage_options,
+                                             "present": present or []}}
     estimate = None
-    if batch_size:
-        b = max(1, int(batch_size))
-        sizes = [min(b, len(names) - i) for i in range(0, len(names), b)]
-    else:
-        image_s, overhead_s = batch.prior_costs([_file_bytes(prepared, n) for n in names])
-        sizes = batch.plan_batches(len(names), len(slots), image_s, overhead_s)
-        estimate = {"image_s": image_s, "overhead_s": overhead_s}
-        logger.info(f"{len(names)} image(s), ~{image_s:.2f} s each: {len(sizes)} batches of {sizes[0]} "
-                    f"down to {sizes[-1]} on {len(slots)} worker thread(s)")
-    futures, i = [], 0
-    for k, (size, slot) in enumerate(zip(sizes, batch.assign_batches(sizes, len(slots)), strict=True)):
-        futures.append(c.submit(runner, prepared, names[i:i + size], known, lake, storage_options,
-                                present or [], slots[slot], priority=len(sizes) - k))   # large ones first
-        i += size
     try:
-        for fut in as_completed(futures):
-            c.collect(fut)
+        if batch_size:
+            _fixed_batches(c, runner, slots, names, batch_size, params)
+        elif names:
+            image_s = batch.image_seconds([_file_bytes(prepared, n) for n in names])
+            per_pull = _pulled_from_queue(c, runner, slots, names, params, image_s)
+            estimate = {"image_s": image_s, "per_pull": per_pull}
+            logger.info(f"{len(names)} image(s), ~{image_s:.2f} s each, pulled {per_pull} at a time by "
+                        f"{min(len(slots), len(names))} task(s), one per worker thread")
+        returned = {r["image"] for r in c.rows}
+        lost = [n for n in names if n not in returned]
+        if lost:
+            logger.warning(f"{len(lost)} image(s) came back from no task (a worker lost?): measuring them again")
+            c.collect_all([c.submit(runner, _batch_params(prepared, lost, **params["rest"]))])
     finally:
         c.images.close()
     order = {n: k for k, n in enumerate(names)}
     c.rows.sort(key=lambda r: order[r["image"]])
-    return {"rows": c.rows, "tasks": c.tasks, "batches": sizes, "batch_size": max(sizes, default=1),
-            "estimate": estimate, "start_unix": start_unix, "end_unix": time.time()}
+    return {"rows": c.rows, "tasks": c.tasks, "batches": sorted((t["n"] for t in c.tasks), reverse=True),
+            "pulled": not batch_size, "estimate": estimate, "start_unix": start_unix, "end_unix": time.time()}
 
 
 def _file_bytes(prepared: pipeline.Prepared, name: str) -> int:

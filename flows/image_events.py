@@ -5,7 +5,7 @@ A measuring task holds many images (72 full-size frames on two threads: a first 
 whole batch is done. So that a person at the terminal sees every image as it is measured,
 each task also reports each image through Dask's event log:
 
-- worker side, :func:`report_image`: ``Worker.log_event(TOPIC, {"run", "image", "status"})``
+- worker side, :func:`report_image`: ``Worker.log_event(TOPIC, {"run", "image", "status", "worker"})``
   after each image (cheap: a message in the worker's batched stream to the scheduler);
 - flow side, :class:`ImageCounts`: one subscription per Dask client to :data:`TOPIC`; the
   scheduler forwards the events to it, and a dispatcher hands each one to the counts of its
@@ -47,7 +47,8 @@ def report_image(run: str | None, image: str, status: str | None) -> None:
     try:
         from distributed import get_worker
 
-        get_worker().log_event(TOPIC, {"run": run, "image": str(image), "status": str(status)})
+        worker = get_worker()
+        worker.log_event(TOPIC, {"run": run, "image": str(image), "status": str(status), "worker": worker.address})
     except Exception:  # noqa: BLE001 - progress must never fail a measuring task
         pass
 

@@ -73,39 +73,26 @@ def test_the_no_op_check_finds_the_committed_version_of_the_same_inputs(tmp_path
     assert batch.plan_session(other, lake).unchanged is None             # other settings, other fingerprint
 
 
-def test_batches_shrink_towards_the_end_but_never_below_the_overhead():
-    # full-size images: 1 s of work, 0.3 s overhead per task; 70 images on 2 workers
-    sizes = batch.plan_batches(70, 2, 1.0, 0.3)
-    assert sum(sizes) == 70 and sizes == [35, 18, 9, 4, 2, 1, 1]      # half of what is left per worker
-    assert sizes == sorted(sizes, reverse=True)
-    # two tasks per worker: each takes a quarter of what is left
-    assert batch.plan_batches(70, 2, 1.0, 0.3, tasks_per_worker=2)[:4] == [18, 13, 10, 8]
-    # 5 ms frames with 0.5 s overhead: no task shorter than its overhead (100 frames) ...
-    assert batch.plan_batches(378, 2, 0.005, 0.5) == [189, 100, 89]
-    # ... unless a worker would get nothing: then half each
-    assert batch.plan_batches(178, 2, 0.005, 0.5) == [89, 89]
-    assert batch.plan_batches(3, 2, 0.001, 0.3) == [2, 1]
-    # slow images and cheap tasks: the guided sizes alone, at most 60 s of work each
-    assert batch.plan_batches(8, 2, 30.0, 0.1) == [2, 2, 2, 1, 1]
-    assert batch.plan_batches(8, 2, 10.0, 0.1) == [4, 2, 1, 1]
-    # at most 60 s of work per task beyond the floor
-    assert max(batch.plan_batches(1000, 2, 1.0, 0.1)) == 60
-    assert batch.plan_batches(10, 2, 0.0, 1.0) == [10]            # nothing to measure (cached): one task
-    assert batch.plan_batches(0, 2, 1.0, 0.3) == []
-
-
-def test_before_any_image_is_read_the_costs_come_from_the_files_sizes():
-    image_s, overhead_s = batch.prior_costs([103_093_472, 0, 59_000_000])   # 0: unreadable, ignored
-    assert image_s == pytest.approx((103_093_472 + 59_000_000) / 2 / batch.PRIOR_BYTES_PER_S)
-    assert overhead_s == batch.PRIOR_TASK_OVERHEAD_S
-    assert batch.prior_costs([]) == (0.0, batch.PRIOR_TASK_OVERHEAD_S)
-    # 72 bench frames on two threads: the guided sizes, one of 36 for each thread's first task
-    sizes = batch.plan_batches(72, 2, *batch.prior_costs([103_093_472] * 36 + [79_850_000] * 36))
-    assert sizes == [36, 18, 9, 5, 2, 1, 1]
+def test_images_are_pulled_one_full_frame_or_a_quarter_second_of_small_frames_at_a_time():
+    names = [f"images/{k:03d}.tif" for k in range(72)]
+    # before any image is read, the work comes from the files' sizes (0: unreadable, left out)
+    image_s = batch.image_seconds([103_093_472, 0, 59_000_000])
+    assert image_s == pytest.approx(batch.PRIOR_IMAGE_S + (103_093_472 + 59_000_000) / 2 / batch.PRIOR_BYTES_PER_S)
+    assert batch.image_seconds([]) == 0.0
+    # full-size frames (~0.3 s each): one per pull, in order
+    chunks = batch.pull_chunks(names, batch.image_seconds([103_093_472] * 36 + [79_850_000] * 36))
+    assert chunks == [[n] for n in names]
+    # a goniometer's 5 ms frames: 50 per pull (0.25 s of work), the rest in the last piece
+    chunks = batch.pull_chunks(names * 3, 0.005)
+    assert [len(c) for c in chunks] == [50, 50, 50, 50, 16] and sum(chunks, []) == names * 3
+    # tiny files still cost their fixed part: 63 per pull, not all in one piece
+    assert len(batch.pull_chunks(names * 3, batch.image_seconds([5_500] * 216))[0]) == 63
+    assert batch.pull_chunks(names, 0.0) == [names]           # nothing known to cost: one piece
+    assert batch.pull_chunks([], 0.3) == []
 
 
 def test_batches_are_placed_by_images_so_each_worker_gets_an_equal_share():
-    sizes = batch.plan_batches(70, 2, 1.0, 0.3)
+    sizes = [35, 18, 9, 4, 2, 1, 1]
     slots = batch.assign_batches(sizes, 2)
     per_slot = [sum(n for n, k in zip(sizes, slots, strict=True) if k == s) for s in (0, 1)]
     assert slots == [0, 1, 1, 1, 1, 1, 1] and per_slot == [35, 35]
@@ -142,6 +129,24 @@ def test_a_batch_of_images_is_one_lake_append_read_back_like_single_ones(gonio, 
     # with the probe (a retried task), images written before are found and not measured again
     again = batch.measure_many_into_lake(prepared, names, lake, {r["image"]: r["sha256"] for r in rows})
     assert [r["status"] for r in again] == ["cached"] * 4 and len(_appends(lake)) == 1
+
+
+def test_images_pulled_one_by_one_are_appended_after_every_so_much_measuring(gonio, tmp_path):
+    prepared = pipeline.prepare(gonio)
+    names = prepared.to_measure[:5]
+    lake, done = Lake(tmp_path / "lake"), []
+
+    def pulled():                                        # as a task pulls them from its queue
+        yield from names
+
+    rows = batch.measure_many_into_lake(prepared, pulled(), lake, present=set(), on_image=done.append,
+                                        append_every_s=0.0)
+    assert [r["image"] for r in rows] == names and done == rows
+    assert len(_appends(lake)) == 5                      # 0 s: an append after every image
+    rows = batch.measure_many_into_lake(prepared, names, Lake(tmp_path / "once"), present=set(),
+                                        append_every_s=3600.0)
+    assert len(_appends(Lake(tmp_path / "once"))) == 1   # never that much: one append at the end
+    assert all(r["write_s"] > 0 for r in rows)
 
 
 def test_what_a_failing_batch_measured_before_the_failure_is_kept(gonio, tmp_path, monkeypatch):

@@ -236,6 +236,62 @@ def test_a_dask_worker_killed_during_extraction_does_not_stop_the_run(small_goni
     assert_same_result(lake.load_document(out["version"]), ref)
 
 
+def test_a_worker_lost_while_it_holds_pulled_images_loses_none_of_them(small_gonio, tmp_path, monkeypatch):
+    # the default fan-out: one task per worker, both pulling images (here one per pull) from
+    # the run's queue. Worker 0 is stopped as soon as it reports its first image (it holds
+    # that image's observations, appended only when its task ends) and killed once the other
+    # worker's task has ended, i.e. the queue is empty: what it held must be measured again.
+    import distributed
+
+    from fieldcal import batch
+    from flows import image_events
+
+    monkeypatch.setattr(batch, "MIN_PULL_S", 0.0)        # one image per pull
+    folder, ref = small_gonio
+    lake_dir = tmp_path / "lake"
+    reported, first = {}, threading.Event()
+
+    with standalone.standalone_cluster(tmp_path, 2, nanny=False) as (address, workers, procs), \
+            distributed.Client(address) as watch:
+
+        def on_event(event):                             # in the client's event loop
+            msg = event[1]
+            reported.setdefault(msg["worker"], set()).add(msg["image"])
+            if msg["worker"] == workers[0] and not first.is_set():
+                procs[0].send_signal(signal.SIGSTOP)
+                first.set()
+
+        watch.subscribe_topic(image_events.TOPIC, on_event)
+
+        def kill_when_the_other_is_done():
+            assert first.wait(120), "worker 0 reported no image"
+            # the other worker's task ends only at its end marker: every image pulled
+            standalone.wait_for(lambda: sum(map(len, watch.processing(workers=[workers[1]]).values())) == 0
+                                and len(reported.get(workers[1], ())) > 0, 120, "worker 1 did not finish")
+            procs[0].send_signal(signal.SIGKILL)
+
+        watcher = threading.Thread(target=kill_when_the_other_is_done, daemon=True)
+        watcher.start()
+        out = calibrate_session(str(folder), str(lake_dir), dask_address=address)
+        watcher.join(5)
+        assert procs[0].poll() == -signal.SIGKILL and procs[1].poll() is None
+    m = out["measure"]
+    held = reported[workers[0]]
+    assert m["pulled"] and len(held) >= 1
+    # three tasks: the survivor's; the lost one's, run again by Dask, finding the queue
+    # empty; and the images no task returned (what the lost worker held), measured again
+    n_held = N_FRAMES - max(t["n"] for t in m["tasks"])
+    assert sorted(t["n"] for t in m["tasks"]) == [0, n_held, N_FRAMES - n_held] and n_held >= len(held)
+    # nothing came back from the lost worker; its images were measured by the survivor
+    assert all(t["worker"] == workers[1] for t in m["tasks"])
+    assert sorted(r["image"] for r in m["rows"]) == sorted(set(r["image"] for r in m["rows"]))
+    assert len(m["rows"]) == N_FRAMES and held <= {r["image"] for r in m["rows"] if r["status"] == "measured"}
+    assert out["images"]["bad"] == 0 and out["images"]["measured"] == N_FRAMES
+    lake = Lake(lake_dir)
+    assert lake.catalog()["version"].to_pylist() == [out["version"]]
+    assert_same_result(lake.load_document(out["version"]), ref)
+
+
 # --------------------------------------------------------------------------------------
 # writes that fail
 # --------------------------------------------------------------------------------------
