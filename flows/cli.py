@@ -360,7 +360,8 @@ def _add_compute(p) -> None:
                    help="local cluster: one worker process each instead of threads of this process "
                         "(isolation, at 3-13 s more per run on 2 cores to start and stop them)")
     p.add_argument("--batch-size", type=int, default=None,
-                   help="images per measuring task (default: chosen by measurement)")
+                   help="fixed batches of this many images per measuring task (default: one task per "
+                        "worker thread, each pulling the images one by one from a queue)")
     p.add_argument("--targets-fixed", action="store_true",
                    help="field method: hold the surveyed targets fixed (default: adjust them)")
     p.add_argument("--solver", choices=("lmqn", "lm"), help="field method: the least-squares method")
