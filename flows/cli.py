@@ -243,11 +243,56 @@ def cmd_serve(args) -> int:
         print(f"serving recalibrate-fleet/{args.name} on cron '{args.cron}' (UTC); Ctrl-C stops", file=sys.stderr)
         serve_fleet(str(lake_url), args.root, name=args.name, cron=args.cron, parameters=params)
 
+    _stop_within(_serve_stop_s())
     try:
         _with_api(args, serve)
     except KeyboardInterrupt:
         print("fieldcal serve: stopped", file=sys.stderr)
     return 0
+
+
+SERVE_STOP_S = 30.0
+"""``fieldcal serve`` exits at most this long after Ctrl-C [s] (:func:`_stop_within`;
+``FIELDCAL_SERVE_STOP_S`` sets another)."""
+
+
+def _serve_stop_s() -> float:
+    text = os.environ.get("FIELDCAL_SERVE_STOP_S", "").strip()
+    try:
+        value = float(text) if text else SERVE_STOP_S
+    except ValueError:
+        value = -1.0
+    if not value > 0:
+        raise UsageError(f"FIELDCAL_SERVE_STOP_S must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def _stop_within(grace_s: float) -> None:
+    """Make Ctrl-C end this process within ``grace_s`` seconds.
+
+    Prefect's runner pauses the served schedules on the API and cancels its loops when
+    stopped; against a server that does not answer (a busy or locked database), that wait
+    had no end, and Ctrl-C left ``fieldcal serve`` running. The handler raises
+    KeyboardInterrupt as Python's own does, and first starts a timer that ends the process
+    (exit status 0, one line on standard error) if the shutdown is still going after
+    ``grace_s``.
+    """
+    import signal
+    import threading
+
+    def give_up():
+        print(f"fieldcal serve: stopped (Prefect's shutdown did not finish within {grace_s:g} s; "
+              "the served schedule may still be active on the server)", file=sys.stderr, flush=True)
+        os._exit(0)
+
+    def on_sigint(signum, frame):
+        if not any(t.name == "fieldcal-stop" for t in threading.enumerate()):
+            timer = threading.Timer(grace_s, give_up)
+            timer.name, timer.daemon = "fieldcal-stop", True
+            timer.start()
+        signal.default_int_handler(signum, frame)
+
+    signal.signal(signal.SIGINT, on_sigint)
 
 
 def cmd_server(args) -> int:

@@ -106,7 +106,12 @@ def run_serve(argv, env, tmp_path, api, lake):
             time.sleep(1)
     finally:
         os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
+        try:
+            _, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:        # fail, but leave no process behind for later tests
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            raise
     assert registered, err[-2000:]
     assert proc.returncode == 0, err[-2000:]
     assert "serving recalibrate-fleet/nightly on cron '0 2 * * *'" in err

@@ -169,3 +169,39 @@ def test_flows_against_the_local_server_have_no_heartbeat_thread_a_configured_ap
     with temporary_settings(updates={PREFECT_API_URL: "http://127.0.0.1:9/api"}):
         with server.prefect_api():
             assert get_current_settings().flows.heartbeat_frequency == default
+
+
+def test_ctrl_c_stops_serve_even_when_the_server_no_longer_answers(world):
+    # Prefect's shutdown pauses the served schedule on the API; against a server that does
+    # not answer it used to wait without end (CI saw `fieldcal serve` ignore Ctrl-C)
+    import httpx
+
+    tmp, env, home = world
+    serve = subprocess.Popen([FIELDCAL, "serve", "--lake", tmp / "lake-serve", "--root", tmp, "--name", "stuck"],
+                             env=dict(env, FIELDCAL_SERVE_STOP_S="3"), cwd=tmp, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True, start_new_session=True)
+    server_pid = None
+    try:
+        def registered() -> bool:
+            state_file = home / "fieldcal-server.json"
+            if not state_file.exists():
+                return False
+            state = json.loads(state_file.read_text())
+            deps = httpx.post(f"{state['url']}/deployments/filter", json={"limit": 50}, timeout=10).json()
+            return any(d["name"] == "stuck" for d in deps)
+
+        wait_for(registered, 300, "the served deployment to be registered")
+        server_pid = json.loads((home / "fieldcal-server.json").read_text())["pid"]
+        os.kill(server_pid, signal.SIGSTOP)                 # the API stops answering
+        t = time.monotonic()
+        os.killpg(serve.pid, signal.SIGINT)
+        _, err = serve.communicate(timeout=60)
+        waited_s = time.monotonic() - t
+    finally:
+        if server_pid is not None:
+            os.kill(server_pid, signal.SIGCONT)
+        if serve.poll() is None:
+            os.killpg(serve.pid, signal.SIGKILL)
+            serve.wait()
+    assert serve.returncode == 0 and 3.0 <= waited_s < 30.0, (waited_s, err)
+    assert "fieldcal serve: stopped (Prefect's shutdown did not finish within 3 s" in err
