@@ -51,6 +51,11 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+if "--keep-freed-memory" in sys.argv:    # before any thread allocates (fieldcal.measure.heap)
+    sys.path.insert(0, str(ROOT))
+    from fieldcal.measure.heap import keep_freed_memory
+
+    keep_freed_memory()
 VIEWS = 72
 """Views of the field scene (``paper_field``); larger sessions repeat them (:func:`repeat_session`)."""
 
@@ -264,6 +269,8 @@ def main() -> int:
     ap.add_argument("--out", default=str(HERE / "out" / "flow"))
     ap.add_argument("--images", type=int, default=72)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--keep-freed-memory", action="store_true",
+                    help="glibc keeps freed memory in this process too (fieldcal.measure.heap), set at its start")
     ap.add_argument("--batch-size", type=int, default=None,
                     help="images per measuring task in the cold run (default: the flow's plan)")
     ap.add_argument("--render-procs", type=int, default=2)

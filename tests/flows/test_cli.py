@@ -317,3 +317,34 @@ def test_progress_goes_to_a_terminal_and_nowhere_else():
     assert "4/4 (1 cached, 1 bad)" in text and text.endswith("\n")
     assert cli_common.progress_sink(io.StringIO()) is None
     assert isinstance(cli_common.progress_sink(Terminal()), TerminalProgress)
+
+
+def test_ctrl_c_ends_serve_within_its_grace_even_when_the_shutdown_hangs(tmp_path):
+    # flows.cli._stop_within, which `fieldcal serve` installs: a shutdown that never
+    # finishes (here: the KeyboardInterrupt handler sleeps) is cut after the grace period
+    import signal
+    import time
+
+    script = ("import time\n"
+              "from flows.cli import _stop_within\n"
+              "_stop_within(1.0)\n"
+              "print('ready', flush=True)\n"
+              "try:\n"
+              "    time.sleep(120)\n"
+              "except KeyboardInterrupt:\n"
+              "    time.sleep(120)          # Prefect's shutdown waiting for an API that does not answer\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        t = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        waited_s = time.monotonic() - t
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0 and 1.0 <= waited_s < 60.0
+    assert err == ("fieldcal serve: stopped (Prefect's shutdown did not finish within 1 s; "
+                   "the served schedule may still be active on the server)\n")
