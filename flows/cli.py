@@ -124,7 +124,22 @@ def _write_document(lake, version: str, path) -> None:
         f.write("\n")
 
 
+def _keep_frame_memory(args) -> bool:
+    """With the workers as threads of this process (no ``--dask``, no ``--processes``), have
+    glibc keep freed frame memory (:func:`fieldcal.measure.heap.keep_freed_memory`), now,
+    before any thread exists: 72 bench frames in 0.81-0.96x the time (``bench/README_flow.md``,
+    fifth stop). Returns whether it applied."""
+    from flows import cluster
+
+    if not cluster.in_process(args.dask, _cluster_kwargs(args)):
+        return False
+    from fieldcal.measure.heap import keep_freed_memory
+
+    return keep_freed_memory()
+
+
 def cmd_run(args) -> int:
+    _keep_frame_memory(args)
     from fieldcal import batch, pipeline
     from fieldcal.lake.store import Lake
 
@@ -185,6 +200,7 @@ def _fleet_table(summary: dict) -> str:
 
 
 def cmd_fleet(args) -> int:
+    _keep_frame_memory(args)
     from fieldcal import fleet
     from fieldcal.lake.store import Lake
 

@@ -12,12 +12,14 @@ not grow).
 
 It takes effect only when called before the measuring threads first allocate, so it is
 called where a process starts to measure: a Dask worker process's preload
-(:mod:`flows.worker`). There, a standing 2-process cluster measured the 72 bench frames in
-19.5-19.8 s against 25.1-25.6 s without it (images' work summed 22.5-22.9 s against
-34.2-35.0 s; ``bench/README_flow.md``, fourth stop). In a process that already runs
-threads (the flow's own, with in-process workers) the threads keep their arenas and the
-setting changes nothing measurable, so it is not applied there. On a C library without
-``mallopt`` (not glibc) it does nothing.
+(:mod:`flows.worker`), and ``fieldcal run`` / ``fieldcal fleet`` with the workers as threads
+of their own process, first thing in the command (``flows.cli``). A standing 2-process
+cluster measured the 72 bench frames in 19.5-19.8 s against 25.1-25.6 s without it
+(images' work summed 22.5-22.9 s against 34.2-35.0 s; ``bench/README_flow.md``, fourth
+stop); the default in-process run in 0.81-0.96x the time (fifth stop, three alternated
+pairs). Called in a process whose threads have allocated already, the threads keep their
+arenas and it changes nothing measurable. On a C library without ``mallopt`` (not glibc) it
+does nothing.
 """
 
 from __future__ import annotations

@@ -348,3 +348,17 @@ def test_ctrl_c_ends_serve_within_its_grace_even_when_the_shutdown_hangs(tmp_pat
     assert proc.returncode == 0 and 1.0 <= waited_s < 60.0
     assert err == ("fieldcal serve: stopped (Prefect's shutdown did not finish within 1 s; "
                    "the served schedule may still be active on the server)\n")
+
+
+def test_run_keeps_freed_frame_memory_only_with_its_workers_in_its_own_process(monkeypatch):
+    import argparse
+
+    from fieldcal.measure import heap
+
+    calls = []
+    monkeypatch.delenv("FIELDCAL_DASK_ADDRESS", raising=False)
+    monkeypatch.setattr(heap, "keep_freed_memory", lambda: calls.append(1) or True)
+    assert cli._keep_frame_memory(argparse.Namespace(dask=None, processes=False)) is True
+    assert cli._keep_frame_memory(argparse.Namespace(dask="tcp://10.0.0.1:8786", processes=False)) is False
+    assert cli._keep_frame_memory(argparse.Namespace(dask=None, processes=True)) is False
+    assert calls == [1]
