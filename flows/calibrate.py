@@ -50,6 +50,7 @@ the Prefect logger (the flow run's logs on the Prefect server).
 
 from __future__ import annotations
 
+import functools
 import os
 import resource
 import threading
@@ -215,16 +216,14 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str] | None, known: d
             yield name
 
     source = names if queue is None else _pulled(queue)
-    images = stamped(source)
     try:
         # the plan's view of the lake, unless this is a retry that may find its first try's rows
         rows = batch.measure_many_into_lake(
-            prepared, images, Lake(lake, storage_options), known,
+            prepared, stamped(source), Lake(lake, storage_options), known,
             present=None if task_run.run_count > 1 else {tuple(p) for p in present or ()},
             on_image=lambda row: image_events.report_image(progress_run, row["image"], row["status"]),
             append_every_s=batch.APPEND_EVERY_S)
     finally:
-        images.close()
         if queue is not None:
             source.close()                   # gives the queue back (_pulled's finally)
     for row in rows:
@@ -325,7 +324,6 @@ class _Collector:
     def __init__(self, total: int, logger, client=None):
         self.rows: list[dict] = []
         self.tasks: list[dict] = []
-        self.total = total
         self.logger = logger
         self.submitted: dict = {}
         progress.emit("images", total=total, done=0, cached=0, bad=0)
@@ -368,14 +366,12 @@ def _batch_params(prepared, names, known, lake, storage_options, present) -> dic
 
 
 def _fixed_batches(c: _Collector, runner, slots, names, batch_size, params) -> None:
-    """``batch_size`` images per task, placed by images (:func:`fieldcal.batch.assign_batches`)."""
+    """``batch_size`` images per task, placed by images (:func:`fieldcal.batch.assign_batches`);
+    ``params(names)`` gives a task's parameters."""
     b = max(1, int(batch_size))
     sizes = [min(b, len(names) - i) for i in range(0, len(names), b)]
-    futures = []
-    for k, slot in enumerate(batch.assign_batches(sizes, len(slots))):
-        part = names[k * b:(k + 1) * b]
-        futures.append(c.submit(runner, _batch_params(params["prepared"], part, **params["rest"]), slots[slot],
-                                priority=len(sizes) - k))
+    futures = [c.submit(runner, params(names[k * b:(k + 1) * b]), slots[slot], priority=len(sizes) - k)
+               for k, slot in enumerate(batch.assign_batches(sizes, len(slots)))]
     c.collect_all(futures)
 
 
@@ -388,8 +384,7 @@ def _pulled_from_queue(c: _Collector, runner, slots, names, params, image_s: flo
     slots = slots[:len(pieces)]                       # no more tasks than pieces
     queue = Queue(f"fieldcal-images-{uuid.uuid4().hex}", client=runner.client)
     try:
-        everything = dict(_batch_params(params["prepared"], names, **params["rest"]), names=None,
-                          queue=queue.name)
+        everything = dict(params(names), names=None, queue=queue.name)
         futures = [c.submit(runner, everything, slot, priority=1) for slot in slots]
         for piece in pieces:                          # while the tasks start (a round trip each)
             queue.put(piece)
@@ -425,8 +420,8 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
     start_unix = time.time()
     c = _Collector(len(names), logger, runner.client)
     slots = cluster.worker_slots(runner.client) or [None]
-    params = {"prepared": prepared, "rest": {"known": known, "lake": lake, "storage_options": storage_options,
-                                             "present": present or []}}
+    params = functools.partial(_batch_params, prepared, known=known, lake=lake, storage_options=storage_options,
+                               present=present or [])
     estimate = None
     try:
         if batch_size:
@@ -441,7 +436,7 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
         lost = [n for n in names if n not in returned]
         if lost:
             logger.warning(f"{len(lost)} image(s) came back from no task (a worker lost?): measuring them again")
-            c.collect_all([c.submit(runner, _batch_params(prepared, lost, **params["rest"]))])
+            c.collect_all([c.submit(runner, params(lost))])
     finally:
         c.images.close()
     order = {n: k for k, n in enumerate(names)}

@@ -273,14 +273,9 @@ SERVE_STOP_S = 30.0
 
 
 def _serve_stop_s() -> float:
-    text = os.environ.get("FIELDCAL_SERVE_STOP_S", "").strip()
-    try:
-        value = float(text) if text else SERVE_STOP_S
-    except ValueError:
-        value = -1.0
-    if not value > 0:
-        raise UsageError(f"FIELDCAL_SERVE_STOP_S must be a positive number of seconds, got {text!r}")
-    return value
+    from flows.server import env_seconds
+
+    return env_seconds("FIELDCAL_SERVE_STOP_S", SERVE_STOP_S, positive=True, error=UsageError)
 
 
 def _stop_within(grace_s: float) -> None:
@@ -301,10 +296,11 @@ def _stop_within(grace_s: float) -> None:
               "the served schedule may still be active on the server)", file=sys.stderr, flush=True)
         os._exit(0)
 
+    timer = threading.Timer(grace_s, give_up)
+    timer.daemon = True
+
     def on_sigint(signum, frame):
-        if not any(t.name == "fieldcal-stop" for t in threading.enumerate()):
-            timer = threading.Timer(grace_s, give_up)
-            timer.name, timer.daemon = "fieldcal-stop", True
+        if timer.ident is None:                     # not started: the first Ctrl-C starts it
             timer.start()
         signal.default_int_handler(signum, frame)
 

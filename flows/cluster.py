@@ -88,8 +88,7 @@ def worker_count(client, timeout_s: float = 60.0) -> int:
     except TimeoutError:
         raise RuntimeError(f"no Dask worker joined the scheduler at {client.scheduler.address} "
                            f"within {timeout_s:g} s") from None
-    workers = client.scheduler_info(n_workers=-1).get("workers", {})
-    return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+    return max(1, len(worker_slots(client)))
 
 
 def worker_slots(client) -> list[str]:

@@ -55,7 +55,7 @@ from pathlib import Path
 
 from fieldcal.errors import FieldcalError, one_line
 
-__all__ = ["prefect_api", "prepare_environment", "quiet_prefect", "prefect_home", "local_server",
+__all__ = ["prefect_api", "prepare_environment", "quiet_prefect", "prefect_home", "local_server", "env_seconds",
            "start_server", "stop_server", "server_status", "ServerError", "DEFAULT_LINGER_S", "LINGER_ENV"]
 
 STATE_FILE = "fieldcal-server.json"
@@ -219,15 +219,27 @@ def _free_port() -> int:
 # --------------------------------------------------------------------------------------
 # client side
 # --------------------------------------------------------------------------------------
+def env_seconds(name: str, default: float, *, positive: bool = False, error=None) -> float:
+    """A duration [s] from the environment variable ``name``, or ``default`` when unset.
+
+    Raises ``error`` (default :class:`ServerError`) naming the variable when it is not a
+    number (or, with ``positive``, not above 0)."""
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return float(default)
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or (positive and not value > 0):
+        kind = "a positive number" if positive else "a number"
+        raise (error or ServerError)(f"{name} must be {kind} of seconds, got {text!r}")
+    return value
+
+
 def linger_seconds() -> float:
     """``FIELDCAL_SERVER_LINGER_S`` or the default; 0 or less: until ``fieldcal server stop``."""
-    text = os.environ.get(LINGER_ENV, "").strip()
-    if not text:
-        return DEFAULT_LINGER_S
-    try:
-        return float(text)
-    except ValueError:
-        raise ServerError(f"{LINGER_ENV} must be a number of seconds, got {text!r}") from None
+    return env_seconds(LINGER_ENV, DEFAULT_LINGER_S)
 
 
 def server_status(home: Path | None = None) -> dict | None:
