@@ -270,9 +270,11 @@ def main() -> int:
     ap.add_argument("--images", type=int, default=72)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--keep-freed-memory", action="store_true",
-                    help="glibc keeps freed memory in this process too (fieldcal.measure.heap), set at its start")
+                    help="glibc keeps freed memory in this process too, set at its start, as `fieldcal run` "
+                         "with in-process workers does (fieldcal.measure.heap)")
     ap.add_argument("--batch-size", type=int, default=None,
-                    help="images per measuring task in the cold run (default: the flow's plan)")
+                    help="fixed batches of this many images in the cold run (default: one task per worker "
+                         "thread pulling the images from a queue)")
     ap.add_argument("--render-procs", type=int, default=2)
     ap.add_argument("--skip", action="append", default=[], choices=("cold", "rerun", "threads", "warm"))
     args = ap.parse_args()
