@@ -328,8 +328,8 @@ def test_ctrl_c_ends_serve_within_its_grace_even_when_the_shutdown_hangs(tmp_pat
     script = ("import time\n"
               "from flows.cli import _stop_within\n"
               "_stop_within(1.0)\n"
-              "print('ready', flush=True)\n"
               "try:\n"
+              "    print('ready', flush=True)     # inside the try: the parent's Ctrl-C may come at once\n"
               "    time.sleep(120)\n"
               "except KeyboardInterrupt:\n"
               "    time.sleep(120)          # Prefect's shutdown waiting for an API that does not answer\n")
