@@ -1,5 +1,6 @@
 # The two set-up commands of fieldcal: `make demo` and `make test`.
-# Both create .venv on a fresh machine and install the pinned set (requirements.lock).
+# Both create .venv on a fresh machine, install the pinned set (requirements.lock) and
+# compile the Numba kernels into their disk cache (fieldcal/precompile.py).
 # `make check` is the fast tier for daily work (tests/conftest.py: not slow, not heavy).
 PYTHON ?= python3
 VENV   := .venv
@@ -17,6 +18,7 @@ $(STAMP): requirements.lock pyproject.toml
 	$(PY) -m pip install --quiet --upgrade "pip==26.3"
 	$(PY) -m pip install --quiet -r requirements.lock
 	$(PY) -m pip install --quiet --no-deps -e .
+	$(PY) -m fieldcal.precompile
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -27,8 +27,10 @@ every later process instead of compiled again (compiling takes 30-60 s on the 2-
 machine; loading ~0.25 s after Numba's own start-up, 1-6 s there depending on the load).
 :func:`warm_up` compiles (or loads) them for uint8 and uint16 images; a Dask worker calls
 it when it starts (``flows.worker``) so no task pays for compilation. If Numba is missing
-or cannot compile on a platform, :func:`available` says so in one logged line
-(:func:`problem`) and the detector uses the NumPy reference.
+or cannot compile on a platform, or the environment sets ``FIELDCAL_NUMBA=0`` (the
+package's one switch, :mod:`fieldcal.solver.compiled`), :func:`available` says so in one
+logged line (:func:`problem`) and the detector uses the NumPy reference. ``make`` fills
+the cache once after installing (:mod:`fieldcal.precompile`).
 """
 
 from __future__ import annotations
@@ -877,10 +879,14 @@ def warm_up() -> bool:
     per process before the first image (a Dask worker does, ``flows.worker``). Returns
     :func:`available`.
     """
+    from fieldcal.solver.compiled import enabled
+
     if numba is None:
         return _fail(_IMPORT_PROBLEM)
     if _STATE["checked"]:
         return _STATE["problem"] is None
+    if not enabled():
+        return _fail("switched off by FIELDCAL_NUMBA=0")
     yy, xx = np.mgrid[0:24, 0:24]
     disc = ((yy - 11.7) ** 2 + (xx - 12.2) ** 2) < 36.0
     try:

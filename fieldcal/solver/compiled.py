@@ -16,7 +16,7 @@ import logging
 import os
 from collections.abc import Callable
 
-__all__ = ["numba", "kernel", "status", "enabled"]
+__all__ = ["numba", "kernel", "status", "statuses", "enabled"]
 
 _log = logging.getLogger(__name__)
 
@@ -65,3 +65,8 @@ def kernel(name: str, compiled: Callable | None, smoke: Callable[[Callable], Non
 def status(name: str) -> str:
     """One line: whether kernel ``name`` is compiled, and why not (after its first use)."""
     return _KERNELS.get(name, (None, "not used yet"))[1]
+
+
+def statuses() -> dict[str, str]:
+    """:func:`status` of every kernel used so far in this process, by name."""
+    return {name: why for name, (_, why) in _KERNELS.items()}
