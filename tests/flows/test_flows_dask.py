@@ -45,7 +45,8 @@ def test_flow_runs_its_tasks_on_an_existing_scheduler_and_its_two_worker_process
     used = {t["worker"] for t in m["tasks"]}
     # every task ran on the two worker processes the test started (batches placed on both)
     assert used == set(workers)
-    assert m["n_workers"] == 2 and m["cluster_s"] < 10.0       # connecting, not starting a cluster
+    # connected, not a cluster of its own: the tasks ran in the two processes the test started
+    assert m["n_workers"] == 2
     assert len({t["pid"] for t in m["tasks"]}) == 2 and os.getpid() not in {t["pid"] for t in m["tasks"]}
 
     frames = gon.read_frames_csv(folder / "frames.csv")
