@@ -32,6 +32,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from fieldcal.errors import one_line
+
 __all__ = ["precompile", "main"]
 
 _FINGERPRINT = "sha256:" + "0" * 64
@@ -63,31 +65,36 @@ def _solving() -> dict[str, str]:
     return compiled.statuses()
 
 
-def precompile(processes: int = 2) -> dict[str, str]:
+def precompile() -> dict[str, str]:
     """Run the measuring warm-up and a small adjustment so every kernel is compiled and cached.
 
-    Parameters
-    ----------
-    processes : int
-        1: both in this process; 2 (default): each in a process of its own, at the same
-        time (Numba compiles on one core: 31 s instead of 40 s here).
+    The two run in processes of their own at the same time (Numba compiles on one core:
+    25-31 s instead of 40 s here).
 
     Returns
     -------
     dict
         Kernel name -> one line: ``"compiled (numba)"`` or why the NumPy reference runs.
     """
-    if processes <= 1:
-        return {**_measuring(), **_solving()}
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
         parts = [pool.submit(_measuring), pool.submit(_solving)]
         return {**parts[0].result(), **parts[1].result()}
 
 
 def main() -> int:
-    """``python -m fieldcal.precompile``: compile, then one line per kernel on standard error."""
+    """``python -m fieldcal.precompile``: compile, then one line per kernel on standard error.
+
+    Exit status 0 also when a kernel cannot be compiled (the NumPy reference runs); 1, with
+    one line, when the warm-up or the small solve fails (a broken installation)."""
     t0 = time.perf_counter()
-    statuses = precompile()
+    try:
+        statuses = precompile()
+    except KeyboardInterrupt:
+        print("fieldcal precompile: interrupted (the kernels not cached yet compile on first use)", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001 - any failure: one line, not a traceback
+        print(f"fieldcal precompile: failed ({type(err).__name__}: {one_line(err)})", file=sys.stderr)
+        return 1
     for name, status in statuses.items():
         print(f"fieldcal precompile: {name}: {status}", file=sys.stderr)
     print(f"fieldcal precompile: done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)

@@ -25,3 +25,16 @@ def test_precompile_without_compiled_kernels_says_why_per_kernel_and_succeeds():
                             "block-sparse normal equations", "survey consider matrix"}
     assert set(kernels.values()) == {"switched off by FIELDCAL_NUMBA=0"}
     assert lines[-1].startswith("fieldcal precompile: done in ")
+
+
+def test_a_failing_precompile_says_so_in_one_line_and_fails(monkeypatch, capsys):
+    from fieldcal import precompile
+
+    def broken():
+        raise OSError("[Errno 28] No space left on device:\n'/tmp/fieldcal-precompile-x'")
+
+    monkeypatch.setattr(precompile, "precompile", broken)
+    assert precompile.main() == 1
+    err = capsys.readouterr().err
+    assert err == ("fieldcal precompile: failed (OSError: [Errno 28] No space left on device: "
+                   "'/tmp/fieldcal-precompile-x')\n")
