@@ -18,17 +18,29 @@ $(STAMP): requirements.lock pyproject.toml
 	$(PY) -m pip install --quiet --upgrade "pip==26.3"
 	$(PY) -m pip install --quiet -r requirements.lock
 	$(PY) -m pip install --quiet --no-deps -e .
-	$(PY) -m fieldcal.precompile
 	touch $(STAMP)
 
-demo: $(STAMP)
+# Numba's disk cache of the compiled kernels, filled once after installing and again when
+# a kernel's source changes: the old cache files are deleted first, because Numba checks
+# only the file a kernel is defined in, and the camera model's terms (model/camera.py) are
+# inlined into the bundle kernel (fieldcal/precompile.py)
+KERNEL_SOURCES := $(wildcard fieldcal/*/*_kernel.py fieldcal/*/*_kernels.py) \
+                  fieldcal/model/camera.py fieldcal/precompile.py
+PRECOMPILED    := $(VENV)/.precompiled
+
+$(PRECOMPILED): $(STAMP) $(KERNEL_SOURCES)
+	find fieldcal -path '*/__pycache__/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete
+	$(PY) -m fieldcal.precompile
+	touch $(PRECOMPILED)
+
+demo: $(PRECOMPILED)
 	$(VENV)/bin/fieldcal demo
 
 # two workers, one test file each at a time (tests/conftest.py: the longest files first)
-test: $(STAMP)
+test: $(PRECOMPILED)
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
-check: $(STAMP)
+check: $(PRECOMPILED)
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not slow and not heavy"
 
 lint: $(STAMP)

@@ -6,8 +6,13 @@ on disk (``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``); every later
 a Dask worker included, loads it in milliseconds (:mod:`fieldcal.solver.compiled`). On a fresh
 installation nothing is cached yet, and the first calibration paid for the compilation:
 the first ``make demo`` of a fresh clone took 72 s, the next one 27 s (bench/README.md).
-``make`` runs this module once after installing (``python -m fieldcal.precompile``); on
-the machines of a Dask cluster, run it once after installing fieldcal (deploy/README.md).
+``make`` runs this module once after installing (``python -m fieldcal.precompile``), and
+again, after deleting the old cache files, when a kernel's source changes: Numba checks
+only the file a kernel is defined in, and the camera model's terms
+(:func:`fieldcal.model.camera.correction_terms`) are inlined into the bundle kernel, so a
+change to them alone would leave the old machine code in use (the Makefile lists the
+files). On the machines of a Dask cluster, run it once after installing fieldcal
+(deploy/README.md).
 
 It runs what a calibration runs, on small made-up inputs in a temporary folder:
 
