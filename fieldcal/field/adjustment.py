@@ -535,29 +535,24 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
     """
     data = solver.data
     out = ~obs_active & np.isin(reason, ("initial outlier", "blunder"))
-    if not out.any():
+    suspects = _suspect_points(data, out, survey_active)
+    if not suspects:
         return 0
     cam = Camera(data.sensor, solver.params)
+    first = _meeting_points(solver, cam, suspects)           # all targets' first try: one call
     n = 0
-    for t in np.unique(data.obs.target[out]):
-        if not survey_active[t]:
-            continue
-        k = np.flatnonzero(out & (data.obs.target == t))
-        if len(np.unique(data.obs.image[k])) < 2:
-            continue
-        while len(k) >= 2:
-            img = data.obs.image[k]
-            rays = np.einsum("kba,kb->ka", solver.R[img], cam.unproject(data.obs.uv_px[k]))
-            X = _intersect(rays, solver.C[img])
+    for (t, k), (rays, X, err) in zip(suspects, first, strict=True):
+        while True:
             if X is None:          # parallel rays: they cannot place the target
                 k = k[:0]
                 break
-            uv = cam.project(X, solver.R[img], solver.C[img])          # (k, 2): one call, all images
-            err = np.hypot(*(uv - data.obs.uv_px[k]).T)
             ok = np.isfinite(err) & (err < np.maximum(1.0, 5.0 * sigma0 * data.obs.sigma_px[k]))
             if ok.all():
                 break
             k = np.delete(k, int(np.argmax(np.where(np.isfinite(err), err, np.inf))))
+            if len(k) < 2:
+                break
+            ((rays, X, err),) = _meeting_points(solver, cam, [(t, k)])
         if len(k) < 2:
             continue
         angle = np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0)))
@@ -570,6 +565,39 @@ def _blame_the_survey(solver, obs_active, survey_active, reason, sigma0):
             solver.X[t] = X
             n += 1
     return n
+
+
+def _suspect_points(data, out, survey_active) -> list[tuple[int, np.ndarray]]:
+    """``(target, its rejected observations)`` of the surveyed targets whose rejected points
+    lie in two or more images (:func:`_blame_the_survey`), in target order."""
+    k = np.flatnonzero(out & survey_active[data.obs.target])
+    if not len(k):
+        return []
+    k = k[np.argsort(data.obs.target[k], kind="stable")]
+    targets, first = np.unique(data.obs.target[k], return_index=True)
+    groups = np.split(k, first[1:])
+    return [(int(t), g) for t, g in zip(targets, groups, strict=True) if len(np.unique(data.obs.image[g])) >= 2]
+
+
+def _meeting_points(solver, cam, groups):
+    """For each ``(target, observations)``: the rays (k, 3) of its points, their least-squares
+    intersection (None: parallel rays) and each point's distance from its reprojection [px].
+    The rays and the reprojections of all groups are computed in one call each (the same
+    numbers as group by group: every point is its own row)."""
+    data = solver.data
+    k = np.concatenate([g for _, g in groups])
+    img = data.obs.image[k]
+    rays = np.einsum("kba,kb->ka", solver.R[img], cam.unproject(data.obs.uv_px[k]))
+    bounds = np.cumsum([0] + [len(g) for _, g in groups])
+    X = [_intersect(rays[a:b], solver.C[img[a:b]]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    placed = np.array([x is not None for x in X])
+    err = np.full(len(k), np.nan)
+    rows = np.repeat(placed, np.diff(bounds))
+    if rows.any():
+        Xk = np.repeat(np.array([x for x in X if x is not None]).reshape(-1, 3), np.diff(bounds)[placed], axis=0)
+        uv = cam.project(Xk, solver.R[img[rows]], solver.C[img[rows]])
+        err[rows] = np.hypot(*(uv - data.obs.uv_px[k[rows]]).T)
+    return [(rays[a:b], x, err[a:b]) for a, b, x in zip(bounds[:-1], bounds[1:], X, strict=True)]
 
 
 def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o):

@@ -203,6 +203,31 @@ def test_a_wrong_dlt_pose_is_replaced_by_a_resection(monkeypatch):
     assert np.linalg.norm(init.center_m[5] - sf.center_m[5]) < 0.1
 
 
+def test_the_survey_blame_places_all_suspect_targets_at_once_with_the_numbers_of_one_at_a_time(monkeypatch):
+    # _blame_the_survey's first try intersects the rejected rays of every suspect target in
+    # one call; each point is its own row, so the rays, intersections and reprojection
+    # errors are the very numbers of the targets taken one by one (and so are the results)
+    from fieldcal.field import adjustment
+
+    batched, calls = adjustment._meeting_points, []
+
+    def checked(solver, cam, groups):
+        together = batched(solver, cam, groups)
+        for group, (rays, X, err) in zip(groups, together, strict=True):
+            ((rays1, X1, err1),) = batched(solver, cam, [group])
+            assert np.array_equal(rays, rays1) and np.array_equal(err, err1, equal_nan=True)
+            assert (X is None and X1 is None) or np.array_equal(X, X1)
+        calls.append(len(groups))
+        return together
+
+    monkeypatch.setattr(adjustment, "_meeting_points", checked)
+    bad, info = add_blunders(wide_field(seed=3), fraction=0.03, seed=13)
+    res = adjust_field(bad.data)
+    assert max(calls) >= 5                                  # several targets in one call
+    observed = np.unique(bad.data.obs.target)
+    assert (~res.survey_used[observed]).sum() >= 5           # and surveys were blamed
+
+
 def test_two_swapped_ids_that_meet_do_not_blame_a_survey_the_other_images_confirm():
     # wide_field(3) with 3 % blunders: the rejected points of targets seen in 14 and 24 images
     # were two swapped ids each whose rays happened to meet; their surveys were rejected, the
