@@ -5,7 +5,8 @@ Numba compiles a kernel the first time a process calls it with a new specialisat
 on disk (``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``); every later process,
 a Dask worker included, loads it in milliseconds (:mod:`fieldcal.solver.compiled`). On a fresh
 installation nothing is cached yet, and the first calibration paid for the compilation:
-the first ``make demo`` of a fresh clone took 72 s, the next one 27 s (bench/README.md).
+the first ``make demo`` of a fresh clone took 52 s, 19 s with the kernels precompiled
+(the Prefect server up; bench/README.md, ``bench_first_run.py``).
 ``make`` runs this module once after installing (``python -m fieldcal.precompile``), and
 again, after deleting the old cache files, when a kernel's source changes: Numba checks
 only the file a kernel is defined in, and the camera model's terms
