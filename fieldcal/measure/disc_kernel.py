@@ -879,14 +879,14 @@ def warm_up() -> bool:
     per process before the first image (a Dask worker does, ``flows.worker``). Returns
     :func:`available`.
     """
-    from fieldcal.solver.compiled import enabled
+    from fieldcal.solver import compiled
 
     if numba is None:
         return _fail(_IMPORT_PROBLEM)
     if _STATE["checked"]:
         return _STATE["problem"] is None
-    if not enabled():
-        return _fail("switched off by FIELDCAL_NUMBA=0")
+    if compiled.switched_off():
+        return _fail(compiled.SWITCHED_OFF)
     yy, xx = np.mgrid[0:24, 0:24]
     disc = ((yy - 11.7) ** 2 + (xx - 12.2) ** 2) < 36.0
     try:

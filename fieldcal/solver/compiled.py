@@ -16,7 +16,7 @@ import logging
 import os
 from collections.abc import Callable
 
-__all__ = ["numba", "kernel", "status", "statuses", "enabled"]
+__all__ = ["numba", "kernel", "status", "statuses", "enabled", "switched_off", "SWITCHED_OFF"]
 
 _log = logging.getLogger(__name__)
 
@@ -30,10 +30,18 @@ else:
 _KERNELS: dict[str, tuple[Callable | None, str]] = {}
 
 
+SWITCHED_OFF = "switched off by FIELDCAL_NUMBA=0"
+"""The status of every kernel, the disc kernel's included, when the environment says so."""
+
+
+def switched_off() -> bool:
+    """Whether the environment switches the compiled kernels off (``FIELDCAL_NUMBA`` 0, false, no, off)."""
+    return os.environ.get("FIELDCAL_NUMBA", "1").strip().lower() in ("0", "false", "no", "off")
+
+
 def enabled() -> bool:
     """Whether compiled kernels may be used (Numba importable, ``FIELDCAL_NUMBA`` not 0)."""
-    off = os.environ.get("FIELDCAL_NUMBA", "1").strip().lower() in ("0", "false", "no", "off")
-    return numba is not None and not off
+    return numba is not None and not switched_off()
 
 
 def kernel(name: str, compiled: Callable | None, smoke: Callable[[Callable], None]) -> Callable | None:
@@ -46,8 +54,8 @@ def kernel(name: str, compiled: Callable | None, smoke: Callable[[Callable], Non
     """
     if name in _KERNELS:
         return _KERNELS[name][0]
-    if os.environ.get("FIELDCAL_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
-        _KERNELS[name] = (None, "switched off by FIELDCAL_NUMBA=0")
+    if switched_off():
+        _KERNELS[name] = (None, SWITCHED_OFF)
         return None
     try:
         if numba is None or compiled is None:
