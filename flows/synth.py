@@ -44,18 +44,14 @@ def _goniometer(out: Path, scenario: str, seed: int, raster_scale: float, camera
 
 def _field(out: Path, scenario: str, seed: int, images: bool, scale: float, n_images, marks: bool,
            camera_id, session_id):
-    import numpy as np
-
-    from fieldcal.synthetic.field import paper_field, wide_field
+    from fieldcal.synthetic.field import overlapping_images, paper_field, wide_field
     from fieldcal.synthetic.render import scaled_field
     from fieldcal.synthetic.session_writer import write_field_session
 
     sf = {"paper": paper_field, "wide": wide_field}[scenario](seed=seed)
     if images:
         sf = scaled_field(sf, scale)
-        n_all = len(sf.data.images)
-        idx = None if n_images is None else sorted({int(round(i)) for i in
-                                                    np.linspace(0, n_all - 1, min(int(n_images), n_all))})
+        idx = None if n_images is None else overlapping_images(sf, int(n_images))
         write_field_session(out, sf, images=True, marks_csv=marks, coded=not marks, seed=seed,
                             image_indices=idx, camera_id=camera_id, session_id=session_id)
     else:
@@ -72,9 +68,11 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
 
     Goniometer sessions (``canon5d2`` or ``h3d``) are rendered frames at ``raster_scale``;
     field sessions (``paper`` or ``wide``) are observation-only (``observations.csv``) or,
-    with ``images``, rendered images at ``scale`` (``n_images`` of them spread evenly over the
-    scenario's images, so that every station is represented; identified from coded targets,
-    or from ``marks.csv`` with ``marks``). ``truth.json`` holds the true camera (sensor and
+    with ``images``, rendered images at ``scale`` (``n_images`` of them, at least
+    :data:`fieldcal.field.adjustment.MIN_IMAGES`, chosen by
+    :func:`fieldcal.synthetic.field.overlapping_images` so that they share targets and spread
+    over the stations and rolls: the session calibrates; identified from coded targets, or
+    from ``marks.csv`` with ``marks``). ``truth.json`` holds the true camera (sensor and
     the 13 parameters) and, for the goniometer, what the method gives on the exact spot
     positions of the same set-up (``noise_free``). Rendering reports its progress through
     :mod:`fieldcal.progress`.
@@ -82,8 +80,11 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
     from fieldcal.model.camera import PARAM_NAMES
 
     scenario = check_synthetic(method, scenario)
-    if n_images is not None and int(n_images) < 1:
-        raise InputError(f"--n-images must be at least 1, got {n_images}")
+    from fieldcal.field.adjustment import MIN_IMAGES
+
+    if n_images is not None and int(n_images) < MIN_IMAGES:
+        raise InputError(f"--n-images must be at least {MIN_IMAGES} (the field method calibrates from "
+                         f"{MIN_IMAGES} or more images sharing targets), got {n_images}")
     out = Path(out)
     truth: dict = {"method": method, "seed": int(seed), "scenario": scenario}
     if method == "goniometer":

@@ -31,7 +31,8 @@ from fieldcal.model.camera import Camera, Sensor
 
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
-    "add_blunders", "Blunders", "measurements_of", "target_plane_axes",
+    "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
+    "MIN_SHARED_TARGETS",
 ]
 
 IXU150_TABLE1 = {
@@ -265,6 +266,57 @@ def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: f
                      survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=15.0,
                      target_diameter_mm=20.0, marker_size_mm=120.0, nominal_focal_mm=24.0,
                      settings={"scenario": "wide"})
+
+
+MIN_SHARED_TARGETS = 30
+"""Targets an image chosen by :func:`overlapping_images` shares with the images chosen before it
+(when any image does): well above the identification's six."""
+
+
+def _roll_class(R_world_to_camera: np.ndarray) -> np.ndarray:
+    """Per image, the quarter turn (0-3) of its roll: the image's y axis nearest to world +Z,
+    +X, -Z or -X, measured in the image plane."""
+    up = np.einsum("iab,b->ia", R_world_to_camera, [0.0, 0.0, 1.0])[:, :2]   # world Z in camera x, y
+    ang = np.degrees(np.arctan2(up[:, 0], up[:, 1]))                          # 0 when upright
+    return np.round(ang / 90.0).astype(int) % 4
+
+
+def overlapping_images(sf: SyntheticField, n: int) -> list[int]:
+    """``n`` image indices of ``sf`` that calibrate together: each shares targets with the others.
+
+    Greedy, deterministic: the first image is the one sharing the most targets with all the
+    others; then, while fewer than ``n`` are chosen, the image that shares at least
+    :data:`MIN_SHARED_TARGETS` targets with those chosen (any image, when none does), from a
+    station not used yet, at a roll (quarter turn) not used yet, and sharing the most targets,
+    in that order of preference. Spreading ``n`` indices evenly over the list instead gives
+    images of opposite ends of the field that share nothing: ``fieldcal synth --n-images 4``
+    of the paper scenario could not be calibrated (issue 30).
+
+    Returns
+    -------
+    list of int
+        Sorted indices into ``sf.data.images`` (all of them when ``n`` is at least their number).
+    """
+    n_img = len(sf.data.images)
+    if n >= n_img:
+        return list(range(n_img))
+    obs = sf.data.obs
+    seen = np.zeros((n_img, len(sf.data.targets)), bool)
+    seen[obs.image, obs.target] = True
+    shared_all = seen.astype(np.int64) @ seen.T.astype(np.int64)
+    np.fill_diagonal(shared_all, 0)
+    stations = np.array([im.station or f"#{i}" for i, im in enumerate(sf.data.images)], object)
+    rolls = _roll_class(sf.R_world_to_camera)
+    chosen = [int(np.argmax(shared_all.sum(axis=1)))]
+    while len(chosen) < n:
+        union = seen[chosen].any(axis=0)
+        shared = seen[:, union].sum(axis=1)
+        key = np.stack([shared >= MIN_SHARED_TARGETS, ~np.isin(stations, stations[chosen]),
+                        ~np.isin(rolls, rolls[chosen]), shared], axis=1).astype(np.int64)
+        key[chosen] = -1
+        order = np.lexsort(key.T[::-1])                 # last key row sorts first: lexsort's rule
+        chosen.append(int(order[-1]))
+    return sorted(chosen)
 
 
 @dataclass

@@ -297,8 +297,15 @@ def test_synth_of_images_shows_the_rendering_progress_on_a_terminal(tmp_path, mo
     term = Terminal()
     monkeypatch.setattr(sys, "stderr", term)
     assert cli.main(["synth", str(tmp_path / "img"), "--method", "field", "--scenario", "wide", "--images",
-                     "--n-images", "2", "--scale", "0.1"]) == 0
-    assert "rendering images [" in term.getvalue() and "2/2" in term.getvalue()
+                     "--n-images", "3", "--scale", "0.1"]) == 0
+    assert "rendering images [" in term.getvalue() and "3/3" in term.getvalue()
+
+
+def test_synth_refuses_fewer_images_than_calibrate(tmp_path, capsys):
+    assert cli.main(["synth", str(tmp_path / "two"), "--method", "field", "--images", "--n-images", "2"]) == 2
+    assert capsys.readouterr().err == ("fieldcal synth: --n-images must be at least 3 (the field method "
+                                       "calibrates from 3 or more images sharing targets), got 2\n")
+    assert not (tmp_path / "two").exists()
 
 
 # --------------------------------------------------------------------------------------

@@ -60,3 +60,29 @@ def test_same_seed_same_problem_and_blunders_are_reported(paper):
     assert np.allclose(moved[info.survey_targets], 0.10) and (moved > 0).sum() == len(info.survey_targets)
     changed = np.flatnonzero(bad.data.obs.target != paper.data.obs.target)
     assert np.array_equal(changed, info.swapped_observations) and len(changed) >= 0.009 * len(paper.data.obs)
+
+
+@pytest.mark.parametrize("scenario, n", [("paper", 3), ("paper", 4), ("paper", 6), ("paper", 12), ("wide", 3)])
+def test_a_few_images_share_targets_and_spread_over_the_stations(paper, scenario, n):
+    sf = paper if scenario == "paper" else syn.wide_field(seed=0)
+    idx = syn.overlapping_images(sf, n)
+    assert len(idx) == n == len(set(idx)) and idx == sorted(idx)
+    seen = np.zeros((len(sf.data.images), len(sf.data.targets)), bool)
+    seen[sf.data.obs.image, sf.data.obs.target] = True
+    for i in idx:                                   # every image shares enough with the others
+        others = seen[[j for j in idx if j != i]].any(axis=0)
+        assert (seen[i] & others).sum() >= syn.MIN_SHARED_TARGETS
+    stations = {sf.data.images[i].station for i in idx}
+    assert len(stations) == min(n, len({im.station for im in sf.data.images}))
+    rolls = syn._roll_class(sf.R_world_to_camera[idx])
+    assert len(set(rolls.tolist())) == min(n, 4) or scenario == "wide"    # wide: 3 rolls per station
+
+
+def test_images_spread_evenly_over_the_list_share_nothing(paper):
+    """Why the choice above exists: `synth --n-images 4` took images 0, 24, 47, 71, which share
+    no target, and the session could not be calibrated (issue 30)."""
+    seen = np.zeros((len(paper.data.images), len(paper.data.targets)), bool)
+    seen[paper.data.obs.image, paper.data.obs.target] = True
+    even = [0, 24, 47, 71]
+    assert all((seen[i] & seen[[j for j in even if j != i]].any(axis=0)).sum() == 0 for i in even)
+    assert syn.overlapping_images(paper, 100) == list(range(len(paper.data.images)))
