@@ -69,7 +69,7 @@ from fieldcal.model.camera import Camera
 from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["EXACT_PX", "OPENCV_MODELS", "FORMATS", "ModelFit", "normalised_rays",
-           "opencv_project", "metashape_project", "fit_opencv", "fit_metashape",
+           "opencv_project", "opencv_jacobian", "metashape_project", "fit_opencv", "fit_metashape",
            "opencv_yaml", "colmap_cameras_txt", "metashape_xml", "export_text", "Export"]
 
 EXACT_PX = 0.01
@@ -89,6 +89,12 @@ COLMAP_MODEL = {"brown4": "OPENCV", "rational8": "FULL_OPENCV"}
 METASHAPE_PARAMS = ("f", "cx", "cy", "b1", "b2", "k1", "k2", "k3", "k4", "p1", "p2")
 FIT_GRID = (81, 61)
 CHECK_POINTS = 20000
+MAX_NFEV = 100
+"""Evaluations per least-squares round of the minimax fit (each with the analytic Jacobian,
+:func:`opencv_jacobian`). A round of brown5 converges in 4-10, of the rational models in
+30-100; some rounds of a rational model (its numerator and denominator nearly cancel) walked
+to the old limit of 5000 for nothing (the fit keeps the best round anyway): a goniometer
+camera's OpenCV export took 41 s, now 3-5 s (bench/README_reports.md)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -140,6 +146,34 @@ def opencv_project(n, K, dist):
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + s4 * r2)
     return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=-1)
+
+
+def opencv_jacobian(n, K, dist):
+    """Derivatives (n, 2, 4 + m) of :func:`opencv_project` by ``fx, fy, cx, cy`` and the ``m``
+    coefficients of ``dist`` (``distCoeffs`` order): the fit's Jacobian, analytic (finite
+    differences cost 4 + m projections per step, and the rational models' near-cancelling
+    numerator and denominator need hundreds of steps)."""
+    x, y = np.asarray(n, float)[..., 0], np.asarray(n, float)[..., 1]
+    m = len(dist)
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = _opencv_full(dist)
+    fx, fy = K[0, 0], K[1, 1]
+    r2 = x * x + y * y
+    r4, r6 = r2 * r2, r2 * r2 * r2
+    num = 1 + k1 * r2 + k2 * r4 + k3 * r6
+    den = 1 + k4 * r2 + k5 * r4 + k6 * r6
+    radial = num / den
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + s4 * r2)
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    d_num = [r2 / den, r4 / den, r6 / den]                    # d radial / d k1, k2, k3
+    d_den = [-radial * r2 / den, -radial * r4 / den, -radial * r6 / den]   # / d k4, k5, k6
+    cols_u = [xd, zero, one, zero, fx * x * d_num[0], fx * x * d_num[1], fx * 2 * x * y,
+              fx * (r2 + 2 * x * x), fx * x * d_num[2], *(fx * x * d for d in d_den),
+              fx * r2, fx * r4, zero, zero]
+    cols_v = [zero, yd, zero, one, fy * y * d_num[0], fy * y * d_num[1], fy * (r2 + 2 * y * y),
+              fy * 2 * x * y, fy * y * d_num[2], *(fy * y * d for d in d_den),
+              zero, zero, fy * r2, fy * r4]
+    return np.stack([np.stack(cols_u[: 4 + m], axis=-1), np.stack(cols_v[: 4 + m], axis=-1)], axis=-2)
 
 
 def metashape_project(n, params: dict, width: int, height: int):
@@ -227,8 +261,21 @@ class ModelFit:
         """Whether the round trip is within :data:`EXACT_PX`."""
         return bool(self.roundtrip_max_px <= EXACT_PX)
 
+    def choice_line(self) -> str:
+        """Which model was exported and why (the models tried, each with its round trip)."""
+        n = len(self.dist) if self.format != "metashape" else len(METASHAPE_PARAMS) - 3
+        what = f"{self.format}: exported the {self.model} model ({n} distortion coefficients)"
+        others = [t for t in self.tried if t["model"] != self.model]
+        if not others:
+            return what
+        tried = ", ".join(f"{t['model']} {t['roundtrip_max_px']:.2g} px" for t in self.tried)
+        why = (f"the simplest whose round trip is within {EXACT_PX} px" if self.exact
+               else "the best round trip; none is within " + f"{EXACT_PX} px")
+        return f"{what}: {why} (tried, largest round-trip error: {tried})"
+
     def report_lines(self) -> list[str]:
-        lines = [f"{self.format} {self.model}: fit residual {self.fit_rms_px:.2g} px RMS, "
+        lines = [self.choice_line(),
+                 f"{self.format} {self.model}: fit residual {self.fit_rms_px:.2g} px RMS, "
                  f"{self.fit_max_px:.2g} px max over the sensor; round trip through "
                  f"{self.roundtrip_with}: {self.roundtrip_rms_px:.2g} px RMS, "
                  f"{self.roundtrip_max_px:.2g} px max"]
@@ -245,7 +292,7 @@ class ModelFit:
                 "exact": self.exact, "exact_px": EXACT_PX, "tried": self.tried}
 
 
-def _minimax_fit(project, x0, n, uv, *, rounds: int = 25):
+def _minimax_fit(project, x0, n, uv, *, rounds: int = 25, jacobian=None):
     """Parameters ``x`` making ``project(n, x)`` match ``uv`` (n, 2) [px] in the max norm.
 
     Least squares first (Levenberg-Marquardt), then Lawson's iteratively reweighted least
@@ -265,8 +312,10 @@ def _minimax_fit(project, x0, n, uv, *, rounds: int = 25):
         def residual(p, sw=sw):
             return ((project(n, p) - uv) * sw).ravel()
 
-        x = least_squares(residual, x, method="lm", x_scale="jac", xtol=1e-15, ftol=1e-15,
-                          gtol=1e-15, max_nfev=5000).x
+        jac = "2-point" if jacobian is None else (
+            lambda p, sw=sw: (jacobian(n, p) * sw[:, :, None]).reshape(2 * len(uv), -1))
+        x = least_squares(residual, x, jac=jac, method="lm", x_scale="jac", xtol=1e-15, ftol=1e-15,
+                          gtol=1e-15, max_nfev=MAX_NFEV).x
         e = np.hypot(*(project(n, x) - uv).T)
         if e.max() < best_max:
             best, best_max = x, float(e.max())
@@ -293,11 +342,14 @@ def _fit_opencv_model(camera: Camera, model: str, start: ModelFit | None = None)
     def project(nn, x):
         return opencv_project(nn, *unpack(x))
 
+    def jacobian(nn, x):
+        return opencv_jacobian(nn, *unpack(x))
+
     x0 = np.concatenate([[f_px, f_px, c0[0], c0[1]], np.zeros(len(names))])
     if start is not None and len(start.dist) <= len(names):
         x0[:4] = start.K[0, 0], start.K[1, 1], start.K[0, 2], start.K[1, 2]
         x0[4:4 + len(start.dist)] = start.dist
-    x = _minimax_fit(project, x0, n, uv)
+    x = _minimax_fit(project, x0, n, uv, jacobian=jacobian)
     K, dist = unpack(x)
     fit = np.hypot(*(opencv_project(n, K, dist) - uv).T)
     check = _check_points(camera)
@@ -405,6 +457,7 @@ def opencv_yaml(fit: ModelFit, doc: dict) -> str:
     fs = cv2.FileStorage("export.yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     fs.writeComment("fieldcal export: OpenCV pinhole + distortion fitted to the calibration "
                     "(fieldcal-brown/1); pixel (0,0) is the centre of the top-left pixel")
+    fs.writeComment(fit.choice_line())
     for k, v in _provenance(doc).items():
         fs.write(f"fieldcal_{k}", str(v))
     fs.write("image_width", int(fit.width_px))

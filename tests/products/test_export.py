@@ -18,6 +18,7 @@ from fieldcal.products.export import (
     fit_opencv,
     metashape_project,
     normalised_rays,
+    opencv_jacobian,
     opencv_project,
 )
 from fieldcal.products.uncertainty import Calibration
@@ -109,6 +110,38 @@ def test_the_paper_camera_fits_opencvs_five_coefficients_and_says_how_well():
     # 0.0102 px: OpenCV's five coefficients cannot hold the paper's shear a1 and the
     # inverse's higher orders to 0.01 px (bench/README_reports.md)
     assert fit.roundtrip_max_px < 0.02
+
+
+def test_the_fits_jacobian_is_the_projections_derivative():
+    rng = np.random.default_rng(3)
+    n = rng.uniform(-0.6, 0.6, (40, 2))
+    x = np.concatenate([[900.0, 905.0, 700.0, 460.0], rng.normal(0, 0.05, 12)])
+
+    def project(p):
+        return opencv_project(n, np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1]]), p[4:])
+    h = 1e-6 * np.maximum(np.abs(x), 1e-2)
+    numeric = np.stack([(project(x + d) - project(x - d)) / (2 * d.sum()) for d in np.diag(h)], axis=-1)
+    for m in (4, 5, 8, 12):
+        jac = opencv_jacobian(n, np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1]]), x[4:4 + m])
+        assert jac.shape == (40, 2, 4 + m)
+        if m == 12:
+            np.testing.assert_allclose(jac, numeric, rtol=1e-6, atol=1e-6 * np.abs(numeric).max())
+
+
+def test_a_goniometer_camera_says_which_model_it_exports():
+    """Its scale term k0 and the inverse's higher orders need more than OpenCV's five
+    coefficients: the export names the model it chose and what the others reached (issue 30)."""
+    # what `fieldcal synth` + `run` give for the canon5d2 scenario (seed 0): f with k0 = -0.0154
+    gonio = {"f_mm": 23.93576281, "xp_mm": 0.07125548, "yp_mm": -0.04130444, "k0": -0.01538823,
+             "k1": 0.00010914, "k2": -7e-08, "p1": 8.66e-06, "p2": -4.76e-06, "b1": 2.804e-05}
+    cam = Camera.from_dict(make_scenario("canon5d2", raster_scale=0.25).camera().sensor, gonio)
+    exp = export_text(_doc(cam), "opencv")
+    fit = exp.fit
+    assert fit.exact and fit.model != "brown5"
+    line = fit.report_lines()[0]
+    assert line.startswith(f"opencv: exported the {fit.model} model ({len(fit.dist)} distortion coefficients)")
+    assert "the simplest whose round trip is within 0.01 px" in line and "brown5 " in line
+    assert fit.choice_line() in exp.text and exp.report_lines()[0] == line
 
 
 def test_a_shear_opencv_cannot_model_is_reported_not_exact():
