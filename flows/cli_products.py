@@ -9,9 +9,10 @@ sessions).
 
 - ``fieldcal report VERSION [--out DIR]``: ``DIR/report.html`` (self-contained) and the
   plots as PNG (:mod:`fieldcal.products.report`); prints the HTML's path.
-- ``fieldcal certificate VERSION [--out DIR] [--config FILE]``: ``DIR/certificate.html``,
-  the printable calibration certificate with its acceptance verdict
-  (:mod:`fieldcal.products.certificate`); prints the path and the verdict.
+- ``fieldcal certificate VERSION [--out DIR] [--config FILE] [--pdf] [--strict]``:
+  ``DIR/certificate.html`` (and ``certificate.pdf``), the calibration certificate with its
+  acceptance verdict (:mod:`fieldcal.products.certificate`); prints the paths; one warning
+  line names what the configuration does not state (``--strict`` refuses then).
 - ``fieldcal compare V1 V2 [--plot PNG] [--format text|json] [--out FILE]``: where the same
   ray lands in both, what their uncertainties explain, and the change test
   (:mod:`fieldcal.products.compare`).
@@ -120,13 +121,21 @@ def _report(args) -> int:
 
 @_run
 def _certificate(args) -> int:
-    from fieldcal.products.certificate import load_config, write_certificate
+    from fieldcal.products.certificate import check_outputs, load_config, missing_line, write_certificate
 
-    load_config(args.config)                      # a bad configuration: before the lake is read
+    config = load_config(args.config)             # a bad configuration: before the lake is read
     lake = open_lake(args)
     version = resolve_version(lake, args.version, args.camera)
-    page = write_certificate(lake, version, args.out or f"fieldcal-certificate-{version}", args.config)
-    print(page)
+    out = args.out or f"fieldcal-certificate-{version}"
+    check_outputs(out, pdf=args.pdf)
+    strict = args.strict or config["certificate"]["strict"]
+    warning = None if strict else missing_line(config, args.config)
+    written = write_certificate(lake, version, out, args.config, pdf=args.pdf, strict=strict)
+    if warning:
+        print(f"fieldcal certificate: warning: {warning}", file=sys.stderr)
+    if args.pdf:
+        print(Path(out) / "certificate.html")
+    print(written)
     return 0
 
 
@@ -134,10 +143,10 @@ def _comparison_text(c, a, b) -> str:
     lines = [f"A: {a.label()}", f"B: {b.label()}",
              f"tested {c.where}"
              + (f" (grid {c.grid[0]} x {c.grid[1]})" if c.region == "sensor" else ""),
-             f"change where tested: max {c.max_px:.4g} px = {c.max_um:.4g} um, "
-             f"RMS {c.rms_px:.4g} px = {c.rms_um:.4g} um",
+             f"change where tested: max {c.max_px:.4g} px = {c.max_um:.4g} µm, "
+             f"RMS {c.rms_px:.4g} px = {c.rms_um:.4g} µm",
              f"over the whole sensor (display{', extrapolated off the axes' if c.region == 'axes' else ''}): "
-             f"max {c.sensor_max_px:.4g} px = {c.sensor_max_px * c.pixel_size_um:.4g} um; "
+             f"max {c.sensor_max_px:.4g} px = {c.sensor_max_px * c.pixel_size_um:.4g} µm; "
              f"explained by the two uncertainties (1 sigma): up to {float(c.sigma_px.max()):.4g} px",
              f"tests (Holm at alpha = {c.alpha:g}):"]
     lines += [f"  {t.line()}" for t in c.tests]
@@ -230,19 +239,26 @@ def add_commands(subparsers) -> None:
     p.set_defaults(func=_report, command="report")
 
     p = subparsers.add_parser("certificate", help="write the printable calibration certificate",
-                              description="Write DIR/certificate.html: identity, interior orientation "
-                                          "in mm and px, distortion tables, correlations, adjustment, "
-                                          "coverage, check points, the change since the previous "
-                                          "calibration and the acceptance verdict (A4, print to PDF "
-                                          "from a browser).")
+                              description="Write DIR/certificate.html (and with --pdf DIR/certificate.pdf): "
+                                          "identity, interior orientation with expanded uncertainties, the "
+                                          "focal lengths to use, distortion per semi-diagonal and its plot, "
+                                          "correlations, adjustment, coverage, check points, traceability "
+                                          "and conditions, the change since the previous calibration and "
+                                          "the acceptance verdict (A4). An existing certificate is not "
+                                          "overwritten.")
     p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
     _add_camera(p)
     _add_lake(p)
     p.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default ./fieldcal-certificate-VERSION)")
     p.add_argument("--config", metavar="FILE", default=None,
-                   help="TOML or JSON: issuer, facility, identity, validity and acceptance "
-                        "thresholds (defaults: fieldcal.products.certificate.DEFAULT_CONFIG)")
+                   help="TOML or JSON: issuer, facility, identity, traceability, conditions, validity "
+                        "and acceptance thresholds (defaults: fieldcal.products.certificate.DEFAULT_CONFIG)")
+    p.add_argument("--pdf", action="store_true",
+                   help="also DIR/certificate.pdf, printed by headless Chromium (apt-get install chromium)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 2) when the configuration leaves out what an agency's certificate "
+                        "states (camera, lens, facility, issuer, traceability, focus, aperture)")
     p.set_defaults(func=_certificate, command="certificate")
 
     p = subparsers.add_parser("compare", help="compare two calibrations of one camera",
@@ -254,7 +270,7 @@ def add_commands(subparsers) -> None:
     _add_camera(p)
     _add_lake(p)
     p.add_argument("--tolerance-um", type=float, default=DEFAULT_TOLERANCE_UM,
-                   help=f"tolerance of a change in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
+                   help=f"tolerance of a change in the image plane [µm] (default {DEFAULT_TOLERANCE_UM:g})")
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                    help=f"significance level (default {DEFAULT_ALPHA:g})")
     p.add_argument("--remove-rotation", action="store_true",
@@ -317,7 +333,7 @@ def history_extras(parser: argparse.ArgumentParser):
                                  "tolerance")
     if "--tolerance-um" not in have:
         parser.add_argument("--tolerance-um", type=float, default=DEFAULT_TOLERANCE_UM,
-                            help=f"tolerance in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
+                            help=f"tolerance in the image plane [µm] (default {DEFAULT_TOLERANCE_UM:g})")
     if "--alpha" not in have:
         parser.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                             help=f"significance level of the change test (default {DEFAULT_ALPHA:g})")
@@ -380,7 +396,7 @@ def _history(args) -> int:
                     "b1", "b2")}
     fig = plots.history_plot(table, names, tolerance=tol,
                              title=f"{camera}: {table.num_rows} calibration(s); band: "
-                                   f"+-{args.tolerance_um:g} um around the first")
+                                   f"±{args.tolerance_um:g} µm around the first")
     Path(args.plot).write_bytes(plots.to_png(fig))
     print(args.plot)
     return 0

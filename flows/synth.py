@@ -43,27 +43,29 @@ def _goniometer(out: Path, scenario: str, seed: int, raster_scale: float, camera
 
 
 def _field(out: Path, scenario: str, seed: int, images: bool, scale: float, n_images, marks: bool,
-           camera_id, session_id):
-    from fieldcal.synthetic.field import overlapping_images, paper_field, wide_field
+           camera_id, session_id, check_points):
+    from fieldcal.synthetic.field import check_point_ids, overlapping_images, paper_field, wide_field
     from fieldcal.synthetic.render import scaled_field
     from fieldcal.synthetic.session_writer import write_field_session
 
     sf = {"paper": paper_field, "wide": wide_field}[scenario](seed=seed)
     if images:
         sf = scaled_field(sf, scale)
-        idx = None if n_images is None else overlapping_images(sf, int(n_images))
+    idx = None if n_images is None or not images else overlapping_images(sf, int(n_images))
+    ids = None if not check_points else check_point_ids(sf, int(check_points), idx, seed)
+    if images:
         write_field_session(out, sf, images=True, marks_csv=marks, coded=not marks, seed=seed,
-                            image_indices=idx, camera_id=camera_id, session_id=session_id)
+                            image_indices=idx, camera_id=camera_id, session_id=session_id, check_points=ids)
     else:
         write_field_session(out, sf, images=False, observations_csv=True, seed=seed,
-                            camera_id=camera_id, session_id=session_id)
+                            camera_id=camera_id, session_id=session_id, check_points=ids)
     return sf.camera
 
 
 def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = None, seed: int = 0,
                     raster_scale: float = 0.25, images: bool = False, scale: float = 0.25,
                     n_images: int | None = None, marks: bool = False, camera_id: str | None = None,
-                    session_id: str | None = None) -> dict:
+                    session_id: str | None = None, check_points: int | None = None) -> dict:
     """Write a synthetic session into ``out`` and its ``truth.json``; returns the truth.
 
     Goniometer sessions (``canon5d2`` or ``h3d``) are rendered frames at ``raster_scale``;
@@ -72,7 +74,10 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
     :data:`fieldcal.field.adjustment.MIN_IMAGES`, chosen by
     :func:`fieldcal.synthetic.field.overlapping_images` so that they share targets and spread
     over the stations and rolls: the session calibrates; identified from coded targets, or
-    from ``marks.csv`` with ``marks``). ``truth.json`` holds the true camera (sensor and
+    from ``marks.csv`` with ``marks``). ``check_points`` (field) names that many plain targets
+    seen in two or more images as independent check points in ``session.json``
+    (:func:`fieldcal.synthetic.field.check_point_ids`), so that the calibration and its
+    certificate assess them. ``truth.json`` holds the true camera (sensor and
     the 13 parameters) and, for the goniometer, what the method gives on the exact spot
     positions of the same set-up (``noise_free``). Rendering reports its progress through
     :mod:`fieldcal.progress`.
@@ -87,10 +92,12 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
                          f"{MIN_IMAGES} or more images sharing targets), got {n_images}")
     out = Path(out)
     truth: dict = {"method": method, "seed": int(seed), "scenario": scenario}
+    if check_points is not None and method != "field":
+        raise InputError("--check-points is for the field method (surveyed targets withheld)")
     if method == "goniometer":
         camera, truth["noise_free"] = _goniometer(out, scenario, seed, raster_scale, camera_id, session_id)
     else:
-        camera = _field(out, scenario, seed, images, scale, n_images, marks, camera_id, session_id)
+        camera = _field(out, scenario, seed, images, scale, n_images, marks, camera_id, session_id, check_points)
     truth.update(sensor=camera.sensor.to_dict(),
                  parameters={n: float(v) for n, v in zip(PARAM_NAMES, camera.params, strict=True)})
     (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")

@@ -123,14 +123,31 @@ class CheckPoints:
         w = np.linalg.solve(self.cov_mm2, self.error_mm[..., None])[..., 0]
         return float(np.einsum("ki,ki->", self.error_mm, w))
 
+    def axis_stats(self) -> dict:
+        """Per world axis X, Y, Z of the object-space errors [mm]: ``rms_x_mm`` (and y, z),
+        ``mean_x_mm`` (a bias), ``max_x_mm`` (the largest absolute), ``rms_x_mm_predicted``;
+        None without intersected check points."""
+        out = {}
+        e = np.asarray(self.error_mm, float).reshape(-1, 3)
+        sd = np.einsum("kii->ki", np.asarray(self.cov_mm2, float).reshape(-1, 3, 3))
+        for j, a in enumerate("xyz"):
+            have = len(e) > 0
+            out[f"rms_{a}_mm"] = float(np.sqrt(np.mean(e[:, j] ** 2))) if have else None
+            out[f"mean_{a}_mm"] = float(np.mean(e[:, j])) if have else None
+            out[f"max_{a}_mm"] = float(np.max(np.abs(e[:, j]))) if have else None
+            out[f"rms_{a}_mm_predicted"] = float(np.sqrt(np.mean(sd[:, j]))) if have else None
+        return out
+
     def to_stats(self) -> dict:
-        """The document's ``stats.check_points`` (the certificate reads ``rms_px``, ``rms_mm``)."""
+        """The document's ``stats.check_points`` (the certificate reads ``rms_px``, ``rms_mm`` and
+        the per-axis figures of :meth:`axis_stats`)."""
         chi = self.chi2_mm()
         dof = 3 * len(self.ids)
         return {
             "n_withheld": int(self.n_withheld), "n": int(len(self.ids)),
             "n_observations": int(self.used.sum()), "n_rejected": int((~self.used).sum()),
             "rms_mm": self.rms_mm(), "rms_mm_predicted": self.rms_mm_predicted(),
+            **self.axis_stats(),
             "rms_px": self.rms_px(), "rms_px_predicted": self.rms_px_predicted(),
             "chi2_mm": chi, "dof_mm": int(dof),
             "p_value_mm": None if chi is None else float(chdtrc(dof, chi)),

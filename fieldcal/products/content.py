@@ -34,7 +34,7 @@ from fieldcal.products.uncertainty import Calibration, decentering_curve, radial
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
-           "check_points", "parse_time"]
+           "check_points", "parse_time", "residual_format", "sig"]
 
 MODEL_EQUATIONS = """\
 xb = x' - xp        yb = y' - yp        r^2 = xb^2 + yb^2
@@ -205,6 +205,19 @@ def coverage(cal: Calibration, residuals: pa.Table | None, cells: tuple[int, int
     reach = data_radius_mm(cal, residuals)
     return {"counts": counts, "fraction": float((counts > 0).mean()), "cells": cells,
             "radius_fraction": None if reach is None else float(reach / s.half_diagonal_mm)}
+
+
+def sig(x, digits: int = 3) -> str:
+    """A number with ``digits`` significant digits (``0.0412``, ``1.23``, ``123``): residuals of a
+    good calibration are hundredths of a pixel, which three decimals print as ``0.000``."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "—"
+    return f"{x:#.{digits}g}".rstrip(".") if abs(x) < 10 ** digits else f"{x:.0f}"
+
+
+def residual_format(rmse_px, max_px) -> str:
+    """``"0.0412 px RMS, max 0.213 px"``: the adjustment's residual figures (:func:`sig`)."""
+    return f"{sig(rmse_px)} px RMS, max {sig(max_px)} px"
 
 
 def check_points(cal: Calibration) -> dict | None:

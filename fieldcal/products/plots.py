@@ -22,7 +22,7 @@ from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
 from fieldcal.products.uncertainty import Calibration, decentering_curve, radial_curve, uncertainty_map
 
-__all__ = ["to_png", "residual_vectors", "residuals_per_image", "stations_3d",
+__all__ = ["to_png", "to_svg", "certificate_distortion", "residual_vectors", "residuals_per_image", "stations_3d",
            "distortion_curves", "uncertainty_figure", "correlation_figure",
            "goniometer_axes", "compare_figure", "history_plot", "fleet_plot",
            "residual_histogram", "distortion_vectors", "PARAM_UNITS"]
@@ -41,6 +41,53 @@ def to_png(fig: Figure, *, dpi: int = DPI) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     return buf.getvalue()
+
+
+def to_svg(fig: Figure) -> str:
+    """The figure as an ``<svg>`` element to place inside an HTML page: text kept as text (a
+    PDF printed from the page is searchable), no XML prolog, DOCTYPE or namespace declarations
+    (an HTML parser does not need them), no date, so the same figure gives the same text."""
+    import re
+
+    from matplotlib import rc_context
+
+    buf = io.StringIO()
+    with rc_context({"svg.fonttype": "none", "svg.hashsalt": "fieldcal"}):
+        fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None, "Creator": None})
+    text = buf.getvalue()
+    text = text[text.index("<svg"):]
+    text = re.sub(r'\s+xmlns(:\w+)?="[^"]*"', "", text, count=0)
+    text = re.sub(r"<metadata>.*?</metadata>", "", text, flags=re.S)
+    return re.sub(r'<svg ([^>]*?)width="[^"]*" height="[^"]*"', r'<svg \1width="100%"', text, count=1)
+
+
+def certificate_distortion(theta_deg, diagonals_um, mean_um, U_um, relative_to_f_um, *, labels,
+                           focal_label: str, reach_deg: float | None = None) -> Figure:
+    """The certificate's distortion plot: radial distortion [µm] against the field angle [°].
+
+    ``diagonals_um`` (4, n) along the four semi-diagonals and their mean (n,) relative to the
+    focal length ``focal_label`` names, the band ``mean +- U_um`` (the expanded uncertainty,
+    k = 2), and the mean relative to the model's f (dashed); ``reach_deg`` marks how far the
+    data reach (beyond: the model's extrapolation)."""
+    fig = Figure(figsize=(7.0, 2.7), layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    th = np.asarray(theta_deg, float)
+    ax.fill_between(th, mean_um - U_um, mean_um + U_um, color="tab:blue", alpha=0.25, lw=0,
+                    label="mean ± U (k = 2)")
+    for d, lab, ls in zip(diagonals_um, labels, (":", "-.", (0, (5, 2)), (0, (1, 2))), strict=True):
+        ax.plot(th, d, lw=0.8, ls=ls, color="0.35", label=lab)
+    ax.plot(th, mean_um, color="tab:blue", lw=1.8, label=f"mean, relative to {focal_label}")
+    ax.plot(th, relative_to_f_um, color="tab:red", lw=1.0, ls="--", label="mean, relative to f")
+    ax.axhline(0.0, color="0.5", lw=0.6)
+    if reach_deg is not None and 0 < reach_deg < th.max():
+        ax.axvline(reach_deg, color="0.3", ls="--", lw=0.8)
+        ax.text(reach_deg, 0.04, "the data reach ", va="bottom", ha="right", fontsize=7, color="0.3",
+                transform=ax.get_xaxis_transform())
+    ax.set_xlabel("field angle [°]")
+    ax.set_ylabel("radial distortion [µm]")
+    ax.set_xlim(0, th.max())
+    ax.legend(fontsize=6.5, loc="best", ncol=2)
+    return fig
 
 
 def _sensor_axes(ax, sensor: Sensor):
@@ -278,7 +325,7 @@ def distortion_curves(calibration: Calibration, *, n: int = 200, r_data_mm: floa
         ax.set_title(f"{label} (3 sigma at most {3 * sig.max():.3g} px)", fontsize=10, loc="left")
         sec = ax.secondary_yaxis("right", functions=(lambda p: p * s.pixel_size_um,
                                                      lambda m: m / s.pixel_size_um))
-        sec.set_ylabel("[um]")
+        sec.set_ylabel("[µm]")
     return fig
 
 
@@ -382,7 +429,7 @@ def goniometer_axes(table, *, sigma_fit_px: float | None = None, pixel_size_um: 
         ax.legend(fontsize=8)
         ax2 = fig.add_subplot(2, 2, 2 * row + 2)
         if sigma_fit_px is not None and np.isfinite(sigma_fit_px):
-            ax2.axhspan(-sigma_fit_px, sigma_fit_px, color="0.85", label="+-sigma_fit (eq. 10)")
+            ax2.axhspan(-sigma_fit_px, sigma_fit_px, color="0.85", label="±σ_fit (eq. 10)")
         ax2.plot(pos, after, "o", ms=3.5, color=_AXIS_COLORS[a], label="residual")
         ax2.axhline(0, color="0.6", lw=0.6)
         ax2.set_xlabel(f"position along {a} from the sensor centre [px]")
@@ -426,7 +473,7 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
     _sensor_axes(ax, sensor)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label("|difference| [px]")
     ax.set_title(f"Same ray, difference over the sensor: max {c.sensor_max_px:.3g} px "
-                 f"({c.sensor_max_px * c.pixel_size_um:.3g} um)", fontsize=9,
+                 f"({c.sensor_max_px * c.pixel_size_um:.3g} µm)", fontsize=9,
                  loc="left", pad=16)
     ax = fig.add_subplot(1, 3, 2)
     im = ax.imshow(sig, extent=ext, origin="upper", vmin=0, vmax=vmax, cmap="magma")
@@ -481,12 +528,12 @@ def history_plot(history, parameters=("f_mm", "xp_mm", "yp_mm"), *, tolerance=No
             k = [i for i in range(n) if methods[i] == m]
             if k:
                 ax.errorbar([t[i] for i in k], y[k], yerr=np.nan_to_num(s[k]), fmt=marker, ms=5,
-                            capsize=3, label=f"{m} (+-1 sigma)")
+                            capsize=3, label=f"{m} (±1 σ)")
         ax.plot(t, y, "-", color="0.6", lw=0.8, zorder=0)
         tol = (tolerance or {}).get(name)
         if tol is not None and np.isfinite(y[reference]):
             ax.axhspan(y[reference] - tol, y[reference] + tol, color="tab:green", alpha=0.12,
-                       label=f"tolerance +-{tol:.3g} {PARAM_UNITS.get(name, '')}".rstrip())
+                       label=f"tolerance ±{tol:.3g} {PARAM_UNITS.get(name, '')}".rstrip())
             ax.axhline(y[reference], color="tab:green", lw=0.8)
         ax.set_ylabel(f"{name} [{PARAM_UNITS[name]}]" if name in PARAM_UNITS else name)
         ax.ticklabel_format(axis="y", useOffset=False, style="sci", scilimits=(-3, 4))
@@ -516,10 +563,10 @@ def fleet_plot(summary, *, tolerance_um: float) -> Figure:
     for yi, v in zip(y, val, strict=True):
         if not np.isfinite(v):
             ax.text(0, yi, " only one calibration", va="center", fontsize=8, color="0.4")
-    ax.axvline(tolerance_um, color="black", ls="--", lw=1, label=f"tolerance {tolerance_um:g} um")
+    ax.axvline(tolerance_um, color="black", ls="--", lw=1, label=f"tolerance {tolerance_um:g} µm")
     ax.set_yticks(y, cams, fontsize=8)
     ax.invert_yaxis()
-    ax.set_xlabel("largest change of the latest calibration over the sensor [um]")
+    ax.set_xlabel("largest change of the latest calibration over the sensor [µm]")
     handles = [Rectangle((0, 0), 1, 1, color=c) for c in ("tab:red", "tab:orange", "tab:gray")]
     ax.legend(handles + ax.get_legend_handles_labels()[0],
               ["flagged (significant and > tolerance)", "significant", "not significant"]

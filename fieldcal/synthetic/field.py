@@ -32,7 +32,7 @@ from fieldcal.model.camera import Camera, Sensor
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
     "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
-    "MIN_SHARED_TARGETS",
+    "MIN_SHARED_TARGETS", "check_point_ids",
 ]
 
 IXU150_TABLE1 = {
@@ -317,6 +317,36 @@ def overlapping_images(sf: SyntheticField, n: int) -> list[int]:
         order = np.lexsort(key.T[::-1])                 # last key row sorts first: lexsort's rule
         chosen.append(int(order[-1]))
     return sorted(chosen)
+
+
+def check_point_ids(sf: SyntheticField, n: int, image_indices=None, seed: int = 0) -> list[str]:
+    """``n`` target ids to withhold as independent check points (``session.json``
+    ``check_points``): spread over the field (:func:`fieldcal.field.check_points.stratified_check_points`)
+    among the plain targets seen in two or more of the images ``image_indices`` (default all),
+    so that each can be intersected. At most a quarter of those targets.
+
+    Raises
+    ------
+    InputError
+        ``n`` below 1 or above that quarter.
+    """
+    from fieldcal.errors import InputError
+    from fieldcal.field.check_points import stratified_check_points
+
+    obs = sf.data.obs
+    keep = np.ones(len(obs.image), bool) if image_indices is None else np.isin(obs.image, list(image_indices))
+    pairs = np.unique(np.stack([obs.target[keep], obs.image[keep]], axis=1), axis=0)
+    seen = np.bincount(pairs[:, 0], minlength=len(sf.data.targets))
+    t = sf.data.targets
+    cand = np.flatnonzero((seen >= 2) & (t.codes < 0))
+    most = len(cand) // 4
+    if not 1 <= int(n) <= most:
+        raise InputError(f"--check-points must lie in 1..{most} (a quarter of the {len(cand)} plain targets "
+                         f"seen in two or more images), got {n}")
+    sub = TargetField(t.ids[cand], t.xyz_m[cand], t.sigma_mm[cand], t.codes[cand],
+                      None if t.normals is None else t.normals[cand])
+    pick = stratified_check_points(sub, (int(n) - 0.49) / len(cand), seed)
+    return sorted(str(x) for x in t.ids[cand][pick])
 
 
 @dataclass

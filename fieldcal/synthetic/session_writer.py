@@ -83,7 +83,7 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
                         session_id: str | None = None, acquired: str = "2026-11-20T09:30:00Z",
                         nominal_focal_mm: float | None = None, marks_error_px: float = 0.5,
                         marks_per_image: tuple[int, int] = (4, 6), marks_images=None,
-                        **render_kw) -> dict:
+                        check_points=None, **render_kw) -> dict:
     """Write a complete field session (docs/conventions.md section 3) of a synthetic problem.
 
     Parameters
@@ -118,6 +118,9 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
     camera_id, session_id, acquired, nominal_focal_mm
         Manifest fields; defaults ``synthetic-<scenario>``, the folder's name, a fixed date,
         and the scenario's nominal focal length (paper 150 mm, wide 24 mm).
+    check_points : sequence of str, optional
+        Target ids the manifest names as independent check points (``check_points``; e.g.
+        :func:`fieldcal.synthetic.field.check_point_ids`).
 
     Returns
     -------
@@ -136,6 +139,8 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
     if polarity not in ("dark", "bright"):
         raise InputError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
     session = _manifest(folder, sf, idx, coded, polarity, camera_id, session_id, acquired, nominal_focal_mm)
+    if check_points:
+        session["check_points"] = [str(t) for t in check_points]
     (folder / "session.json").write_text(json.dumps(session, indent=2) + "\n")
     _write_tables(folder, sf, idx, coded, observations_csv)
     marks = None

@@ -72,6 +72,14 @@ def test_check_point_rms_agrees_with_the_truth_error_of_those_targets(precise_su
     assert st["rms_mm"] == pytest.approx(st["rms_mm_predicted"], rel=0.2)
     assert st["rms_px"] == pytest.approx(st["rms_px_predicted"], rel=0.2)
     assert st["p_value_mm"] > 0.01
+    # per world axis (the certificate's X / Y / Z): they add up to the 3-D RMS, each agrees
+    # with the truth error on that axis (survey noise added) and with its prediction
+    assert sum(st[f"rms_{a}_mm"] ** 2 for a in "xyz") == pytest.approx(st["rms_mm"] ** 2)
+    for j, a in enumerate("xyz"):
+        print(a, st[f"rms_{a}_mm"], np.sqrt(np.mean(err_mm[:, j] ** 2)), st[f"rms_{a}_mm_predicted"])
+        assert st[f"rms_{a}_mm"] == pytest.approx(np.hypot(np.sqrt(np.mean(err_mm[:, j] ** 2)), 0.05), rel=0.15)
+        assert st[f"rms_{a}_mm"] == pytest.approx(st[f"rms_{a}_mm_predicted"], rel=0.3)
+        assert abs(st[f"mean_{a}_mm"]) <= st[f"max_{a}_mm"] and st[f"max_{a}_mm"] >= st[f"rms_{a}_mm"]
 
 
 def test_check_points_are_withheld_from_the_adjustment(precise_survey):
