@@ -15,6 +15,7 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -134,13 +135,27 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
             elif sess.coded is None:
                 raise InputError("images without coded targets need marks.csv (a few hand-identified "
                                  "targets per image) to be identified", str(sess.folder / "session.json"))
+        _check_image_folders(sess, to_measure)
         return Prepared(sess, settings, to_measure, tables, field_data=field_data)
     from fieldcal.goniometer import method as goniometer
 
     frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
     tables[sess.frames_path.name] = sess.frames_path.read_bytes()
     names = [str(f) for f in frames.column("file").to_pylist()]
+    _check_image_folders(sess, names)
     return Prepared(sess, settings, names, tables, frames)
+
+
+def _check_image_folders(sess, names) -> None:
+    """Bad input: a folder the session's images are listed in does not exist (one image's file
+    missing is that image's problem, reported and left out; a missing ``images/`` is the session's)."""
+    folders: dict = {}
+    for name in names:
+        folders.setdefault(sess.image_path(name).parent, []).append(name)
+    for folder, listed in folders.items():
+        if not folder.is_dir():
+            raise InputError(f"no such folder; the session lists {len(listed)} image(s) in it "
+                             f"({listed[0]}{', ...' if len(listed) > 1 else ''})", os.fspath(folder) + os.sep)
 
 
 def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
@@ -288,10 +303,10 @@ def _field_summary(sess, res: FieldResult, st: dict | None = None) -> list[str]:
     st = res.stats() if st is None else st
     lines = [f"{sess.camera_id} / {sess.session_id}: field method, {st['n_images']} images, "
              f"{st['n_targets']} targets, {st['n_observations']} points ({st['n_rejected']} rejected)",
-             f"rmse {st['rmse_px']:.3f} px, sigma0 {st['sigma0']:.3f}, {st['iterations']} iterations ({st['solver']})"]
+             f"rmse {st['rmse_px']:.3g} px, sigma0 {st['sigma0']:.3f}, {st['iterations']} iterations ({st['solver']})"]
     for j, n in enumerate(PARAM_NAMES):
         s = res.sigma.get(n)
-        lines.append(f"  {n:6s} {res.params[j]: .6e}" + (f"  +- {s:.2e}" if s is not None else "  (fixed)"))
+        lines.append(f"  {n:6s} {res.params[j]: .6e}" + (f"  ± {s:.2e}" if s is not None else "  (fixed)"))
     if res.fixed_parameters:
         lines.append("held fixed: " + ", ".join(f"{k} ({v})" for k, v in res.fixed_parameters.items()))
     cp = st.get("check_points")

@@ -388,7 +388,7 @@ def cmd_synth(args) -> int:
         write_synthetic(args.out, args.method, scenario=args.scenario, seed=args.seed,
                         raster_scale=args.raster_scale, images=args.images, scale=args.scale,
                         n_images=args.n_images, marks=args.marks, camera_id=args.camera_id,
-                        session_id=args.session_id)
+                        session_id=args.session_id, check_points=args.check_points)
     print(os.fspath(args.out))
     return 0
 
@@ -509,6 +509,8 @@ def _add_synthetic_commands(sub) -> None:
     p.add_argument("--scale", type=float, default=0.25, help="field images: raster scale (default %(default)s)")
     p.add_argument("--n-images", type=int, help="field images: N images spread over the stations (default all)")
     p.add_argument("--marks", action="store_true", help="field images: marks.csv instead of coded targets")
+    p.add_argument("--check-points", type=int, metavar="N",
+                   help="field: withhold N surveyed targets as independent check points (session.json)")
     p.add_argument("--camera-id")
     p.add_argument("--session-id")
     p.set_defaults(func=cmd_synth)
@@ -542,6 +544,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     without them.
     """
     parser = argparse.ArgumentParser(prog="fieldcal", description="Geometric calibration of mapping cameras.")
+    parser.add_argument("--version", action=_Version,
+                        help="print fieldcal's version (and the git commit it runs from) and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_run_commands(sub)
     _add_synthetic_commands(sub)
@@ -552,6 +556,38 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     for module in COMMAND_MODULES:
         register(sub, module)
     return parser
+
+
+class _Version(argparse.Action):
+    """``fieldcal --version``: the version and the git commit it runs from (asked only then)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):  # noqa: A002
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from fieldcal.session.fingerprint import code_version
+
+        print(f"fieldcal {code_version()}")
+        parser.exit()
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """Parse ``argv``; an unknown option is reported with the usage of the command it was given
+    to (and the closest option it has), not with the top-level usage."""
+    import difflib
+
+    args, extra = parser.parse_known_args(argv)
+    if not extra:
+        return args
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)   # noqa: SLF001
+    target = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
+    target = target or parser
+    options = list(target._option_string_actions)                                                # noqa: SLF001
+    hints = [m for e in extra if e.startswith("-")
+             for m in difflib.get_close_matches(e.split("=")[0], options, n=1)]
+    target.error(f"unrecognized arguments: {' '.join(extra)}"
+                 + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
+    return args
 
 
 def _quiet_broken_pipe() -> None:
@@ -571,7 +607,7 @@ def main(argv=None) -> int:
 
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     parser = build_parser(next((a for a in argv if not a.startswith("-")), None))
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2

@@ -208,13 +208,18 @@ def describe(doc: dict) -> list[str]:
              f"camera    {doc.get('camera_id')}   session {doc.get('session_id')}   method {doc.get('method')}",
              f"created   {doc.get('created')}   acquired {doc.get('acquired', '-')}",
              f"sensor    {doc['sensor']['width_px']} x {doc['sensor']['height_px']} px, "
-             f"{doc['sensor']['pixel_size_um']} um   model {doc.get('model')}",
+             f"{doc['sensor']['pixel_size_um']} µm   model {doc.get('model')}",
              "", f"{'parameter':10s} {'value':>16s} {'sigma':>12s}"]
     fixed = st.get("fixed_parameters") or {}
     for n in PARAM_NAMES:
         s = doc["sigma"].get(n)
         why = f"  fixed ({fixed[n]})" if n in fixed else ("" if s is not None else "  fixed")
         lines.append(f"{n:10s} {doc['parameters'][n]:16.9g} {'' if s is None else format(s, '12.3g'):>12s}{why}")
+    k0, f = float(doc["parameters"].get("k0") or 0.0), float(doc["parameters"]["f_mm"])
+    if k0:
+        lines.append(f"effective focal length f / (1 + k0) = {f / (1 + k0):.6g} mm: k0 {k0:+.4g} is a "
+                     f"{100 * abs(k0):.2f} % scale, so f alone is right only with this model "
+                     "(fieldcal certificate: which focal length to use)")
     lines.append("")
     keys = ("n_images", "n_frames", "n_angles", "n_targets", "n_observations", "n_rejected", "rmse_px",
             "max_px", "sigma0", "sigma_fit_px", "iterations", "solver", "targets_adjusted")

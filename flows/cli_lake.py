@@ -115,6 +115,11 @@ def _vacuum(args) -> int:
         print(f"{name}: {verb} {len(files)} file(s)")
         for f in files:
             print(f"  {f}")
+        younger = set(lake.tables.vacuum(name, 0, dry_run=True)) - set(files)
+        if younger:
+            print(f"{name}: {len(younger)} replaced file(s) younger than the retention of "
+                  f"{args.retention_hours:g} h are kept (readers of older snapshots and --as-of need them; "
+                  f"--retention-hours sets it, at least {MIN_RETENTION_HOURS:g})")
     return 0
 
 

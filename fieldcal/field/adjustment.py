@@ -1023,7 +1023,23 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
         raise GeometryError(_singular_diagnosis(err, solver.model)) from None
     # everything not used: reason 'initial outlier' left -> it is a blunder
     flags.reason[(flags.reason == "initial outlier")] = "blunder"
-    return _field_result(data, o, origin, solver, flags, model, result, (cov, s, corr), estimate, fixed, init)
+    res = _field_result(data, o, origin, solver, flags, model, result, (cov, s, corr), estimate, fixed, init)
+    if progress:
+        progress(_outcome_line(res, result.sigma0, bool(solver.vc.rounds)))
+    return res
+
+
+def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str:
+    """What this adjustment ended with: the parameters estimated and held, and its sigma0 -- the
+    document's, of the session's own a-priori sigmas, which after a re-weighting by the variance
+    components is not the last round's (that one is about 1 by construction)."""
+    held = [n for n in FIELD_PARAMS if n not in res.estimate]
+    text = f"adjusted: {', '.join(res.estimate)} estimated" + (f", {', '.join(held)} held at 0" if held else "")
+    text += f"; sigma0 {res.sigma0:.3f}"
+    if reweighted:
+        text += (f" with the session's a-priori sigmas (the last round, re-weighted by the variance "
+                 f"components: {last_sigma0:.3f})")
+    return text
 
 
 def _check_options(o: AdjustmentOptions) -> None:

@@ -457,7 +457,8 @@ def _first_pass(run: _Run):
     run.say(f"identification with the nominal camera (f {run.nominal.f_mm:g} mm): {len(keep1)} of "
             f"{len(run.names)} images, {len(data1.obs)} points")
     res1 = adjust_field(data1, run.working_options, progress=run.progress)
-    run.say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3f} px")
+    run.say(f"first adjustment: f {res1.params[0]:.5f} mm, rmse {res1.stats()['rmse_px']:.3g} px (it starts the "
+            "identification of the other images; the final adjustment chooses the parameters again)")
     return first, keep1, marker1, res1
 
 
@@ -534,7 +535,7 @@ class _Oriented:
             return False
         self.update(*outcome)
         run.say(f"adjustment with {len(self.keep)} images: f {self.res.params[0]:.5f} mm, "
-                f"rmse {self.res.stats()['rmse_px']:.3f} px")
+                f"rmse {self.res.stats()['rmse_px']:.3g} px")
         return True
 
 

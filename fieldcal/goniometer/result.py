@@ -135,28 +135,28 @@ class GoniometerResult:
         um = 1000.0
 
         def pm(name):
-            return f"{p[name]:.5f} +- {sg[name]:.5f}" if sg.get(name) is not None else f"{p[name]:.5f}"
+            return f"{p[name]:.5f} ± {sg[name]:.5f}" if sg.get(name) is not None else f"{p[name]:.5f}"
         lines = [
             f"goniometer calibration ({s['solver']}): {s['n_angles']} angles from {s['n_frames']} "
             f"frames, {s['n_rejected']} frame(s) rejected",
-            f"  f  = {pm('f_mm')} mm from the {s['f_axis']} sweep (+-{s['half_span_deg'][s['f_axis']]:.1f} deg); "
+            f"  f  = {pm('f_mm')} mm from the {s['f_axis']} sweep (±{s['half_span_deg'][s['f_axis']]:.1f}°); "
             f"fx = {s['fx_mm']:.5f}, fy = {s['fy_mm']:.5f} mm",
             f"  xp = {pm('xp_mm')} mm, yp = {pm('yp_mm')} mm",
             f"  arm zero landed {s['zero_offset_px']['x']:+.2f} px (x sweep) and "
             f"{s['zero_offset_px']['y']:+.2f} px (y sweep) from the sensor centre",
             f"  distortion before the fit: max {s['max_distortion_px']:.2f} px; after: "
-            f"sigma_fit {s['sigma_fit_px']:.3f} px (n = {s['n_angles']}, t = {s['n_fitted']}), "
-            f"max {s['max_px']:.3f} px",
+            f"sigma_fit {s['sigma_fit_px']:.3g} px (n = {s['n_angles']}, t = {s['n_fitted']}), "
+            f"max {s['max_px']:.3g} px",
         ]
         if s.get("sigma0") is not None:
-            lines.append(f"  a-posteriori spot accuracy {s['sigma0_px']:.3f} px = {s['sigma0']:.2f} x "
+            lines.append(f"  a-posteriori spot accuracy {s['sigma0_px']:.3g} px = {s['sigma0']:.2f} x "
                          f"the frame-to-frame standard error")
         for name, why in s["fixed_parameters"].items():
             lines.append(f"  held at 0: {name} ({why})")
         lin = s["linearisation"]
-        lines.append(f"  rigorous minus linearised: df {lin['df_mm'] * um:+.2f} um, dxp "
-                     f"{lin['dxp_mm'] * um:+.2f} um, dyp {lin['dyp_mm'] * um:+.2f} um; along the axes "
-                     f"{lin['rms_px']:.3f} px RMS, {lin['max_px']:.3f} px max")
+        lines.append(f"  rigorous minus linearised: df {lin['df_mm'] * um:+.2f} µm, dxp "
+                     f"{lin['dxp_mm'] * um:+.2f} µm, dyp {lin['dyp_mm'] * um:+.2f} µm; along the axes "
+                     f"{lin['rms_px']:.3g} px RMS, {lin['max_px']:.3g} px max")
         lines.extend(f"  note: {n}" for n in s["notes"])
         lines.extend(f"  rejected {r['file']}: {r['flag']}: {r['reason']}" for r in self.rejected)
         return lines

@@ -118,6 +118,36 @@ On S3 pass the credentials and endpoint as storage options (`AWS_ENDPOINT_URL`,
 """
 
 
+_RESIDUALS = """\
+## Residuals: what the rows hold
+
+- **Sign and direction.** `du_px, dv_px` are measured minus model, in pixels (u right, v down).
+  fieldcal's camera model (`fieldcal-brown/1`, CONTRACT section 2) *corrects* a measured
+  image point to the ideal one: `ideal = measured + correction(measured)`. OpenCV, COLMAP and
+  Metashape go the other way (they *distort* an ideal point), so their coefficients are not
+  fieldcal's: `fieldcal export` fits them.
+- **Field rows**: one per image point of a target; both components are set.
+- **Goniometer rows**: one per angle and sweep (`axis`, `angle_deg`; `image` null: the mean of
+  that angle's frames). The method models only the coordinate along the swept axis, so the
+  other component is NaN: `du_px` for the x sweep, `dv_px` for the y sweep. An RMS over both
+  components (`sqrt(avg(du_px*du_px + dv_px*dv_px))`) is then NaN; take the component of the row's
+  sweep:
+
+  ```sql
+  SELECT version, axis, sqrt(avg(power(CASE axis WHEN 'x' THEN du_px ELSE dv_px END, 2))) AS rms_px
+  FROM residuals WHERE used AND axis IS NOT NULL GROUP BY version, axis;
+  ```
+
+  A frame left out is a row with `used` false, NaN positions and `reason` `FLAG: why`, with
+  the flags of `observations_goniometer.flag`: `ok` (measured), `missing` (no spot found),
+  `saturated` (the spot's peak at full scale), `truncated` (the spot touches the frame's
+  border), `double` (two spots), `unreadable` (the file is missing, corrupt or not the
+  sensor's size); while averaging the frames of an angle: `bad_row` (frames.csv's row cannot
+  be used), `unmeasured` (no measurement for the frame), `inconsistent` (the frame's spot
+  disagrees with the other frames of its angle).
+"""
+
+
 def data_dictionary() -> str:
     """The text of ``LAKE/README.md``."""
     out = ["# fieldcal lake", "",
@@ -133,7 +163,7 @@ def data_dictionary() -> str:
            "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
            "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
            "                            exterior/*, correction_field, grid_u_px, grid_v_px",
-           "```", "", _READING, "## Tables", ""]
+           "```", "", _READING, _RESIDUALS, "## Tables", ""]
     for name in TABLES:
         part = ", ".join(PARTITIONS[name]) or "not partitioned"
         out += [f"### {name}", "", _TABLE_DOCS[name], "", f"Partitioned by: {part}.", "",

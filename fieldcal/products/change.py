@@ -113,7 +113,7 @@ class QuantityTest:
             size = (f"largest change {self.change[0]:.4g} {self.unit} (1 sigma up to "
                     f"{self.sigma[0]:.3g} {self.unit})")
         else:
-            size = "change " + ", ".join(f"{c:+.4g} +- {s:.3g}" for c, s in
+            size = "change " + ", ".join(f"{c:+.4g} ± {s:.3g}" for c, s in
                                          zip(self.change, self.sigma, strict=True)) + f" {self.unit}"
         return (f"{self.label}: {size}; chi2 {self.statistic:.3g} on {self.dof} dof, "
                 f"p = {self.p_value:.3g} (Holm-adjusted {self.p_adjusted:.3g})")

@@ -244,16 +244,16 @@ class Comparison:
 
     @property
     def verdict(self) -> str:
-        size = (f"largest change {self.max_um:.3g} um ({self.max_px:.3g} px) {self.where}, "
-                f"{'>' if self.exceeds_tolerance else '<='} tolerance {self.tolerance_um:g} um")
+        size = (f"largest change {self.max_um:.3g} µm ({self.max_px:.3g} px) {self.where}, "
+                f"{'>' if self.exceeds_tolerance else '≤'} tolerance {self.tolerance_um:g} µm")
         if self.outside_px > self.outside_tol_px:
             why = (f"changed where neither calibration has any uncertainty "
-                   f"({self.outside_px:.3f} px outside the explained range)")
+                   f"({self.outside_px:.3g} px outside the explained range)")
         elif self.significant:
             what = ", ".join(self.changed)
             why = f"significant change in {what} (p = {self.p_value:.2g} < {self.alpha:g}, Holm)"
         else:
-            why = f"no significant change (p = {self.p_value:.2g} >= {self.alpha:g}, Holm)"
+            why = f"no significant change (p = {self.p_value:.2g} ≥ {self.alpha:g}, Holm)"
         return f"{why}; {size}" + ("; FLAGGED" if self.flagged else "")
 
     def summary(self) -> dict:

@@ -55,6 +55,10 @@ UNITS = {"f_mm": "mm", "xp_mm": "mm", "yp_mm": "mm", "k0": "1", "k1": "mm^-2", "
          "k3": "mm^-6", "p1": "mm^-1", "p2": "mm^-1", "a1": "1", "a2": "1", "b1": "1", "b2": "1"}
 CORRELATION_THRESHOLD = 0.95
 SIGNIFICANCE_SIGMAS = 3.0
+COVARIANCE_SOURCES = {"covariance": "propagated from the version's stored covariance of the parameters",
+                      "sigmas": "from the parameters' sigmas only: this version stores no covariance, "
+                                "so their correlations are unknown"}
+"""How the report names :attr:`fieldcal.products.uncertainty.Calibration.covariance_source`."""
 METHOD_SETS = {"field": ("f_mm", "xp_mm", "yp_mm", "k1", "k2", "k3", "p1", "p2", "a1", "a2"),
                "goniometer": ("f_mm", "xp_mm", "yp_mm", "k0", "k1", "k2", "k3", "p1", "p2",
                               "b1", "b2")}
@@ -196,8 +200,8 @@ def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
                                     "its surveyed position does not)"})
     else:
         went_in.append(f"{st.get('n_frames')} frames at {st.get('n_angles')} angles "
-                       f"(x sweep +-{(st.get('half_span_deg') or {}).get('x', float('nan')):.1f} "
-                       f"deg, y sweep +-{(st.get('half_span_deg') or {}).get('y', float('nan')):.1f} deg)")
+                       f"(x sweep ±{(st.get('half_span_deg') or {}).get('x', float('nan')):.1f}°, "
+                       f"y sweep ±{(st.get('half_span_deg') or {}).get('y', float('nan')):.1f}°)")
         went_in.append(f"interior orientation by {st.get('solver')}; f from the "
                        f"{st.get('f_axis', '?')} sweep")
         img = r.get("image")
@@ -435,7 +439,7 @@ def _meta_section(cal: Calibration) -> list[str]:
     meta = [("camera", doc.get("camera_id")), ("session", doc.get("session_id")),
             ("version", cal.version), ("method", cal.method), ("acquired", doc.get("acquired")),
             ("computed", doc.get("created")), ("code version", doc.get("code_version")),
-            ("sensor", f"{s['width_px']} x {s['height_px']} px, {s['pixel_size_um']} um"),
+            ("sensor", f"{s['width_px']} × {s['height_px']} px, {s['pixel_size_um']} µm"),
             ("inputs' fingerprint", (doc.get("inputs") or {}).get("fingerprint"))]
     if cal.method == "field":
         meta += [("RMS residual", f"{st.get('rmse_px', float('nan')):.4g} px (max "
@@ -516,7 +520,7 @@ def _uncertainty_section(cal: Calibration) -> list[str]:
             f"{max(sig[0, 0], sig[0, -1], sig[-1, 0], sig[-1, -1]):.3g} px in the worst corner, "
             f"{sig.max():.3g} px at most; without a common camera rotation {sig_r[15, 20]:.3g} px "
             f"at the centre and {sig_r.max():.3g} px at most "
-            f"(covariance: {html.escape(cal.covariance_source)}).</p>"]
+            f"({COVARIANCE_SOURCES.get(cal.covariance_source, html.escape(cal.covariance_source))}).</p>"]
 
 
 def _figures_section(figures_png: dict, captions: dict) -> list[str]:

@@ -46,7 +46,7 @@ def interior_px(cal: Calibration) -> str:
              _num(r["px"], ".3f"), _num(r["sigma_px"], ".3g"), f"<td>{html.escape(r['note'])}</td>"]
             for r in content.interior_rows(cal)]
     return ('<h3>Interior orientation in millimetres and pixels</h3>'
-            + table(["", "value [mm]", "sigma [um]", "value [px]", "sigma [px]", ""], rows,
+            + table(["", "value [mm]", "σ [µm]", "value [px]", "σ [px]", ""], rows,
                     table_id="interior-px"))
 
 
@@ -95,10 +95,10 @@ def exterior_table(cal: Calibration, per_image: list[dict]) -> str:
                      *(_num(None if x is None else 1000 * x, ".1f") for x in sc),
                      *(_num(x, ".3f") for x in opk[k]), *(_num(x, ".1f") for x in s_att[k]),
                      _num(st.get("n_used"), "d"), _num(st.get("n_rejected"), "d"),
-                     _num(st.get("mean_abs_u_px"), ".3f"), _num(st.get("mean_abs_v_px"), ".3f"),
-                     _num(st.get("rmse_px"), ".3f")])
+                     _num(st.get("mean_abs_u_px"), ".3g"), _num(st.get("mean_abs_v_px"), ".3g"),
+                     _num(st.get("rmse_px"), ".3g")])
     return ('<h2 id="exterior">Exterior orientation and per-image figures</h2>'
-            "<p>Camera centre [m] and attitude (omega, phi, kappa [deg], R = Rz(kappa) Ry(phi) "
+            "<p>Camera centre [m] and attitude (ω, φ, κ [°], R = Rz(kappa) Ry(phi) "
             "Rx(omega) camera-to-world) with 1-sigma: of the centre [mm], of the attitude as a "
             "small rotation about the camera's x, y, z axes [mdeg]; then the image's used and "
             "rejected points and its mean absolute and RMS residuals [px].</p>"
@@ -161,10 +161,10 @@ def previous_section(cal: Calibration, previous: Calibration | None, change) -> 
                      *(_num(None if c.sigma_of(n) is None else 1000 * c.sigma_of(n), ".3g")
                        for n in ("f_mm", "xp_mm", "yp_mm"))])
     out = [head, table(["version", "session", "acquired", "method", "f [mm]", "xp [mm]", "yp [mm]",
-                        "sigma f [um]", "sigma xp [um]", "sigma yp [um]"], rows, table_id="previous-table")]
+                        "σ f [µm]", "σ xp [µm]", "σ yp [µm]"], rows, table_id="previous-table")]
     if change is not None:
-        out.append(f"<p>Change, tested {html.escape(change.where)}: largest {change.max_um:.3g} um "
-                   f"({change.max_px:.3g} px), RMS {change.rms_um:.3g} um ({change.rms_px:.3g} px).</p>")
+        out.append(f"<p>Change, tested {html.escape(change.where)}: largest {change.max_um:.3g} µm "
+                   f"({change.max_px:.3g} px), RMS {change.rms_um:.3g} µm ({change.rms_px:.3g} px).</p>")
         out.append('<ul class="compact">' + "".join(f"<li>{html.escape(t.line())}</li>" for t in change.tests)
                    + "".join(f"<li>not tested: {html.escape(x)}</li>" for x in change.left_out) + "</ul>")
         out.append(f"<p><b>Verdict:</b> {html.escape(change.verdict)}</p>")

@@ -602,3 +602,22 @@ def test_observation_blocks_of_the_kept_jacobian_are_those_of_an_evaluation():
     d_int, d_ext = problem.observation_blocks(y)          # another point: evaluated there
     _, jb_y, _ = m.residuals_and_blocks(y, True)
     assert np.array_equal(d_int, jb_y.d_int) and np.array_equal(d_ext, jb_y.d_ext)
+
+
+def test_the_progress_ends_with_what_the_document_says():
+    """The last progress line of an adjustment names the parameters estimated and held and the
+    document's sigma0, not the re-weighted last round's (issue 30: the run log said 1.002 where
+    the document said 1.044)."""
+    sf = paper_field(seed=2, n_attitudes=2)
+    data = replace(sf.data, obs=replace(sf.data.obs, sigma_px=0.5 * sf.data.obs.sigma_px))
+    lines = []
+    res = adjust_field(data, progress=lines.append)
+    assert res.variance_components.rounds >= 1
+    last_round = float(lines[-2].rsplit("sigma0 ", 1)[1]) if "sigma0" in lines[-2] else None
+    line = lines[-1]
+    held = [n for n in res.fixed_parameters if n in FIELD_PARAMS and n not in res.estimate]
+    assert line.startswith(f"adjusted: {', '.join(res.estimate)} estimated")
+    assert all(n in line.split(";")[0] for n in held)
+    assert f"sigma0 {res.sigma0:.3f} with the session's a-priori sigmas" in line
+    assert abs(res.sigma0 - 1.0) > 0.2 and last_round is not None and abs(last_round - 1.0) < 0.1
+    assert f"components: {last_round:.3f})" in line

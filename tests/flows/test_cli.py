@@ -95,6 +95,36 @@ def test_a_session_that_is_not_there_is_refused_without_a_server(tmp_path, what)
     assert not (tmp_path / "lake").exists()
 
 
+def test_a_missing_images_folder_is_bad_input(tmp_path):
+    """One image's file missing leaves that image out; the session's whole images/ folder missing
+    is bad input: exit 2, one line naming the folder, nothing written (issue 30)."""
+    folder = tmp_path / "noimages"
+    write_field_session(folder, wide_field(seed=8), images=False, image_indices=range(5))   # listed, not written
+    proc = fieldcal("run", folder, "--lake", tmp_path / "lake", env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    (line,) = proc.stderr.splitlines()
+    assert line == (f"fieldcal run: {folder / 'images'}{os.sep}: no such folder; the session lists 5 image(s) "
+                    "in it (images/wide_001.tif, ...)")
+    assert not (tmp_path / "lake").exists()
+
+
+def test_version_and_an_unknown_option_with_the_commands_usage(capsys):
+    from fieldcal.session.fingerprint import code_version
+
+    with pytest.raises(SystemExit) as done:
+        cli.main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out == f"fieldcal {code_version()}\n"
+    with pytest.raises(SystemExit) as done:
+        cli.main(["history", "--lake", "x", "--cammera", "y"])
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and err.startswith("usage: fieldcal history ")
+    assert err.strip().endswith("fieldcal history: error: unrecognized arguments: --cammera y "
+                                "(did you mean --camera?)")
+    with pytest.raises(SystemExit):
+        cli.main(["--bogus"])
+    assert capsys.readouterr().err.startswith("usage: fieldcal [-h] [--version]")
+
+
 def test_an_output_path_that_cannot_be_written_is_refused_before_any_work(cli_run, tmp_path):
     _, _, _, folder = cli_run
     lake = tmp_path / "lake"

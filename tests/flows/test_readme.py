@@ -68,10 +68,10 @@ def test_every_command_line_of_the_readme_runs_as_written(prefect_server, tmp_pa
     tifffile.imwrite(tmp_path / "photo.tif", photo)
     values = {"SESSION": session, "ROOT": root, "LAKE": tmp_path / "lake", "ID": "cam-readme",
               "OUT.json": tmp_path / "doc.json", "FILE.png": tmp_path / "history.png", "FILE": tmp_path / "export.txt",
-              "DIR": tmp_path / "out", "OUT": tmp_path / "synth", "IMAGE.tif": tmp_path / "photo.tif",
-              "OUT.tif": tmp_path / "undistorted.tif"}
+              "DIR": tmp_path / "out", "OUT": tmp_path / "synth", "OUT2": tmp_path / "synth2",
+              "IMAGE.tif": tmp_path / "photo.tif", "OUT.tif": tmp_path / "undistorted.tif"}
     env = readme_env(prefect_server, tmp_path)
-    versions = []
+    versions, synthesised = [], []
     for line in readme_lines():
         values.update(VERSION=versions[-1] if versions else "", V1=versions[0] if versions else "",
                       V2=versions[-1] if versions else "")
@@ -82,15 +82,41 @@ def test_every_command_line_of_the_readme_runs_as_written(prefect_server, tmp_pa
             continue
         if argv[1] == "demo":            # its own test (test_readme_demo.py), beside this one
             continue
+        if "--pdf" in argv and not chromium_available():
+            print(f"README line without --pdf: Chromium is not installed (apt-get install chromium): {line}")
+            argv.remove("--pdf")
         out = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=900)
         assert out.returncode == 0, f"{line}\n{out.stderr[-2000:]}"
         if argv[1] == "run":
             versions.append(out.stdout.strip())
+        if argv[1] == "synth":           # what synth writes calibrates, end to end (issue 30)
+            made = Path(out.stdout.strip())
+            run = subprocess.run([FIELDCAL, "run", str(made), "--lake", str(tmp_path / "synth-lake")], env=env,
+                                 cwd=tmp_path, capture_output=True, text=True, timeout=900)
+            assert run.returncode == 0, f"fieldcal run of {line}\n{run.stderr[-2000:]}"
+            synthesised.append(run.stdout.strip())
     lake = Lake(values["LAKE"])
     assert len(versions) == 2 and set(versions) < set(lake.catalog()["version"].to_pylist())
     assert len(lake.catalog()) == 3                      # run, run --force, and the fleet's other session
-    for made in ("doc.json", "history.png", "export.txt", "out/report.html", "undistorted.tif", "synth/session.json"):
+    for made in ("doc.json", "history.png", "export.txt", "out/report.html", "undistorted.tif", "synth/session.json",
+                 "out/certificate.html") + (("out/certificate.pdf",) if chromium_available() else ()):
         assert (tmp_path / made).exists(), made
+    synth_lines = [ln for ln in readme_lines() if ln.split()[1] == "synth"]
+    assert len(synthesised) == len(synth_lines) >= 2
+    synth_lake = Lake(tmp_path / "synth-lake")
+    assert set(synthesised) == set(synth_lake.catalog()["version"].to_pylist())
+    checked = [synth_lake.load_document(v)["stats"].get("check_points") for v in synthesised]
+    assert any(cp and cp["n_withheld"] == 20 for cp in checked)
+
+
+def chromium_available() -> bool:
+    from fieldcal.products.pdf import PdfError, chromium
+
+    try:
+        chromium()
+    except PdfError:
+        return False
+    return True
 
 
 def run_serve(argv, env, tmp_path, api, lake):

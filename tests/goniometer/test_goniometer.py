@@ -451,3 +451,30 @@ def test_the_lake_names_the_frame_schema_without_importing_the_method():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["[]", "True", "True"]
+
+
+def test_the_data_dictionary_says_how_to_take_the_rms_of_goniometer_residuals(solved):
+    """The other axis's residual is NaN, so the obvious RMS is NaN; the query the lake's README
+    gives takes the swept axis's component, and it lists every frame flag (issue 30)."""
+    import re
+
+    import duckdb
+
+    from fieldcal.goniometer.frames import FRAME_FLAGS
+    from fieldcal.lake.dictionary import data_dictionary
+
+    text = data_dictionary()
+    query = re.search(r"```sql\n\s*(SELECT version, axis.*?)\n\s*```", text, re.S).group(1)
+    res, _ = solved["canon5d2", False]
+    table = res.lake_residuals().append_column("version", pa.array(["v1"] * res.lake_residuals().num_rows))
+    con = duckdb.connect()
+    con.register("residuals", table)
+    naive = con.execute("SELECT sqrt(avg(du_px*du_px + dv_px*dv_px)) FROM residuals WHERE used").fetchone()[0]
+    rows = {axis: rms for _, axis, rms in con.execute(query).fetchall()}
+    assert np.isnan(naive) and set(rows) == {"x", "y"}
+    used = res.lake_residuals().filter(pa.compute.field("used"))
+    for axis, col in (("x", "du_px"), ("y", "dv_px")):
+        v = np.asarray(used.filter(pa.compute.equal(used["axis"], axis))[col])
+        assert rows[axis] == pytest.approx(np.sqrt(np.mean(v**2))) and np.isfinite(rows[axis])
+    assert all(f"`{flag}`" in text for flag in FRAME_FLAGS + ("bad_row", "unmeasured", "inconsistent"))
+    assert "*corrects* a measured" in text and "OpenCV, COLMAP and\n  Metashape go the other way" in text

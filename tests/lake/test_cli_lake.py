@@ -50,6 +50,9 @@ def test_optimize_vacuum_and_check_commands(lake_dir, capsys):
     assert cli.main(["lake", "vacuum", "--lake", str(lake_dir)]) == 0
     out = capsys.readouterr().out
     assert "catalog: would delete 0 file(s)" in out  # the replaced files are younger than a week
+    # ... and it says so, with the retention (issue 30)
+    assert ("catalog: 2 replaced file(s) younger than the retention of 168 h are kept (readers of older "
+            "snapshots and --as-of need them; --retention-hours sets it, at least 1)") in out
     assert cli.main(["lake", "check", "--lake", str(lake_dir)]) == 0
     assert "no damage found" in capsys.readouterr().out
     assert cli.main(["lake", "log", "--lake", str(lake_dir), "--table", "nope"]) == 2

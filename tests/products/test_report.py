@@ -411,5 +411,5 @@ def test_history_plot_tolerance_has_a_unit():
                         "method": ["field", "field"], "f_mm": [146.39, 146.40],
                         "sigma_f_mm": [0.01, 0.01]}, ["f_mm"], tolerance={"f_mm": 0.002})
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
-    assert any(lab.startswith("tolerance +-0.002 mm") for lab in labels), labels
+    assert any(lab.startswith("tolerance ±0.002 mm") for lab in labels), labels
     assert fig.axes[0].get_ylabel() == "f_mm [mm]"
