@@ -268,17 +268,17 @@ class ModelFit:
         others = [t for t in self.tried if t["model"] != self.model]
         if not others:
             return what
-        tried = ", ".join(f"{t['model']} {t['roundtrip_max_px']:.2g} px" for t in self.tried)
+        tried = ", ".join(f"{t['model']} {t['roundtrip_max_px']:.3g} px" for t in self.tried)
         why = (f"the simplest whose round trip is within {EXACT_PX} px" if self.exact
                else "the best round trip; none is within " + f"{EXACT_PX} px")
         return f"{what}: {why} (tried, largest round-trip error: {tried})"
 
     def report_lines(self) -> list[str]:
         lines = [self.choice_line(),
-                 f"{self.format} {self.model}: fit residual {self.fit_rms_px:.2g} px RMS, "
-                 f"{self.fit_max_px:.2g} px max over the sensor; round trip through "
-                 f"{self.roundtrip_with}: {self.roundtrip_rms_px:.2g} px RMS, "
-                 f"{self.roundtrip_max_px:.2g} px max"]
+                 f"{self.format} {self.model}: fit residual {self.fit_rms_px:.3g} px RMS, "
+                 f"{self.fit_max_px:.3g} px max over the sensor; round trip through "
+                 f"{self.roundtrip_with}: {self.roundtrip_rms_px:.3g} px RMS, "
+                 f"{self.roundtrip_max_px:.3g} px max"]
         if not self.exact:
             lines.append(f"warning: the {self.format} export cannot be that exact: the round trip "
                          f"is off by up to {self.roundtrip_max_px:.3g} px (> {EXACT_PX} px); "
