@@ -392,8 +392,8 @@ def _change(change, prev_label: str | None) -> str:
         return "<p>No previous calibration of this camera in the lake: nothing to compare.</p>"
     rows = [[f"<td>{E(t.label)}</td>",
              f'<td class="num">{", ".join(f"{c:.3g}" if t.key == "map" else f"{c:+.3g}" for c in t.change)} '
-             f'{E(t.unit.replace("um", "µm"))}</td>',
-             f'<td class="num">{", ".join(f"{s:.3g}" for s in t.sigma)} {E(t.unit.replace("um", "µm"))}</td>',
+             f'{E(t.unit_symbol)}</td>',
+             f'<td class="num">{", ".join(f"{s:.3g}" for s in t.sigma)} {E(t.unit_symbol)}</td>',
              f'<td class="num">{t.p_value:.3g}</td>', f'<td class="num">{t.p_adjusted:.3g}</td>',
              f"<td>{'yes' if t.significant(change.alpha) else 'no'}</td>"] for t in change.tests]
     out = [f"<p>Against {E(prev_label or '')}: tested {E(change.where)}; largest change "

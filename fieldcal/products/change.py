@@ -107,14 +107,19 @@ class QuantityTest:
     def significant(self, alpha: float) -> bool:
         return bool(self.p_adjusted < alpha)
 
+    @property
+    def unit_symbol(self) -> str:
+        """The unit as people read it (``µm``; ``unit`` stays ``um`` in the JSON)."""
+        return "µm" if self.unit == "um" else self.unit
+
     def line(self) -> str:
         """One line: the change, its sigma, the test."""
+        u = self.unit_symbol
         if self.key == "map":
-            size = (f"largest change {self.change[0]:.4g} {self.unit} (1 sigma up to "
-                    f"{self.sigma[0]:.3g} {self.unit})")
+            size = f"largest change {self.change[0]:.4g} {u} (1 σ up to {self.sigma[0]:.3g} {u})"
         else:
             size = "change " + ", ".join(f"{c:+.4g} ± {s:.3g}" for c, s in
-                                         zip(self.change, self.sigma, strict=True)) + f" {self.unit}"
+                                         zip(self.change, self.sigma, strict=True)) + f" {u}"
         return (f"{self.label}: {size}; chi2 {self.statistic:.3g} on {self.dof} dof, "
                 f"p = {self.p_value:.3g} (Holm-adjusted {self.p_adjusted:.3g})")
 

@@ -46,7 +46,7 @@ def test_compare_text_json_and_plot(lake_env, tmp_path, capsys):
     for label in ("principal distance: change", "principal point (xp, yp): change",
                   "radial distortion at the edge of the field", "correction field over the sensor"):
         assert label in text, label
-    assert "um; chi2" in text and "px (1 sigma up to" in text
+    assert "µm; chi2" in text and "px (1 σ up to" in text and " um" not in text
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["compare", "previous", "latest", "--camera", "cam-f", "--format", "json",
                  "--out", str(tmp_path / "c.json")]) == 0

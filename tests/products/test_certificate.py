@@ -295,3 +295,11 @@ def test_the_pdf_is_a4_numbered_and_keeps_the_verdict_with_the_signatures(checke
             assert page.size[1] / page.size[0] == pytest.approx(297 / 210, rel=0.02)
             assert page.convert("L").getextrema()[0] < 100                        # something printed
     assert main(["certificate", v, "--lake", str(lake.url), "--out", str(out), "--pdf"]) == 2   # no overwriting
+
+
+def test_numbers_keep_their_significant_digits():
+    """Three decimals printed good residuals as 0.000 (issue 30)."""
+    assert [content.sig(x) for x in (0.0412345, 0.000123, 1.0, 12.345, 0.1)] == ["0.0412", "0.000123", "1.00",
+                                                                                 "12.3", "0.100"]
+    assert content.residual_format(0.00573, 0.0213) == "0.00573 px RMS, max 0.0213 px"
+    assert content.sig(None) == content.sig(float("nan")) == "—"

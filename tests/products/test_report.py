@@ -30,6 +30,7 @@ from fieldcal.products.report import (
     GONIOMETER_FIGURES,
     fleet_summary,
     goniometer_axis_table,
+    image_table,
     inputs_summary,
     parameter_rows,
     parameter_tolerance,
@@ -386,6 +387,12 @@ def test_field_report_has_the_engineers_tables(shared, tmp_path):
     res = np.asarray(cal.arrays["targets/survey_residual_mm"])
     assert res.shape == np.asarray(cal.arrays["targets/xyz_m"]).shape
     assert "Survey residuals (surveyed minus adjusted)" in words
+    # what a careful reader tripped on (issue 30): how the uncertainty was propagated, unit
+    # symbols, and residuals with significant digits (0.0x px printed as 0.0x, not 0.000)
+    assert "propagated from the version's stored covariance" in words and "covariance: covariance" not in words
+    assert " um" not in words and "+-" not in words and "σ [µm]" in words
+    rows = image_table(cal, shared["lake_obj"].read_residuals(v["f2"]))
+    assert f"{rows[0]['rmse_px']:.3g}" in words
 
 
 def test_report_of_a_camera_first_calibration_says_so(shared, tmp_path):
