@@ -478,3 +478,25 @@ def test_the_data_dictionary_says_how_to_take_the_rms_of_goniometer_residuals(so
         assert rows[axis] == pytest.approx(np.sqrt(np.mean(v**2))) and np.isfinite(rows[axis])
     assert all(f"`{flag}`" in text for flag in FRAME_FLAGS + ("bad_row", "unmeasured", "inconsistent"))
     assert "*corrects* a measured" in text and "OpenCV, COLMAP and\n  Metashape go the other way" in text
+
+
+@pytest.mark.parametrize("name", ["canon5d2", "h3d"])
+def test_the_effective_focal_length_is_the_true_one_and_f_alone_is_not(solved, sessions, name):
+    """The scenarios' true cameras have no linear term (k0 = 0); the method puts a scale into k0
+    and f. f / (1 + k0) -- what the certificate states beside f -- is the true focal length
+    within its uncertainty; f alone is many sigma off where the lens distorts (issue 30)."""
+    from fieldcal.products.focal_length import effective_focal
+    from fieldcal.products.uncertainty import Calibration
+
+    truth = sessions[name][0].camera
+    res, _ = solved[name, False]
+    names = [n for n in PARAM_NAMES if res.sigma[n] is not None]
+    idx = [PARAM_NAMES.index(n) for n in names]
+    doc = dict(res.document_fields(), version="v", camera_id="c")
+    cal = Calibration.from_document(doc, names, res.covariance[np.ix_(idx, idx)])
+    fe, s_fe = effective_focal(cal)
+    assert truth.params[3] == 0.0
+    print(f"\n{name}: f {cal.camera.f_mm:.6f}, f_e {fe:.6f} +- {s_fe:.6f}, true f {truth.f_mm:.6f} mm")
+    assert abs(fe - truth.f_mm) < 3 * s_fe, (fe, truth.f_mm, s_fe)
+    if name == "canon5d2":                       # 20 px of barrel distortion: k0 -1.5 %
+        assert abs(cal.camera.f_mm - truth.f_mm) > 100 * cal.sigma_of("f_mm")
