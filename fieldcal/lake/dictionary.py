@@ -25,7 +25,15 @@ _TABLE_DOCS = {
                           "the pixels. A row with row = -1 marks an image measured with no result.",
     "observations_goniometer": "The spot measured in each goniometer frame: the same cache for "
                                "the goniometer method. row = -1 as above.",
-    "comparisons": "Cached comparisons of two versions (history --fleet); derived, may be deleted.",
+    "comparisons": "The change test of a version against the previous calibration of its camera "
+                   "(fieldcal.lake.order), computed at the commit (and by `fieldcal lake fill`), read by "
+                   "history --fleet and the dashboard; keyed by the pair, so a backfill adds the new "
+                   "pairs and readers pick the pair of the current order. Derived: may be deleted "
+                   "(`fieldcal lake fill` computes it again).",
+    "assessments": "The acceptance of each version against the certificate's criteria (without the "
+                   "change criterion, which comes from `comparisons`), and its radial distortion at "
+                   "fractions of the sensor's half diagonal with sigmas; computed at the commit, read "
+                   "by the dashboard. Derived: may be deleted.",
 }
 
 _KEY_DOCS = {
@@ -40,9 +48,13 @@ _KEY_DOCS = {
     "row": "position of the row in the image's measurement table; -1: measured, nothing found",
     "version_a": "the earlier version compared",
     "version_b": "the later version compared",
-    "settings": "comparison settings (tolerance, alpha, grid) as canonical JSON",
-    "computed": "when the comparison was computed [UTC]",
-    "result": "the comparison's figures as a JSON object",
+    "settings": "what the row was computed with (the test's definition and grid; the acceptance "
+                "thresholds) as canonical JSON",
+    "computed": "when the row was computed [UTC]",
+    "result": "the figures as a JSON object (comparisons: max_um, p_value, the tests with their "
+              "Holm-adjusted p-values ...; the verdict at any alpha and tolerance is derived from them)",
+    "verdict": "PASS or FAIL of the acceptance criteria other than the change since the previous "
+               "calibration",
 }
 
 
@@ -129,7 +141,8 @@ def data_dictionary() -> str:
            "residuals/                  Delta: residuals of every version, partitioned by camera_id",
            "observations_field/         Delta: targets measured per field image (cache), by camera_id",
            "observations_goniometer/    Delta: the spot of each goniometer frame (cache), by camera_id",
-           "comparisons/                Delta: cached comparisons of two versions (derived)",
+           "comparisons/                Delta: the change test of two versions (derived)",
+           "assessments/                Delta: the acceptance of each version (derived)",
            "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
            "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
            "                            exterior/*, correction_field, grid_u_px, grid_v_px",

@@ -40,6 +40,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from fieldcal.errors import InputError, LakeError
+from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC
 from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "to_text", "to_csv",
@@ -301,9 +302,9 @@ def fleet(lake, start=None, end=None, *, as_of=None) -> pa.Table:
 def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     """Every camera's latest calibration in ``[start, end]`` and the one before it: one query.
 
-    The *previous* calibration is what :func:`camera_history` lists before the latest (the
-    latest version of each session, ordered by acquisition time, then commit time), found
-    with window functions over one read of the catalog.
+    The *previous* calibration follows :mod:`fieldcal.lake.order` (the latest version of each
+    session, ordered by acquisition time, ties by commit order), found with window functions
+    over one read of the catalog.
 
     Returns
     -------
@@ -315,23 +316,21 @@ def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     lo, hi = _bound(start, end=False), _bound(end, end=True)
     if lo is not None and hi is not None and hi < lo:
         raise InputError(f"end {end!r} is before start {start!r}", "fleet")
-    query = """
+    query = f"""
         WITH sessions AS (
             SELECT * FROM catalog
-            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id
-                                       ORDER BY committed DESC, version DESC) = 1),
+            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id ORDER BY {ORDER_SQL_DESC}) = 1),
         ordered AS (
             SELECT camera_id, version, method, acquired,
                    lag(version) OVER w AS previous_version, lag(method) OVER w AS previous_method,
                    lag(acquired) OVER w AS previous_acquired
             FROM sessions
-            WINDOW w AS (PARTITION BY camera_id ORDER BY acquired ASC NULLS LAST, committed, version)),
+            WINDOW w AS (PARTITION BY camera_id ORDER BY {ORDER_SQL})),
         latest AS (
             SELECT camera_id, version FROM catalog
             WHERE (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) >= ?::TIMESTAMPTZ)
               AND (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) <= ?::TIMESTAMPTZ)
-            QUALIFY row_number() OVER (PARTITION BY camera_id ORDER BY coalesce(acquired, created)
-                                       DESC, committed DESC, version DESC) = 1)
+            QUALIFY row_number() OVER (PARTITION BY camera_id ORDER BY {ORDER_SQL_DESC}) = 1)
         SELECT l.camera_id, l.version, c.method, c.acquired,
                o.previous_version, o.previous_method, o.previous_acquired
         FROM latest l JOIN catalog c USING (version)

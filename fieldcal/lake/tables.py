@@ -10,7 +10,8 @@ table                        partitioned by   rows
 ``residuals``                ``camera_id``    per-observation residuals of every version
 ``observations_field``       ``camera_id``    targets measured in each field image (cache)
 ``observations_goniometer``  ``camera_id``    the spot of each goniometer frame (cache)
-``comparisons``              (none)           cached comparisons of two versions (derived)
+``comparisons``              (none)           the change test of two versions (derived)
+``assessments``              (none)           the acceptance of each version (derived)
 ===========================  ===============  =====================================================
 
 Writes are Delta commits: appends, an insert-unless-present (``MERGE ... WHEN NOT MATCHED
@@ -43,9 +44,9 @@ from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
 
-TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons")
+TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
-              "observations_goniometer": ["camera_id"], "comparisons": []}
+              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions and checkpoints."""
 ROW_GROUP_ROWS = 4096
@@ -103,6 +104,13 @@ def table_schema(name: str) -> pa.Schema:
                           pa.field("version_b", pa.string(), nullable=False),
                           pa.field("settings", pa.string(), nullable=False),
                           pa.field("computed", pa.timestamp("us", "UTC"), nullable=False),
+                          pa.field("result", pa.string(), nullable=False)])
+    if name == "assessments":
+        return pa.schema([pa.field("version", pa.string(), nullable=False),
+                          pa.field("camera_id", pa.string(), nullable=False),
+                          pa.field("settings", pa.string(), nullable=False),
+                          pa.field("computed", pa.timestamp("us", "UTC"), nullable=False),
+                          pa.field("verdict", pa.string(), nullable=False),
                           pa.field("result", pa.string(), nullable=False)])
     raise InputError(f"unknown table {name!r}; the lake's tables are {', '.join(TABLES)}", "lake")
 
