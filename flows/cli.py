@@ -188,9 +188,10 @@ def _run_flow(args, lake_url: str, options) -> dict:
 def _fleet_table(summary: dict) -> str:
     import pyarrow as pa
 
+    from fieldcal.fleet import status_text
     from fieldcal.lake.history import to_text
 
-    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": r["status"],
+    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": status_text(r),
              "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
              "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried") else ""))}
             for r in summary["sessions"]]
@@ -226,8 +227,9 @@ def cmd_fleet(args) -> int:
         print(json.dumps(summary, indent=2))
     else:
         sys.stdout.write(_fleet_table(summary))
-        print(f"{summary['n_found']} found, {summary['n_committed']} committed, {summary['n_failed']} failed, "
-              f"{summary['n_skipped']} skipped")
+        partial = f" ({summary['n_partial']} with images left out)" if summary.get("n_partial") else ""
+        print(f"{summary['n_found']} found, {summary['n_committed']} committed{partial}, {summary['n_failed']} "
+              f"failed, {summary['n_skipped']} skipped")
     return 1 if summary["n_failed"] else 0
 
 
@@ -257,7 +259,8 @@ def cmd_serve(args) -> int:
         from flows.fleet import serve_fleet
 
         print(f"serving recalibrate-fleet/{args.name} on cron '{args.cron}' (UTC); Ctrl-C stops", file=sys.stderr)
-        serve_fleet(str(lake_url), args.root, name=args.name, cron=args.cron, parameters=params)
+        serve_fleet(str(lake_url), args.root, name=args.name, cron=args.cron, parameters=params,
+                    report=lambda line: print(f"fieldcal serve: {line}", file=sys.stderr, flush=True))
 
     _stop_within(_serve_stop_s())
     try:
@@ -312,14 +315,17 @@ def cmd_server(args) -> int:
 
     server.quiet_prefect(False)
     if args.action == "start":
-        state = server.start_server(args.linger, note=lambda s: print(s, file=sys.stderr))
+        state = server.start_server(args.linger, note=lambda s: print(s, file=sys.stderr), ui=args.ui)
         print(state["url"])
+        if state.get("ui_url"):
+            print(f"Prefect UI: {state['ui_url']}", file=sys.stderr)
     elif args.action == "status":
         state = server.server_status()
         if state is None:
             print(f"no local Prefect server under {server.prefect_home()}")
             return 0
-        print(f"{state['url']}  pid {state['pid']}  started {state['started']}  linger {state['linger_s']:g} s")
+        print(f"{state['url']}  pid {state['pid']}  started {state['started']}  linger {state['linger_s']:g} s"
+              + (f"  UI {state['ui_url']}" if state.get("ui_url") else "  (no UI: `server start --ui`)"))
     else:
         state = server.stop_server()
         print(f"stopped the local Prefect server at {state['url']} (pid {state['pid']})" if state
@@ -460,6 +466,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--linger", type=float, default=None, metavar="SECONDS",
                    help="start: stop by itself this long after the last command (0: only by `server stop`; "
                         "default $FIELDCAL_SERVER_LINGER_S or 600)")
+    p.add_argument("--ui", action="store_true", help="start: also serve Prefect's web UI (its address is printed)")
     p.set_defaults(func=cmd_server)
 
 

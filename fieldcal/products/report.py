@@ -44,7 +44,7 @@ from fieldcal.products.uncertainty import Calibration, uncertainty_map
 
 __all__ = ["FIELD_FIGURES", "GONIOMETER_FIGURES", "UNITS", "ReportFiles", "parameter_rows",
            "inputs_summary", "goniometer_axis_table", "image_table", "build_figures",
-           "render_html", "write_report", "parameter_tolerance", "fleet_summary",
+           "render_html", "write_report", "parameter_tolerance", "fleet_summary", "residual_statistics",
            "CORRELATION_THRESHOLD", "SIGNIFICANCE_SIGMAS"]
 
 FIELD_FIGURES = ("residual_vectors", "residual_histogram", "residuals_per_image", "stations_3d",
@@ -129,6 +129,23 @@ def image_table(cal: Calibration, residuals: pa.Table) -> list[dict]:
                     "mean_abs_v_px": float(np.mean(np.abs(dv))) if dv.size else math.nan,
                     "rmse_px": float(np.sqrt(np.mean(du**2 + dv**2))) if du.size else math.nan})
     return out
+
+
+def residual_statistics(residuals: pa.Table) -> list[dict]:
+    """Per image (or frame) of a residual table, either method: ``image, n_used,
+    n_rejected, rmse_px`` (over the used rows, ``sqrt(mean(du^2 + dv^2))``), ``max_px``."""
+    import pyarrow.compute as pc
+
+    t = residuals.select(["image", "du_px", "dv_px", "used"])
+    sq = pc.add(pc.multiply(t["du_px"], t["du_px"]), pc.multiply(t["dv_px"], t["dv_px"]))
+    used_sq = pc.if_else(t["used"], sq, pa.scalar(None, pa.float64()))
+    g = pa.table({"image": t["image"], "used": pc.cast(t["used"], pa.int64()), "sq": used_sq,
+                  "rejected": pc.cast(pc.invert(t["used"]), pa.int64())}).group_by("image")
+    agg = g.aggregate([("used", "sum"), ("rejected", "sum"), ("sq", "mean"), ("sq", "max")]).sort_by("image")
+    return [{"image": r["image"], "n_used": int(r["used_sum"] or 0), "n_rejected": int(r["rejected_sum"] or 0),
+             "rmse_px": math.sqrt(r["sq_mean"]) if r["sq_mean"] is not None else math.nan,
+             "max_px": math.sqrt(r["sq_max"]) if r["sq_max"] is not None else math.nan}
+            for r in agg.to_pylist()]
 
 
 def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
