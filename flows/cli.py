@@ -356,10 +356,12 @@ def cmd_history(args) -> int:
     elif args.camera:
         if args.start or args.end:
             raise UsageError("--from / --to select cameras by date; with --camera use --sql for a range")
-        table = history.camera_history(lake, args.camera, tuple(args.param or ("f_mm", "xp_mm", "yp_mm")),
-                                       all_versions=args.all_versions, as_of=args.as_of)
+        params = tuple(args.param or ("f_mm", "xp_mm", "yp_mm"))
+        table = history.camera_history(lake, args.camera, params, all_versions=args.all_versions, as_of=args.as_of)
+        table = common.shown_columns(table, "camera", args, params)
+        _say_latest_of_sessions(lake, args, table)
     else:
-        table = history.fleet(lake, args.start, args.end, as_of=args.as_of)
+        table = common.shown_columns(history.fleet(lake, args.start, args.end, as_of=args.as_of), "fleet", args)
     from flows.cli_lake import report_problems
 
     report_problems(lake, "fieldcal history")
@@ -367,6 +369,21 @@ def cmd_history(args) -> int:
     if args.format == "json":
         sys.stdout.write("\n")
     return 0
+
+
+def _say_latest_of_sessions(lake, args, table) -> None:
+    """With ``--camera`` and without ``--all-versions``: say on standard error how many
+    versions of re-run sessions the table leaves out."""
+    if args.all_versions:
+        return
+    import pyarrow.dataset as ds
+
+    n_all = lake.catalog(filter=ds.field("camera_id") == args.camera, equal={"camera_id": args.camera},
+                         sort=False, as_of=args.as_of).num_rows
+    hidden = n_all - table.num_rows
+    if hidden > 0:
+        print(f"fieldcal history: the latest version of each session ({table.num_rows}); {hidden} earlier "
+              "version(s) of re-run sessions not shown (--all-versions shows every version)", file=sys.stderr)
 
 
 def cmd_show(args) -> int:
@@ -476,8 +493,8 @@ def _add_query_commands(sub) -> None:
     p.add_argument("--camera", help="one camera's calibrations over time")
     p.add_argument("--param", action="append", help="catalog column to show with --camera (repeatable; "
                    "default f_mm, xp_mm, yp_mm)")
-    p.add_argument("--all-versions", action="store_true", help="with --camera: every version, not the "
-                   "latest of each session")
+    p.add_argument("--all-versions", action="store_true", help="with --camera: every version (default: the "
+                   "latest version of each session; a line on standard error says how many are not shown)")
     p.add_argument("--from", dest="start", metavar="DATE", help="every camera's latest calibration acquired "
                    "from this date or time")
     p.add_argument("--to", dest="end", metavar="DATE", help="... up to this date (inclusive) or time")
@@ -485,6 +502,9 @@ def _add_query_commands(sub) -> None:
                    "observations_field, observations_goniometer (no COPY, ATTACH, INSTALL or file access)")
     p.add_argument("--as-of", metavar="TIME", help="answer as the lake was at this time (ISO 8601, UTC)")
     p.add_argument("--format", choices=("text", "csv", "json"), default="text")
+    p.add_argument("--columns", metavar="A,B,...", help="the columns to show, in this order (default, as text: a "
+                   "set that fits a terminal; CSV and JSON: every column)")
+    p.add_argument("--wide", action="store_true", help="every column (the catalog's 57, or --fleet's 21)")
     from flows import cli_products
 
     handler = cli_products.history_extras(p)

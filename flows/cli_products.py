@@ -358,7 +358,10 @@ def _history(args) -> int:
         table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
                               start=getattr(args, "start", None), end=getattr(args, "end", None))
         fmt = getattr(args, "format", None) or "text"
-        text = history.format_table(table, fmt if fmt in history.FORMATS else "text")
+        from flows.cli_common import shown_columns
+
+        shown = shown_columns(table, "changes", args)
+        text = history.format_table(shown, fmt if fmt in history.FORMATS else "text")
         _write_text(text, getattr(args, "out", None))
         if args.plot:
             Path(args.plot).write_bytes(plots.to_png(plots.fleet_plot(table,

@@ -12,7 +12,7 @@ import pyarrow as pa
 from fieldcal.lake.tables import PARTITIONS, TABLES, goniometer_spot_schema, table_schema
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["data_dictionary", "column_docs"]
+__all__ = ["data_dictionary", "column_docs", "HISTORY_DOCS"]
 
 _TABLE_DOCS = {
     "catalog": "One row per committed version: the commit point. A version exists exactly when "
@@ -56,6 +56,34 @@ _KEY_DOCS = {
     "verdict": "PASS or FAIL of the acceptance criteria other than the change since the previous "
                "calibration",
 }
+
+
+HISTORY_DOCS = {
+    "delta_<name>": "`history --camera`: the change of a parameter since the camera's first row of the "
+                    "history [the parameter's unit]",
+    "previous_version": "`history --fleet`: the camera's calibration before its latest (the latest version of "
+                        "the session acquired before; ties by commit order), compared with it",
+    "previous_method": "`history --fleet`: the method of previous_version",
+    "previous_acquired": "`history --fleet`: when the session of previous_version was acquired [UTC]",
+    "region": "`history --fleet`: where the change was tested: sensor (the whole grid) or axes (the scanned "
+              "axes of a goniometer calibration, at its measured spots)",
+    "max_change_px": "`history --fleet`: largest change of where a ray lands, where tested [px]",
+    "max_change_um": "`history --fleet`: the same in the image plane [um]",
+    "rms_change_px": "`history --fleet`: RMS of the change where tested [px]",
+    "rms_change_um": "`history --fleet`: the same in the image plane [um]",
+    "chi2": "`history --fleet`: chi-square of the map test (the correction field where both observe)",
+    "dof": "`history --fleet`: its degrees of freedom",
+    "p_value": "`history --fleet`: the family's p-value (smallest Holm-adjusted p-value of the tests of f, "
+               "the principal point, the edge distortion and the map)",
+    "changed": "`history --fleet`: the quantities that changed significantly at --alpha (f, principal_point, "
+               "edge_distortion, map), comma-separated; none: no quantity did; empty: not compared",
+    "significant": "`history --fleet`: p_value < alpha (or a change outside what the uncertainties explain)",
+    "exceeds_tolerance": "`history --fleet`: max_change_um > tolerance_um",
+    "flagged": "`history --fleet`: significant and exceeds_tolerance: the camera moved",
+    "tolerance_um": "`history --fleet`: the tolerance used [um]",
+    "verdict": "`history --fleet`: the change test in one line (or why there is none)",
+}
+"""The columns the ``history`` command adds to the catalog's (``--camera`` and ``--fleet``)."""
 
 
 def column_docs(name: str) -> dict[str, str]:
@@ -130,6 +158,17 @@ On S3 pass the credentials and endpoint as storage options (`AWS_ENDPOINT_URL`,
 """
 
 
+def _history_section() -> list[str]:
+    out = ["## What `fieldcal history` shows", "",
+           "Plain `history`: every camera's latest calibration, catalog columns. `--camera ID`: the "
+           "latest version of each session (`--all-versions`: every one), catalog columns and, per "
+           "parameter asked for, `delta_<name>`. `--fleet`: the columns below. As text, a default set "
+           "that fits a terminal (`--columns A,B` names others, `--wide` shows all); CSV and JSON carry "
+           "every column.", "", "| column | description [unit] |", "| --- | --- |"]
+    out += [f"| `{k}` | {v.replace('|', chr(92) + '|')} |" for k, v in HISTORY_DOCS.items()]
+    return out + [""]
+
+
 def data_dictionary() -> str:
     """The text of ``LAKE/README.md``."""
     out = ["# fieldcal lake", "",
@@ -156,4 +195,5 @@ def data_dictionary() -> str:
             text = docs.get(f.name, "").replace("|", "\\|")
             out.append(f"| `{f.name}` | {_type(f.type)} | {'yes' if f.nullable else 'no'} | {text} |")
         out.append("")
+    out += _history_section()
     return "\n".join(out) + "\n"

@@ -43,7 +43,8 @@ from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "to_text", "to_csv",
+__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "pick_columns", "DEFAULT_COLUMNS",
+           "to_text", "to_csv",
            "to_json", "format_table", "FORMATS", "VIEWS", "READ_ONLY_NOTE"]
 
 UTC = dt.UTC
@@ -338,6 +339,49 @@ def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
         ORDER BY l.camera_id
     """
     return sql(lake, query, [lo, lo, hi, hi], as_of=as_of, views=("catalog",))
+
+
+# --------------------------------------------------------------------------------------
+# columns for people
+# --------------------------------------------------------------------------------------
+DEFAULT_COLUMNS = {
+    "fleet": ("camera_id", "session_id", "acquired", "method", "f_mm", "rmse_px", "n_images"),
+    "camera": ("session_id", "acquired", "{params}"),
+    "changes": ("camera_id", "acquired", "max_change_um", "p_value", "changed", "flagged"),
+}
+"""The columns ``fieldcal history`` shows by default (about 100 characters wide): every
+camera's latest (``fleet``), one camera (``camera``; ``{params}`` stands for each parameter
+asked for and its sigma), ``--fleet`` (``changes``); ``--wide`` shows every column,
+``--columns`` the ones named."""
+
+
+def pick_columns(table: pa.Table, view: str, columns=None, *, wide: bool = False,
+                 params=("f_mm", "xp_mm", "yp_mm")) -> pa.Table:
+    """The columns of ``table`` to show: ``columns`` (names, in that order), every one with
+    ``wide``, else :data:`DEFAULT_COLUMNS` of ``view``.
+
+    Raises
+    ------
+    InputError
+        A name in ``columns`` that the table does not have (the message lists them).
+    """
+    if wide:
+        return table
+    if columns:
+        names = [c for c in dict.fromkeys(columns)]
+        unknown = [c for c in names if c not in table.column_names]
+        if unknown:
+            raise InputError(f"no column {', '.join(map(repr, unknown))} in this table; its columns: "
+                             f"{', '.join(table.column_names)}", "history --columns")
+        return table.select(names)
+    names = []
+    for c in DEFAULT_COLUMNS[view]:
+        if c == "{params}":
+            for p in params:
+                names += [p] + ([f"sigma_{p}"] if f"sigma_{p}" in table.column_names else [])
+        else:
+            names.append(c)
+    return table.select([c for c in dict.fromkeys(names) if c in table.column_names])
 
 
 # --------------------------------------------------------------------------------------
