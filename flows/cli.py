@@ -75,6 +75,9 @@ def _settings(args) -> dict:
 
 
 def _check_compute(args) -> None:
+    out = getattr(args, "dashboard", None)
+    if out and os.path.exists(out) and not os.path.isdir(out):
+        raise UsageError(f"--dashboard {out}: exists and is not a folder")
     for name in ("workers", "batch_size"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
@@ -218,7 +221,7 @@ def cmd_fleet(args) -> int:
             return recalibrate_fleet(str(lake_url), root=root, storage_options=options, dask_address=args.dask,
                                      n_workers=_workers(args), settings=_settings(args) or None,
                                      batch_size=args.batch_size, cluster_kwargs=_cluster_kwargs(args),
-                                     max_sessions=args.max_sessions)
+                                     max_sessions=args.max_sessions, dashboard=args.dashboard)
 
         summary = _with_api(args, run)
     else:
@@ -252,6 +255,7 @@ def cmd_serve(args) -> int:
     _check_cron(args.cron)
     fleet.check_root(args.root or (str(lake_url).rstrip("/") + "/sessions"), options)
     params = {k: v for k, v in {"dask_address": args.dask, "n_workers": args.workers, "batch_size": args.batch_size,
+                                "dashboard": os.path.abspath(args.dashboard) if args.dashboard else None,
                                 "settings": _settings(args) or None, "cluster_kwargs": _cluster_kwargs(args),
                                 "storage_options": options}.items() if v is not None}
 
@@ -450,6 +454,11 @@ def _add_compute(p) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="show Prefect's and Dask's logs and warnings")
 
 
+def _add_dashboard(p) -> None:
+    p.add_argument("--dashboard", metavar="DIR", default=None,
+                   help="write the fleet dashboard into DIR after each fleet run (fieldcal dashboard)")
+
+
 def _add_run_commands(sub) -> None:
     p = sub.add_parser("run", help="calibrate one session into the lake; prints the version")
     p.add_argument("session", help="the session folder")
@@ -467,6 +476,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--format", choices=("text", "json"), default="text")
     p.add_argument("--max-sessions", type=int, default=None,
                    help="sessions calibrated at once (default: twice the cluster's worker threads)")
+    _add_dashboard(p)
     _add_compute(p)
     p.set_defaults(func=cmd_fleet)
 
@@ -475,6 +485,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--root", help="root of session folders (default: LAKE/sessions)")
     p.add_argument("--cron", default="0 2 * * *", help="schedule, cron syntax, UTC (default: %(default)s)")
     p.add_argument("--name", default="nightly", help="deployment name (default: %(default)s)")
+    _add_dashboard(p)
     _add_compute(p)
     p.set_defaults(func=cmd_serve)
 

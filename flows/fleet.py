@@ -48,6 +48,7 @@ from .calibrate import calibrate_session
 from .publish import fleet_run_name
 
 __all__ = ["recalibrate_fleet", "calibrate_one", "scan_sessions", "fleet_deployment", "serve_fleet",
+           "publish_dashboard", "watch_runs",
            "DEFAULT_CRON", "DEPLOYMENT_NAME", "MAX_THREADS"]
 
 DEFAULT_CRON = "0 2 * * *"
@@ -108,7 +109,8 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
             # the session had no version when the fleet started: the first run committed this
             # one and failed after its commit (e.g. closing its connection to the cluster)
             entry.update(status="committed", new=True)
-        line = f"{label}: {fleet_lib.status_text(entry)}: {entry['version']} ({entry['seconds']:.1f} s)"
+        left = (f", {entry['n_left_out']} of {entry['n_images']} images left out" if entry["n_left_out"] else "")
+        line = f"{label}: {entry['status']} {entry['version']}{left} ({entry['seconds']:.1f} s)"
         (logger.warning if entry["n_left_out"] else logger.info)(line)
         progress.emit("note", text=line)
     return entry
@@ -157,7 +159,7 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
                       root_storage_options: dict | None = None, dask_address: str | None = None,
                       n_workers: int = cluster.DEFAULT_WORKERS, settings: dict | None = None,
                       batch_size: int | None = None, cluster_kwargs: dict | None = None,
-                      max_sessions: int | None = None) -> dict:
+                      max_sessions: int | None = None, dashboard: str | None = None) -> dict:
     """Calibrate every session under ``root`` that has no committed calibration in ``lake``.
 
     Parameters
@@ -178,6 +180,9 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
     max_sessions : int, optional
         Sessions calibrated at once (default: twice the cluster's worker threads, so that
         one session's validation and commit overlap with the others' work on the cluster).
+    dashboard : str, optional
+        A local folder: the fleet dashboard is written there after the run
+        (:func:`publish_dashboard`).
 
     Returns
     -------
@@ -211,7 +216,32 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
               f"{summary['n_failed']} failed, {summary['n_skipped']} skipped")
     logger.info(f"fleet: {counts}")
     _publish_summary(summary, counts)
+    if dashboard:
+        publish_dashboard(lake, storage_options, dashboard)
     return summary
+
+
+@task(name="publish-dashboard", cache_policy=NO_CACHE, persist_result=False)
+def publish_dashboard(lake: str, storage_options: dict | None, out: str) -> str | None:
+    """Write the fleet dashboard (:func:`fieldcal.products.dashboard.write_dashboard`) into
+    ``out`` and link it as an artifact; a failure is logged, never raised (the fleet's
+    versions are committed). Returns the index's path."""
+    from prefect.artifacts import create_link_artifact
+
+    from fieldcal.products.dashboard import write_dashboard
+
+    logger = get_run_logger()
+    try:
+        got = write_dashboard(Lake(lake, storage_options), out)
+    except (FieldcalError, OSError) as e:
+        logger.error(f"the dashboard was not written to {out}: {one_line(e)}")
+        return None
+    logger.info(f"dashboard: {got['index']} ({got['cameras']} cameras: {got['moved']} moved, "
+                f"{got['expired']} expired, {got['failed']} failed)")
+    create_link_artifact(got["index"].resolve().as_uri(), link_text="fleet dashboard", key="fleet-dashboard",
+                         description=f"{got['cameras']} cameras: {got['moved']} moved, {got['expired']} expired, "
+                                     f"{got['failed']} failed")
+    return str(got["index"])
 
 
 def _publish_summary(summary: dict, counts: str) -> None:

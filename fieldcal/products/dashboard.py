@@ -10,7 +10,8 @@ from disk, or serve ``DIR`` behind any web server).
   change since the previous calibration included), the certificate's validity (valid until
   acquisition + ``validity_years``, days left, expired), the last change test (largest change,
   p-value, FLAGGED) and links to the camera's page and to the latest report and certificate.
-  Filters: *moved* (flagged), *expired*, *failed* (verdict FAIL); the counts are shown.
+  Filters: *moved* (flagged), *expired*, *failed* (verdict FAIL); the counts are shown;
+  ``index.html#moved,failed`` opens with those filters on.
 - **cameras/<id>.html**: history plots of ``f``, ``xp``, ``yp`` and the radial distortion at
   :data:`fieldcal.products.status.RADII_FRACTIONS` of the half diagonal, over the
   acquisition time, with 1-sigma bands and the tolerance (a band of +-``tolerance_um``
@@ -139,7 +140,10 @@ function applyFilters() {
   });
   document.getElementById('shown').textContent = shown;
 }
-document.querySelectorAll('.filters input').forEach(x => x.addEventListener('change', applyFilters));
+document.querySelectorAll('.filters input').forEach(x => {
+  x.checked = x.checked || location.hash.slice(1).split(',').includes(x.value);   // index.html#moved,failed
+  x.addEventListener('change', applyFilters);
+});
 applyFilters();
 """
 

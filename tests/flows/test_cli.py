@@ -272,6 +272,9 @@ def test_serve_checks_its_input_and_builds_the_scheduled_deployment(monkeypatch,
     assert "no folder of sessions there" in capsys.readouterr().err and not seen
     (tmp_path / "sessions").mkdir()
     assert cli.main(["serve", "--lake", str(tmp_path), "--cron", "30 1 * * *", "--workers", "3"]) == 0
+    report = seen.pop("report")                      # told each run it starts and how it ended
+    report("run fleet/x: completed in 1.0 s")
+    assert "fieldcal serve: run fleet/x: completed in 1.0 s" in capsys.readouterr().err
     assert seen == {"lake": str(tmp_path), "root": None, "name": "nightly", "cron": "30 1 * * *",
                     "parameters": {"n_workers": 3}}
 
