@@ -123,7 +123,7 @@ def fleet_state(lake, *, config: dict | None = None, today: dt.date | None = Non
 # --------------------------------------------------------------------------------------
 _CSS = """
 body { font: 14px/1.4 system-ui, sans-serif; margin: 1.5em; color: #222; }
-table { border-collapse: collapse; } th, td { padding: 3px 8px; border-bottom: 1px solid #ddd; }
+table { border-collapse: collapse; } th, td { padding: 3px 8px; border-bottom: 1px solid #ddd; white-space: nowrap; }
 th { text-align: left; background: #f4f4f4; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
 .FAIL, .moved, .expired { color: #b00020; font-weight: 600; } .PASS { color: #1b7f3b; }
 .filters label { margin-right: 1.2em; } .counts { margin: .6em 0; } .plots svg { margin: 0 1em 1em 0; }

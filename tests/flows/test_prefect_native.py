@@ -91,3 +91,20 @@ def test_the_moved_camera_emits_an_event_and_the_first_run_does_not(runs):
     assert event["resource"]["prefect.resource.id"] == "fieldcal.camera.ixu-pn1"
     assert event["payload"]["previous_version"] == first["version"] and event["payload"]["max_change_um"] > 2
     assert "f" in event["payload"]["changed"] and PLANT not in str(event)
+
+
+def test_the_documented_automation_is_one_the_server_accepts(runs):
+    import uuid
+
+    import yaml
+    from prefect import get_client
+    from prefect.events.schemas.automations import AutomationCore
+
+    root = Path(__file__).resolve().parents[2]
+    (spec,) = yaml.safe_load((root / "deploy" / "automation-camera-moved.yaml").read_text())["automations"]
+    spec["actions"][0]["block_document_id"] = str(uuid.uuid4())
+    automation = AutomationCore.model_validate(spec)
+    assert automation.trigger.expect == {MOVED_EVENT}
+    with get_client(sync_client=True) as client:
+        made = client.create_automation(automation)
+        assert client.read_automation(made).name == "fieldcal camera moved"
