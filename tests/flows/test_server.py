@@ -9,8 +9,8 @@ after its last command ended, also when that command was killed with SIGKILL.
 """
 
 import json
-import re
 import os
+import re
 import signal
 import subprocess
 import sys

@@ -10,7 +10,6 @@ import datetime as dt
 import re
 import shutil
 import subprocess
-from pathlib import Path
 from urllib.parse import unquote
 
 import pytest
