@@ -592,7 +592,10 @@ def _solve_and_commit(run: _Run, fp: str, force: bool) -> dict:
                timings=run.timings, published=None)
     if new:
         t = time.perf_counter()
-        out["published"] = publish.publish_version(run.lake, run.storage_options, out, outcome)
+        try:
+            out["published"] = publish.publish_version(run.lake, run.storage_options, out, outcome)
+        except Exception as e:  # noqa: BLE001 - the version is committed: what is shown of it must not undo that
+            run.logger.warning(f"version {version} is committed; publishing it failed: {type(e).__name__}: {e}")
         run.lap("publish_s", t)
     run.lap("total_s", run.t_start)
     return out
