@@ -301,7 +301,8 @@ def add_commands(subparsers) -> None:
                    help=f"tolerance of a change in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help=f"significance level (default {DEFAULT_ALPHA:g})")
     p.add_argument("--reports-url", metavar="URL", default=None,
-                   help="where LAKE/reports is served (default: links relative to DIR for a local lake)")
+                   help="the URL the lake is served at: links become URL/reports/... (default: relative to DIR "
+                        "for a local lake, else the lake's URL)")
     p.set_defaults(func=_dashboard, command="dashboard")
 
     p = subparsers.add_parser("export", help="export a calibration to OpenCV, COLMAP, Metashape "

@@ -264,25 +264,37 @@ def camera_html(c: CameraState, assessed: dict, reports: dict, *, tolerance_um: 
     return _page(f"{c.camera_id}: fieldcal", body)
 
 
+def _report_files(lake) -> list[str]:
+    """Lake-relative paths of every ``*.html`` under ``LAKE/reports`` (one listing of the tree)."""
+    base = lake.storage.path("reports")
+    if lake.is_local:
+        return [os.path.relpath(os.path.join(d, f), lake.storage.path("")).replace(os.sep, "/")
+                for d, _, files in os.walk(base) for f in files if f.endswith(".html")]
+    try:
+        found = lake.fs.find(base)
+    except FileNotFoundError:
+        return []
+    root = lake.storage.path("")
+    return [p[len(root):].lstrip("/") for p in found if p.endswith(".html")]
+
+
 def _published(lake, out: Path, reports_url: str | None) -> dict:
     """``{version: {"report": href, "certificate": href}}`` of the files the runs wrote into
-    ``LAKE/reports`` (hrefs relative to ``out``, or under ``reports_url``)."""
-    found = {}
-    store = lake.storage
-    for camera in store.listdir("reports"):
-        for session in store.listdir(f"reports/{camera}"):
-            for version in store.listdir(f"reports/{camera}/{session}"):
-                rel = f"reports/{camera}/{session}/{version}"
-                names = set(store.listdir(rel))
-                for kind in ("report", "certificate"):
-                    if f"{kind}.html" in names:
-                        if reports_url:
-                            href = f"{reports_url.rstrip('/')}/{rel}/{kind}.html"
-                        elif lake.is_local:
-                            href = os.path.relpath(lake.uri(f"{rel}/{kind}.html"), out).replace(os.sep, "/")
-                        else:
-                            href = lake.uri(f"{rel}/{kind}.html")
-                        found.setdefault(version, {})[kind] = href
+    ``LAKE/reports/<camera>/<session>/<version>/`` (hrefs relative to ``out`` for a local
+    lake, else the lake's URL; under ``reports_url`` when given)."""
+    found: dict = {}
+    for rel in _report_files(lake):
+        parts = rel.split("/")
+        kind = parts[-1][:-len(".html")]
+        if len(parts) != 5 or kind not in ("report", "certificate"):
+            continue
+        if reports_url:
+            href = f"{reports_url.rstrip('/')}/{rel}"
+        elif lake.is_local:
+            href = os.path.relpath(lake.uri(rel), out).replace(os.sep, "/")
+        else:
+            href = lake.uri(rel)
+        found.setdefault(parts[3], {})[kind] = href
     return found
 
 
