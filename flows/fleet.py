@@ -324,23 +324,30 @@ def _run_line(run, artifacts) -> str:
     return f"run {run.name}: {state.name.lower() if state else 'unknown'}{took}" + (f": {what}" if what else "")
 
 
-def _news(client, deployment_id, said: dict) -> list[str]:
-    """Lines about the deployment's runs that started or ended since ``said`` (updated)."""
+def _news(client, deployment_id, said: dict, since) -> list[str]:
+    """Lines about the deployment's runs that started (after ``since``) or ended since ``said``
+    (updated). Only runs that started are asked for: a cron deployment keeps up to 100
+    scheduled runs ahead, which would crowd a plain listing."""
     from prefect.client.schemas.filters import (
         ArtifactFilter,
         ArtifactFilterFlowRunId,
         DeploymentFilter,
         DeploymentFilterId,
+        FlowRunFilter,
+        FlowRunFilterStartTime,
     )
+    from prefect.client.schemas.sorting import FlowRunSort
 
     lines = []
-    runs = client.read_flow_runs(deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment_id])),
-                                 limit=50)
-    for run in sorted(runs, key=lambda r: r.expected_start_time or r.created):
+    runs = client.read_flow_runs(
+        flow_run_filter=FlowRunFilter(start_time=FlowRunFilterStartTime(after_=since)),
+        deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment_id])),
+        sort=FlowRunSort.START_TIME_ASC, limit=50)
+    for run in runs:
         final = bool(run.state and run.state.is_final())
         phase = "end" if final else "start" if run.state and run.state.type.value == "RUNNING" else None
-        if phase is None or said.get(run.id) in (phase, "end") or (final and run.start_time is None):
-            continue                                   # nothing new (or cancelled before it started)
+        if phase is None or run.start_time is None or said.get(run.id) in (phase, "end"):
+            continue                                   # not started yet (or cancelled before it started)
         if phase == "end":
             arts = client.read_artifacts(artifact_filter=ArtifactFilter(
                 flow_run_id=ArtifactFilterFlowRunId(any_=[run.id])))
@@ -354,14 +361,17 @@ def _news(client, deployment_id, said: dict) -> list[str]:
 def watch_runs(deployment: str, report, stop: threading.Event, poll_s: float = 2.0) -> None:
     """Report each flow run of ``deployment`` ("flow/name") as it starts and as it ends
     (its state, time and the fleet's counts), until ``stop`` is set; API errors are retried."""
+    import datetime as dt
+
     from prefect.client.orchestration import get_client
 
     said: dict = {}
+    since = dt.datetime.now(dt.UTC) - dt.timedelta(seconds=5)
     while not stop.wait(poll_s):
         try:
             with get_client(sync_client=True) as client:
                 dep = client.read_deployment_by_name(deployment)
-                for line in _news(client, dep.id, said):
+                for line in _news(client, dep.id, said, since):
                     report(line)
         except Exception:  # noqa: BLE001, S112 - the server may be starting or busy: try again
             continue
