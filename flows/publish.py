@@ -9,8 +9,9 @@
 - **Artifacts** (:func:`publish_version`, after the commit; keyed by camera, so the UI keeps
   each camera's history of them): a markdown summary (parameters with sigmas, the verdict,
   images used and left out), the residual statistics per image as a table, and links to
-  the report and the certificate, which the run writes into the lake beside the version
-  (``LAKE/reports/<camera>/<session>/<version>/``; ``FIELDCAL_REPORTS=off`` skips them).
+  the certificate and the report, which the run writes into the lake beside the version
+  (``LAKE/reports/<camera>/<session>/<version>/``; :func:`reports_wanted`: the certificate
+  by default, ``FIELDCAL_REPORTS=all`` the report too, ``off`` neither).
   Nothing of the storage options is ever put into an artifact: only the lake's URL.
 - **Event**: when the version's change test against the camera's previous calibration
   (:mod:`fieldcal.products.status`, at the default level and tolerance) flags it, the run
@@ -36,12 +37,12 @@ from fieldcal.errors import InputError, LakeError, one_line
 from fieldcal.lake.store import Lake
 
 __all__ = ["calibrate_run_name", "fleet_run_name", "run_tags", "label_run", "publish_version", "MOVED_EVENT",
-           "REPORTS_ENV", "reports_folder"]
+           "REPORTS_ENV", "reports_folder", "reports_wanted"]
 
 MOVED_EVENT = "fieldcal.camera.moved"
 """The event of a camera whose change test flags it (resource ``fieldcal.camera.<id>``)."""
 REPORTS_ENV = "FIELDCAL_REPORTS"
-"""``off``: a run writes no report or certificate into the lake (only its artifacts)."""
+"""What a run writes into the lake besides the version: ``certificate`` (default), ``all``, ``off``."""
 
 
 # --------------------------------------------------------------------------------------
@@ -117,18 +118,30 @@ def _key(text: str) -> str:
     return re.sub(r"[^a-z0-9-]+", "-", text.lower()).strip("-")[:100] or "calibration"
 
 
-def _write_reports(lake: Lake, version: str, folder: str) -> dict:
-    """Write the report and the certificate into the lake; ``{"report": url, "certificate": url}``."""
+def reports_wanted() -> tuple[str, ...]:
+    """What a run writes into the lake (:data:`REPORTS_ENV`): ``certificate`` (the default;
+    ~0.3-0.5 s), ``all`` (the report too: its plots take 2-9 s, up to 28 s on a loaded 2-core
+    machine), ``off``."""
+    text = os.environ.get(REPORTS_ENV, "").strip().lower() or "certificate"
+    if text not in ("certificate", "all", "off"):
+        raise InputError(f"{REPORTS_ENV} must be certificate, all or off, got {text!r}", REPORTS_ENV)
+    return {"certificate": ("certificate",), "all": ("certificate", "report"), "off": ()}[text]
+
+
+def _write_reports(lake: Lake, version: str, folder: str, kinds) -> dict:
+    """Write the certificate (and the report) into the lake; ``{kind: url}``."""
     from fieldcal.products.certificate import write_certificate
     from fieldcal.products.report import write_report
 
     out = {}
     with tempfile.TemporaryDirectory(prefix="fieldcal-publish-") as tmp:
-        write_certificate(lake, version, tmp)
-        write_report(lake, version, tmp)
+        if "certificate" in kinds:
+            write_certificate(lake, version, tmp)
+        if "report" in kinds:
+            write_report(lake, version, tmp)
         for name in sorted(os.listdir(tmp)):
             lake.storage.write(f"{folder}/{name}", Path(tmp, name).read_bytes())
-    for kind in ("report", "certificate"):
+    for kind in kinds:
         url = lake.uri(f"{folder}/{kind}.html")
         out[kind] = Path(url).as_uri() if lake.is_local else url
     return out
@@ -158,6 +171,8 @@ def _markdown(result: dict, cal, recorded: dict, verdict: str) -> str:
     left = result["left_out"]
     lines += ["", f"Images: {images['total'] - len(left)} of {images['total']} used, {len(left)} left out"]
     lines += [f"- left out `{x.get('image')}`: {one_line(x.get('reason'))}" for x in left]
+    lines += ["", f"Report: `fieldcal report {result['version']} --lake LAKE --out DIR` (or "
+              f"{REPORTS_ENV}=all: every run writes it beside the certificate)"]
     return "\n".join(lines) + "\n"
 
 
@@ -218,11 +233,13 @@ def publish_version(lake_url: str, storage_options: dict | None, result: dict, o
     verdict = _verdict(recorded)
     key = _key(result["camera_id"])
     links = {}
-    if os.environ.get(REPORTS_ENV, "").strip().lower() != "off":
-        try:
-            links = _write_reports(lake, version, reports_folder(result["camera_id"], result["session_id"], version))
-        except (InputError, LakeError, OSError) as e:
-            logger.warning(f"no report or certificate in the lake: {one_line(e)}")
+    try:
+        kinds = reports_wanted()
+        if kinds:
+            links = _write_reports(lake, version, reports_folder(result["camera_id"], result["session_id"], version),
+                                   kinds)
+    except (InputError, LakeError, OSError) as e:
+        logger.warning(f"no report or certificate in the lake: {one_line(e)}")
     create_markdown_artifact(_markdown(result, cal, recorded, verdict), key=f"{key}-summary",
                              description=f"{result['camera_id']} / {result['session_id']}: {verdict}")
     create_table_artifact([_finite(r) for r in residual_statistics(outcome.residuals)], key=f"{key}-residuals",

@@ -31,7 +31,7 @@ def runs(prefect_server, tmp_path_factory):
     """Both sessions calibrated into one lake: ``(api_url, lake, [result, result])``."""
     tmp = tmp_path_factory.mktemp("native")
     mp = pytest.MonkeyPatch()
-    mp.setenv("FIELDCAL_REPORTS", "on")
+    mp.setenv("FIELDCAL_REPORTS", "all")
     mp.setenv("FIELDCAL_HASH_CACHE", "off")
     truth = Camera.from_dict(Sensor(6000, 4000, 3.9), WIDE_ANGLE)
     moved = truth.params.copy()
