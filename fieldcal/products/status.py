@@ -87,8 +87,12 @@ def assess(cal: Calibration, residuals, config: dict | None = None) -> dict:
 
 
 def _camera_rows(lake, camera_id: str) -> list[dict]:
+    """The catalog rows of one camera (``equal`` only skips files: the filter keeps its rows)."""
+    import pyarrow.dataset as ds
+
     cols = ["camera_id", "session_id", "version", "acquired", "created", "committed"]
-    return lake.catalog(equal={"camera_id": camera_id}, sort=False).select(cols).to_pylist()
+    return lake.catalog(filter=ds.field("camera_id") == camera_id, equal={"camera_id": camera_id},
+                        sort=False).select(cols).to_pylist()
 
 
 def record_commit(lake, version: str, calibration: Calibration | None = None, residuals=None) -> dict:

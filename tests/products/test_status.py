@@ -84,3 +84,15 @@ def test_fill_computes_once_what_an_older_lake_lacks_with_progress(tmp_path, cou
     assert status.fill(Lake(tmp_path), everything=True)["computed"] == 0
     report.fleet_summary(lake)
     assert len(counted) == 2
+
+
+def test_neighbours_are_of_the_same_camera_when_cameras_share_session_ids(tmp_path, counted):
+    lake = Lake(tmp_path)
+    a1, _ = commit(lake, "cam-a", "s1", "2026-01-01")
+    b1, _ = commit(lake, "cam-b", "s1", "2026-01-15")
+    lake.tables.optimize("catalog")                  # one file holds both cameras' rows
+    a2, ra = commit(lake, "cam-a", "s2", "2026-02-01", f_mm=50.01)
+    b2, rb = commit(lake, "cam-b", "s2", "2026-02-15", f_mm=50.02)
+    assert (ra["previous"], rb["previous"]) == (a1, b1) and counted == [(a1, a2), (b1, b2)]
+    rows = {r["camera_id"]: r for r in report.fleet_summary(lake).to_pylist()}
+    assert rows["cam-b"]["previous_version"] == b1 and len(counted) == 2
