@@ -152,7 +152,8 @@ def bulk_derived(lake: Lake, batch: int = 5000) -> None:
             lake.tables.append("assessments", pa.table({
                 "version": vpart, "camera_id": [acc["camera_id"]] * len(vpart),
                 "settings": [acc["settings"]] * len(vpart), "computed": [acc["computed"]] * len(vpart),
-                "verdict": [acc["verdict"]] * len(vpart), "result": [acc["result"]] * len(vpart)}),
+                "verdict": [acc["verdict"]] * len(vpart), "radial": [acc["radial"]] * len(vpart),
+                "result": [acc["result"]] * len(vpart)}),
                 {"action": "bench"})
 
 
@@ -251,7 +252,7 @@ def cli_camera(url: str) -> float:
 
 
 def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None,
-            made: tuple[str, float, float] | None = None) -> dict:
+            made: tuple[str, float, float] | None = None, fill: bool = True) -> dict:
     """Time one lake of ``n`` versions; ``made`` = (url, make_s, commit_s) of a lake already made."""
     cams = 200 if n >= 1000 else 50
     local = storage_options is None
@@ -276,7 +277,6 @@ def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None
         t = time.perf_counter()
         write_dashboard(Lake(url, storage_options), site)
         out["dashboard_s"] = time.perf_counter() - t
-    out.update(fill_costs(url, storage_options))
     old = None
     if n <= 10000:
         if local:
@@ -287,6 +287,8 @@ def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None
 
             old = legacy_store.Lake(f"{root}/old-{n}", old_options)
     out["commit_s"], out["old_commit_s"] = commit_costs(lake, old, repeat, n % 97)
+    if fill:                          # last: it removes the derived tables first
+        out.update(fill_costs(url, storage_options))
     if local:
         out["cli_camera_s"] = min(cli_camera(url) for _ in range(2))
     return out
@@ -303,11 +305,13 @@ def upload(folder: Path, client, bucket: str, prefix: str) -> int:
     return len(files)
 
 
-def s3_measure(n: int, repeat: int) -> dict:
+def s3_measure(n: int, repeat: int, *, local_too: bool = False, fill: bool = False) -> list[tuple[str, dict]]:
     """The lake made locally by the same code (bulk appends, real commits, compaction), copied
     to a moto S3 server on loopback, then timed there (reads, fleet, one commit on S3).
 
-    Making it on S3 directly means 400 commits through moto, over an hour here."""
+    Making it on S3 directly means 400 commits through moto, over an hour here. ``local_too``:
+    the local lake it was made from is timed too (one lake made for both); ``fill``: also
+    ``lake fill`` on S3 (400 objects' worth of reads per camera pair: ~20 minutes here)."""
     import logging
 
     import boto3
@@ -333,8 +337,12 @@ def s3_measure(n: int, repeat: int) -> dict:
             count = upload(Path(tmp) / "lake", client, "bench-lake", f"new-{n}")
             print(f"made locally in {made_local_s:.0f} s, {count} objects copied to S3 in "
                   f"{time.perf_counter() - t:.0f} s", flush=True)
-        return measure(n, "s3://bench-lake", repeat, storage_options=options, old_options=options,
-                       made=(f"s3://bench-lake/new-{n}", made_local_s, commit_bulk_s))
+            out = []
+            if local_too:
+                out.append(("local", measure(n, Path(tmp), repeat, made=(lake.url, made_local_s, commit_bulk_s))))
+        out.append(("moto S3", measure(n, "s3://bench-lake", repeat, storage_options=options, old_options=options,
+                                       made=(f"s3://bench-lake/new-{n}", made_local_s, commit_bulk_s), fill=fill)))
+        return out
     finally:
         server.stop()
 
@@ -344,6 +352,7 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="*", default=[100, 1000, 10000, 100000])
     ap.add_argument("--s3", type=int, default=0, help="also a lake of this many versions on moto S3")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--s3-fill", action="store_true", help="also time `lake fill` on S3 (long)")
     args = ap.parse_args()
     cols = ["versions", "cameras", "make_s", "camera_s", "sql_s", "fleet_first_s", "fleet_compared",
             "fleet_again_s", "dashboard_s", "fill_s", "fill_computed", "fleet_after_fill_s", "commit_s",
@@ -352,11 +361,12 @@ def main() -> None:
     print("|---" * (len(cols) + 1) + "|")
     with tempfile.TemporaryDirectory(prefix="bench-lake-") as tmp:
         for n in args.sizes:
-            r = measure(n, Path(tmp), args.repeat)
-            print("| local | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
+            if n != args.s3:
+                r = measure(n, Path(tmp), args.repeat)
+                print("| local | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
     if args.s3:
-        r = s3_measure(args.s3, args.repeat)
-        print("| moto S3 | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
+        for where, r in s3_measure(args.s3, args.repeat, local_too=args.s3 in args.sizes, fill=args.s3_fill):
+            print(f"| {where} | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
 
 
 def _fmt(v) -> str:

@@ -53,6 +53,8 @@ _KEY_DOCS = {
     "computed": "when the row was computed [UTC]",
     "result": "the figures as a JSON object (comparisons: max_um, p_value, the tests with their "
               "Holm-adjusted p-values ...; the verdict at any alpha and tolerance is derived from them)",
+    "radial": "assessments: the radial distortion at 25/50/75/100 % of the sensor's half diagonal as JSON "
+              "(r_mm, dr_um, sigma_um: its 1-sigma from the covariance) [mm, um]",
     "verdict": "PASS or FAIL of the acceptance criteria other than the change since the previous "
                "calibration",
 }

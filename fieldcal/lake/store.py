@@ -618,9 +618,12 @@ class Lake:
 
         ``versions_b``: only pairs whose later version is one of these (only their results
         are decoded)."""
-        t = self.tables.scan("comparisons", filter=ds.field("settings") == settings)
-        if versions_b is not None:
-            t = t.filter(pa.compute.is_in(t["version_b"], pa.array(sorted(set(versions_b)), pa.string())))
+        if versions_b is None:
+            t = self.tables.scan("comparisons", filter=ds.field("settings") == settings)
+        else:                         # only the files and row groups that may hold them are read
+            wanted = sorted(set(versions_b))
+            t = self.tables.scan("comparisons", filter=(ds.field("settings") == settings)
+                                 & ds.field("version_b").isin(wanted), equal={"version_b": wanted})
         return {(a, b): json.loads(r) for a, b, r in zip(t["version_a"].to_pylist(),
                                                          t["version_b"].to_pylist(),
                                                          t["result"].to_pylist(), strict=True)}
@@ -634,12 +637,20 @@ class Lake:
             "settings": [settings] * len(pairs), "computed": [utcnow()] * len(pairs),
             "result": [json.dumps(results[p], default=_jsonable) for p in pairs]})
 
-    def cached_assessments(self, settings: str, versions=None) -> dict[str, dict]:
+    def cached_assessments(self, settings: str, versions=None, *, brief: bool = False) -> dict[str, dict]:
         """``{version: result}`` of the ``assessments`` table for these settings (``versions``:
-        only these)."""
-        t = self.tables.scan("assessments", filter=ds.field("settings") == settings)
+        only these). ``brief``: only ``camera_id``, ``verdict`` and ``radial`` of each (the
+        ``result`` column, with every criterion, is not read)."""
+        f = ds.field("settings") == settings
+        equal = None
         if versions is not None:
-            t = t.filter(pa.compute.is_in(t["version"], pa.array(sorted(set(versions)), pa.string())))
+            wanted = sorted(set(versions))
+            f, equal = f & ds.field("version").isin(wanted), {"version": wanted}
+        cols = ["version", "camera_id", "verdict", "radial"] if brief else None
+        t = self.tables.scan("assessments", filter=f, equal=equal, columns=cols)
+        if brief:
+            return {v: {"camera_id": c, "verdict": d, "radial": json.loads(r) if r else None}
+                    for v, c, d, r in zip(*(t[k].to_pylist() for k in cols), strict=True)}
         return {v: json.loads(r) for v, r in zip(t["version"].to_pylist(), t["result"].to_pylist(), strict=True)}
 
     def remember_assessments(self, settings: str, results: Mapping) -> None:
@@ -650,6 +661,7 @@ class Lake:
             "version": versions, "camera_id": [results[v]["camera_id"] for v in versions],
             "settings": [settings] * len(versions), "computed": [utcnow()] * len(versions),
             "verdict": [results[v]["verdict"] for v in versions],
+            "radial": [json.dumps(results[v].get("radial"), default=_jsonable) for v in versions],
             "result": [json.dumps(results[v], default=_jsonable) for v in versions]})
 
     def _remember(self, table: str, columns: dict) -> None:

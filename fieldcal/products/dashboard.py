@@ -105,7 +105,7 @@ def fleet_state(lake, *, config: dict | None = None, today: dt.date | None = Non
         cams.append(CameraState(camera, order.session_latest(rows), rows))
     pairs = {c.camera_id: (c.history[-2]["version"], c.latest["version"]) for c in cams if len(c.history) > 1}
     records = status.changes(lake, list(pairs.values()))
-    stored = status.assessments(lake, [c.latest["version"] for c in cams], config)
+    stored = status.assessments(lake, [c.latest["version"] for c in cams], config, brief=True)
     years = config["certificate"].get("validity_years")
     for c in cams:
         rec = records.get(pairs.get(c.camera_id))
@@ -311,7 +311,7 @@ def write_dashboard(lake, out_dir, *, config_path=None, today: dt.date | None = 
         raise InputError("exists and is not a folder", str(out))
     cams = fleet_state(lake, config=config, today=today, tolerance_um=tolerance_um, alpha=alpha)
     shown = [r["version"] for c in cams for r in c.history]
-    assessed = status.assessments(lake, shown, config, compute=False)
+    assessed = status.assessments(lake, shown, config, compute=False, brief=True)
     (out / "cameras").mkdir(parents=True, exist_ok=True)
     reports = _published(lake, out, reports_url)
     built = dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%MZ")

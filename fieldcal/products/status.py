@@ -150,12 +150,13 @@ def changes(lake, pairs, *, compute: bool = True) -> dict:
     return out
 
 
-def assessments(lake, versions, config: dict | None = None, *, compute: bool = True) -> dict:
+def assessments(lake, versions, config: dict | None = None, *, compute: bool = True, brief: bool = False) -> dict:
     """``{version: assessment}`` (:func:`assess`): stored ones read, the others computed (with
-    ``compute``) and remembered; one that cannot be made maps to ``{"error": reason}``."""
+    ``compute``) and remembered; one that cannot be made maps to ``{"error": reason}``.
+    ``brief``: of the stored ones only ``camera_id``, ``verdict`` and ``radial``."""
     settings = assessment_settings(config)
     versions = list(dict.fromkeys(versions))
-    out = lake.cached_assessments(settings, versions) if versions else {}
+    out = lake.cached_assessments(settings, versions, brief=brief) if versions else {}
     if compute:
         fresh = {}
         for v in versions:
