@@ -97,7 +97,7 @@ def fleet_state(lake, *, config: dict | None = None, today: dt.date | None = Non
     config = config or load_config()
     today = today or dt.datetime.now(dt.UTC).date()
     by_camera: dict = {}
-    for row in lake.catalog(sort=False).select(COLUMNS).to_pylist():
+    for row in lake.tables.scan("catalog", columns=COLUMNS).to_pylist():
         by_camera.setdefault(row["camera_id"], []).append(row)
     cams = []
     for camera in sorted(by_camera):

@@ -5,13 +5,14 @@ Matplotlib took 0.1-0.3 s each (a figure per plot), here a plot is a few string
 operations over NumPy arrays (~1 ms). Matplotlib still picks the tick positions
 (:class:`matplotlib.ticker.MaxNLocator`), so the axes read as in the reports.
 
-:func:`series_plot` returns one ``<svg>`` element: each series as a line with markers and a
-band of +-1 sigma around it; ``tolerance`` draws dashed lines at +-tolerance around zero
-(the series are changes since the first calibration).
+:func:`series_plot` returns one ``<svg>`` element: each series as a line (markers up to
+:data:`MARKERS_UP_TO` points) and a band of +-1 sigma around it; ``tolerance`` draws dashed
+lines at +-tolerance around zero (the series are changes since the first calibration).
 """
 
 from __future__ import annotations
 
+import functools
 import html
 
 import numpy as np
@@ -23,6 +24,8 @@ __all__ = ["series_plot", "COLOURS"]
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b")
 W, H = 420, 236
 LEFT, RIGHT, TOP, BOTTOM = 56, 26, 24, 46
+MARKERS_UP_TO = 60
+"""A series of more points is drawn as a line only."""
 
 
 def _ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
@@ -45,7 +48,14 @@ def _range(values: list[np.ndarray]) -> tuple[float, float]:
 
 
 def _points(xs: np.ndarray, ys: np.ndarray) -> str:
-    return " ".join(f"{x:.1f},{y:.1f}" for x, y in zip(xs, ys, strict=True))
+    return " ".join(map("{:.1f},{:.1f}".format, xs.tolist(), ys.tolist()))
+
+
+@functools.lru_cache(maxsize=256)
+def _date_ticks(x_lo: float, x_hi: float) -> tuple:
+    """Date ticks of a time axis (one camera's plots share them: computed once)."""
+    ticks = AutoDateLocator(maxticks=5).tick_values(num2date(x_lo), num2date(x_hi))
+    return tuple((float(t), f"{num2date(t):%Y-%m-%d}") for t in ticks if x_lo <= t <= x_hi)
 
 
 def series_plot(x, series, *, title: str, tolerance: float | None = None) -> str:
@@ -86,10 +96,9 @@ def series_plot(x, series, *, title: str, tolerance: float | None = None) -> str
     for t in _ticks(lo, hi):
         parts.append(f'<line x1="{LEFT}" x2="{W - RIGHT}" y1="{py(t):.1f}" y2="{py(t):.1f}" stroke="#eee"/>'
                      f'<text x="{LEFT - 4}" y="{py(t) + 4:.1f}" font-size="10" text-anchor="end">{t:g}</text>')
-    for t in AutoDateLocator(maxticks=5).tick_values(num2date(x_lo), num2date(x_hi)):
-        if x_lo <= t <= x_hi:
-            parts.append(f'<text x="{px(t):.1f}" y="{H - BOTTOM + 14}" font-size="10" text-anchor="middle">'
-                         f"{num2date(t):%Y-%m-%d}</text>")
+    for t, label in _date_ticks(x_lo, x_hi):
+        parts.append(f'<text x="{px(t):.1f}" y="{H - BOTTOM + 14}" font-size="10" text-anchor="middle">'
+                     f"{label}</text>")
     if tolerance:
         for t in (-tolerance, tolerance):
             parts.append(f'<line x1="{LEFT}" x2="{W - RIGHT}" y1="{py(t):.1f}" y2="{py(t):.1f}" '
@@ -103,8 +112,9 @@ def series_plot(x, series, *, title: str, tolerance: float | None = None) -> str
             parts.append(f'<polygon points="{_points(xb, yb)}" fill="{c}" fill-opacity="0.18" stroke="none"/>')
         good = np.isfinite(y)
         parts.append(f'<polyline points="{_points(px(x[good]), py(y[good]))}" fill="none" stroke="{c}"/>')
-        parts += [f'<circle cx="{a:.1f}" cy="{b:.1f}" r="2.2" fill="{c}"/>'
-                  for a, b in zip(px(x[good]), py(y[good]), strict=True)]
+        if good.sum() <= MARKERS_UP_TO:
+            parts += [f'<circle cx="{a:.1f}" cy="{b:.1f}" r="2.2" fill="{c}"/>'
+                      for a, b in zip(px(x[good]), py(y[good]), strict=True)]
         parts.append(f'<text x="{LEFT + (k % 2) * 180}" y="{H - 18 + 12 * (k // 2)}" font-size="10" '
                      f'fill="{c}">&#9632; {e(label)}</text>')
     parts.append("</svg>")
