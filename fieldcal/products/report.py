@@ -17,9 +17,9 @@ as ``<out>/<name>.png``. The report holds:
   map (:mod:`fieldcal.products.uncertainty`), the correlation matrix; goniometer method -- the
   distortion along each swept axis before and after the fit (the lab paper's Figs. 4-7).
 
-:func:`fleet_summary` compares every camera's latest calibration with its previous one
-(:func:`fieldcal.products.compare.compare_calibrations`) and flags those that moved significantly
-and by more than a tolerance; :func:`parameter_tolerance` turns an image-plane tolerance
+:func:`fleet_summary` gives every camera's latest calibration against its previous one (the
+change test the commit stored, :mod:`fieldcal.products.status`) and flags those that moved
+significantly and by more than a tolerance; :func:`parameter_tolerance` turns an image-plane tolerance
 into one per parameter for history plots.
 """
 
