@@ -10,8 +10,15 @@ Then the tables are compacted (as the automatic maintenance would have).
 Timed (the function each command calls; best of ``--repeat``):
 
 - ``history --camera``: :func:`fieldcal.lake.history.camera_history` of one camera;
-- ``history --fleet``: :func:`fieldcal.products.report.fleet_summary`, first (compares
-  every camera with its previous version) and again (comparisons cached in the lake);
+- ``history --fleet``: :func:`fieldcal.products.report.fleet_summary`, first and again. Since
+  issue 29 every commit stores its change test and acceptance (:mod:`fieldcal.products.status`,
+  what the flow does after ``Lake.commit``): the real commits do it, and the bulk versions get
+  rows of the same size in the ``comparisons`` and ``assessments`` tables (as if each had been
+  committed so), so the tables are as large as a lake of that many versions makes them;
+- ``lake fill``: the derived tables removed (a lake made before issue 29), then
+  :func:`fieldcal.products.status.fill` (each camera's latest and its pair), then
+  ``history --fleet`` again;
+- ``dashboard``: :func:`fieldcal.products.dashboard.write_dashboard` of every camera;
 - ``history --sql``: a per-camera aggregate over the catalog;
 - one commit (``Lake.commit``, a new session of one camera), interleaved with one commit
   of the first layout's code (``tests/lake/legacy_store.py``) on an old lake of the same
@@ -47,7 +54,10 @@ from fieldcal.lake import history  # noqa: E402
 from fieldcal.lake.parts import catalog_row, conform_residuals  # noqa: E402
 from fieldcal.lake.store import Lake  # noqa: E402
 from fieldcal.model.camera import PARAM_NAMES  # noqa: E402
+from fieldcal.products import status  # noqa: E402
+from fieldcal.products.dashboard import write_dashboard  # noqa: E402
 from fieldcal.products.report import fleet_summary  # noqa: E402
+from fieldcal.products.uncertainty import Calibration  # noqa: E402
 from fieldcal.session.fingerprint import code_version, fingerprint  # noqa: E402
 
 RESIDUAL_ROWS = 20
@@ -110,8 +120,46 @@ def bulk(lake: Lake, pairs: list[tuple[int, int]], batch: int = 5000) -> None:
         lake.tables.append("residuals", pa.concat_tables(res), {"action": "bench bulk"})
 
 
+def commit_and_record(lake: Lake, doc: dict, res: pa.Table) -> str:
+    """``Lake.commit``, then the change test and the assessment, as the flow does."""
+    v = lake.commit(doc, {}, res)
+    status.record_commit(lake, v, Calibration.from_document(dict(doc, version=str(v))), res)
+    return v
+
+
+def bulk_derived(lake: Lake, batch: int = 5000) -> None:
+    """Rows of the derived tables for the bulk versions (each version against the one before
+    it, each version's assessment), copied from a real commit's rows with the versions
+    replaced: what commits that each stored their test would have left."""
+    comp = lake.tables.scan("comparisons").slice(0, 1).to_pylist()[0]
+    acc = lake.tables.scan("assessments").slice(0, 1).to_pylist()[0]
+    cat = lake.catalog(sort=False).select(["camera_id", "version", "acquired"]).to_pylist()
+    real = set(lake.tables.scan("assessments", columns=["version"])["version"].to_pylist())
+    by_cam: dict = {}
+    for r in sorted(cat, key=lambda r: (r["camera_id"], r["acquired"])):
+        by_cam.setdefault(r["camera_id"], []).append(r["version"])
+    pairs = [(a, b) for seq in by_cam.values() for a, b in zip(seq[:-1], seq[1:], strict=True) if b not in real]
+    versions = [r["version"] for r in cat if r["version"] not in real]
+    for start in range(0, max(len(pairs), len(versions)), batch):
+        part = pairs[start:start + batch]
+        if part:
+            lake.tables.append("comparisons", pa.table({
+                "version_a": [a for a, _ in part], "version_b": [b for _, b in part],
+                "settings": [comp["settings"]] * len(part), "computed": [comp["computed"]] * len(part),
+                "result": [comp["result"].replace(comp["version_b"], b) for _, b in part]}), {"action": "bench"})
+        vpart = versions[start:start + batch]
+        if vpart:
+            lake.tables.append("assessments", pa.table({
+                "version": vpart, "camera_id": [acc["camera_id"]] * len(vpart),
+                "settings": [acc["settings"]] * len(vpart), "computed": [acc["computed"]] * len(vpart),
+                "verdict": [acc["verdict"]] * len(vpart), "radial": [acc["radial"]] * len(vpart),
+                "result": [acc["result"]] * len(vpart)}),
+                {"action": "bench"})
+
+
 def make_lake(root: Path, n_versions: int, n_cameras: int, storage_options=None) -> tuple[Lake, float]:
-    """A lake of ``n_versions`` versions; returns it and the seconds the real commits took each."""
+    """A lake of ``n_versions`` versions; returns it and the seconds the real commits took each
+    (the commit and the stored change test and assessment)."""
     lake = Lake(str(root), storage_options)
     per_cam = n_versions // n_cameras
     pairs = [(c, s) for s in range(per_cam - 2) for c in range(n_cameras)]
@@ -119,9 +167,10 @@ def make_lake(root: Path, n_versions: int, n_cameras: int, storage_options=None)
     t = time.perf_counter()
     for s in (per_cam - 2, per_cam - 1):
         for c in range(n_cameras):
-            lake.commit(document(c, s, seed=c * 100003 + s), {}, residuals(s))
+            commit_and_record(lake, document(c, s, seed=c * 100003 + s), residuals(s))
     commit_s = (time.perf_counter() - t) / (2 * n_cameras)
-    for name in ("catalog", "residuals"):
+    bulk_derived(lake)
+    for name in ("catalog", "residuals", "comparisons", "assessments"):
         lake.tables.optimize(name)
     return lake, commit_s
 
@@ -152,13 +201,32 @@ def best(fn, repeat: int) -> float:
     return min(times)
 
 
+def fill_costs(url: str, storage_options) -> dict:
+    """The lake as made before issue 29 (derived tables removed), ``fill``, the fleet after it."""
+    lake = Lake(url, storage_options)
+    for name in ("comparisons", "assessments"):
+        if lake.is_local:
+            import shutil
+
+            shutil.rmtree(lake.uri(name), ignore_errors=True)
+        else:
+            lake.fs.rm(lake.storage.path(name), recursive=True)
+    t = time.perf_counter()
+    counts = status.fill(Lake(url, storage_options))
+    fill_s = time.perf_counter() - t
+    t = time.perf_counter()
+    fleet_summary(Lake(url, storage_options))
+    return {"fill_s": fill_s, "fill_computed": counts["computed"], "fleet_after_fill_s": time.perf_counter() - t}
+
+
 def commit_costs(lake: Lake, old, repeat: int, tag: int) -> tuple[float, float]:
-    """Median seconds of one new commit and one first-layout commit, interleaved."""
+    """Median seconds of one new commit (with its stored change test and assessment, as the
+    flow makes it) and one first-layout commit, interleaved."""
     new_t, old_t = [], []
     for i in range(repeat):
         doc = document(9000 + tag, 90000 + i, seed=tag * 7 + i)
         t = time.perf_counter()
-        lake.commit(doc, {}, residuals(i, 2000))
+        commit_and_record(lake, doc, residuals(i, 2000))
         new_t.append(time.perf_counter() - t)
         if old is not None:
             doc = document(9500 + tag, 90000 + i, seed=tag * 7 + i)
@@ -184,7 +252,7 @@ def cli_camera(url: str) -> float:
 
 
 def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None,
-            made: tuple[str, float, float] | None = None) -> dict:
+            made: tuple[str, float, float] | None = None, fill: bool = True) -> dict:
     """Time one lake of ``n`` versions; ``made`` = (url, make_s, commit_s) of a lake already made."""
     cams = 200 if n >= 1000 else 50
     local = storage_options is None
@@ -201,10 +269,14 @@ def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None
                            repeat)
     out["sql_s"] = best(lambda: history.sql(Lake(url, storage_options), SQL), repeat)
     t = time.perf_counter()
-    fleet = fleet_summary(lake)
+    fleet = fleet_summary(Lake(url, storage_options))
     out["fleet_first_s"] = time.perf_counter() - t
     out["fleet_compared"] = sum(1 for v in fleet["p_value"].to_pylist() if v is not None)
-    out["fleet_again_s"] = best(lambda: fleet_summary(lake), repeat)
+    out["fleet_again_s"] = best(lambda: fleet_summary(Lake(url, storage_options)), repeat)
+    with tempfile.TemporaryDirectory(prefix="bench-dashboard-") as site:
+        t = time.perf_counter()
+        write_dashboard(Lake(url, storage_options), site)
+        out["dashboard_s"] = time.perf_counter() - t
     old = None
     if n <= 10000:
         if local:
@@ -215,6 +287,8 @@ def measure(n: int, root, repeat: int, *, storage_options=None, old_options=None
 
             old = legacy_store.Lake(f"{root}/old-{n}", old_options)
     out["commit_s"], out["old_commit_s"] = commit_costs(lake, old, repeat, n % 97)
+    if fill:                          # last: it removes the derived tables first
+        out.update(fill_costs(url, storage_options))
     if local:
         out["cli_camera_s"] = min(cli_camera(url) for _ in range(2))
     return out
@@ -231,11 +305,13 @@ def upload(folder: Path, client, bucket: str, prefix: str) -> int:
     return len(files)
 
 
-def s3_measure(n: int, repeat: int) -> dict:
+def s3_measure(n: int, repeat: int, *, local_too: bool = False, fill: bool = False) -> list[tuple[str, dict]]:
     """The lake made locally by the same code (bulk appends, real commits, compaction), copied
     to a moto S3 server on loopback, then timed there (reads, fleet, one commit on S3).
 
-    Making it on S3 directly means 400 commits through moto, over an hour here."""
+    Making it on S3 directly means 400 commits through moto, over an hour here. ``local_too``:
+    the local lake it was made from is timed too (one lake made for both); ``fill``: also
+    ``lake fill`` on S3 (400 objects' worth of reads per camera pair: ~20 minutes here)."""
     import logging
 
     import boto3
@@ -261,8 +337,12 @@ def s3_measure(n: int, repeat: int) -> dict:
             count = upload(Path(tmp) / "lake", client, "bench-lake", f"new-{n}")
             print(f"made locally in {made_local_s:.0f} s, {count} objects copied to S3 in "
                   f"{time.perf_counter() - t:.0f} s", flush=True)
-        return measure(n, "s3://bench-lake", repeat, storage_options=options, old_options=options,
-                       made=(f"s3://bench-lake/new-{n}", made_local_s, commit_bulk_s))
+            out = []
+            if local_too:
+                out.append(("local", measure(n, Path(tmp), repeat, made=(lake.url, made_local_s, commit_bulk_s))))
+        out.append(("moto S3", measure(n, "s3://bench-lake", repeat, storage_options=options, old_options=options,
+                                       made=(f"s3://bench-lake/new-{n}", made_local_s, commit_bulk_s), fill=fill)))
+        return out
     finally:
         server.stop()
 
@@ -272,18 +352,21 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="*", default=[100, 1000, 10000, 100000])
     ap.add_argument("--s3", type=int, default=0, help="also a lake of this many versions on moto S3")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--s3-fill", action="store_true", help="also time `lake fill` on S3 (long)")
     args = ap.parse_args()
     cols = ["versions", "cameras", "make_s", "camera_s", "sql_s", "fleet_first_s", "fleet_compared",
-            "fleet_again_s", "commit_s", "old_commit_s", "old_camera_s", "cli_camera_s"]
+            "fleet_again_s", "dashboard_s", "fill_s", "fill_computed", "fleet_after_fill_s", "commit_s",
+            "old_commit_s", "old_camera_s", "cli_camera_s"]
     print("| where | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
     with tempfile.TemporaryDirectory(prefix="bench-lake-") as tmp:
         for n in args.sizes:
-            r = measure(n, Path(tmp), args.repeat)
-            print("| local | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
+            if n != args.s3:
+                r = measure(n, Path(tmp), args.repeat)
+                print("| local | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
     if args.s3:
-        r = s3_measure(args.s3, args.repeat)
-        print("| moto S3 | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
+        for where, r in s3_measure(args.s3, args.repeat, local_too=args.s3 in args.sizes, fill=args.s3_fill):
+            print(f"| {where} | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |", flush=True)
 
 
 def _fmt(v) -> str:

@@ -26,7 +26,7 @@ from fieldcal.errors import InputError, one_line
 from fieldcal.session.loader import load_session
 
 __all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions", "local_copy",
-           "entry", "summarize", "SMALL_FILES"]
+           "entry", "status_text", "summarize", "SMALL_FILES"]
 
 SMALL_FILES = (".json", ".csv")
 """Files fetched from an object store to load a session without its images."""
@@ -158,7 +158,17 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
 def entry(s: FoundSession, status: str | None = None, reason: str | None = None) -> dict:
     """A session's line of the fleet's summary (before or without a run: ``status`` given)."""
     return {"folder": s.folder, "camera_id": s.camera_id, "session_id": s.session_id, "status": status,
-            "version": s.version, "new": False, "reason": reason, "seconds": 0.0, "retried": None}
+            "version": s.version, "new": False, "reason": reason, "seconds": 0.0, "retried": None,
+            "n_images": None, "n_left_out": 0}
+
+
+def status_text(e: dict) -> str:
+    """A summary entry's status for people: "committed" says when images were left out
+    ("committed, 2 of 6 images left out")."""
+    text = str(e["status"])
+    if e.get("n_left_out") and e["status"] in ("committed", "unchanged"):
+        text += f", {e['n_left_out']} of {e['n_images']} images left out"
+    return text
 
 
 def summarize(lake: str, root: str, found: list[FoundSession], results: dict | None = None) -> dict:
@@ -173,8 +183,9 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
     dict
         ``lake``, ``root``, ``sessions`` (entries: ``folder``, ``camera_id``, ``session_id``,
         ``status``, ``version``, ``new``, ``reason``, ``seconds``, ``retried``: the first
-        run's reason when a session was run again), ``n_found``,
-        ``n_committed``, ``n_failed``, ``n_skipped``.
+        run's reason when a session was run again, ``n_images`` and ``n_left_out``: the
+        images of a session that was run and those of them left out), ``n_found``,
+        ``n_committed`` (of them ``n_partial`` with images left out), ``n_failed``, ``n_skipped``.
     """
     results = results or {}
 
@@ -185,6 +196,7 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
     return {
         "lake": str(lake), "root": str(root), "sessions": entries, "n_found": len(entries),
         "n_committed": sum(r["status"] == "committed" for r in entries),
+        "n_partial": sum(r["status"] == "committed" and bool(r.get("n_left_out")) for r in entries),
         "n_failed": sum(r["status"] == "failed" for r in entries),
         "n_skipped": sum(r["status"] in ("calibrated already", "unchanged") for r in entries),
     }

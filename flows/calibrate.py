@@ -57,7 +57,6 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import dask
 from prefect import flow, get_run_logger, task
@@ -71,7 +70,7 @@ from fieldcal import batch, pipeline, progress
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.store import Lake
 
-from . import cluster, image_events
+from . import cluster, image_events, publish
 from .hashcache import HashCache, file_stamp, known_hashes
 
 __all__ = ["calibrate_session", "measure_batch", "validate_session", "solve_session",
@@ -582,16 +581,24 @@ def _solve_and_commit(run: _Run, fp: str, force: bool) -> dict:
     progress.emit("stage", text="committing")
     version, new = commit_version(run.lake, run.storage_options, outcome, force)
     run.lap("commit_s", t)
-    run.lap("total_s", run.t_start)
     for line in outcome.summary:
         run.logger.info(line)
     left = _left_out(outcome.left_out)
     for item in left:
         run.logger.warning(f"left out {item.get('image')}: {item.get('reason')}")
     run.logger.info(f"{'committed' if new else 'unchanged'}: version {version}")
-    return dict(run.base(), version=version, new=new, status="committed" if new else "unchanged", fingerprint=fp,
-                images=run.counts, left_out=left, summary=list(outcome.summary), measure=run.measured,
-                timings=run.timings)
+    out = dict(run.base(), version=version, new=new, status="committed" if new else "unchanged", fingerprint=fp,
+               images=run.counts, left_out=left, summary=list(outcome.summary), measure=run.measured,
+               timings=run.timings, published=None)
+    if new:
+        t = time.perf_counter()
+        try:
+            out["published"] = publish.publish_version(run.lake, run.storage_options, out, outcome)
+        except Exception as e:  # noqa: BLE001 - the version is committed: what is shown of it must not undo that
+            run.logger.warning(f"version {version} is committed; publishing it failed: {type(e).__name__}: {e}")
+        run.lap("publish_s", t)
+    run.lap("total_s", run.t_start)
+    return out
 
 
 def _left_out(items: list[dict]) -> list[dict]:
@@ -607,16 +614,10 @@ def _left_out(items: list[dict]) -> list[dict]:
     return out
 
 
-def _run_name() -> str:
-    from prefect.runtime import flow_run
-
-    return f"calibrate-{Path(str(flow_run.parameters.get('session', 'session'))).name}"
-
-
 # --------------------------------------------------------------------------------------
 # the flow
 # --------------------------------------------------------------------------------------
-@flow(name="calibrate-session", flow_run_name=_run_name, persist_result=False)
+@flow(name="calibrate-session", flow_run_name=publish.calibrate_run_name, persist_result=False)
 def calibrate_session(session: str, lake: str, storage_options: dict | None = None, force: bool = False,
                       settings: dict | None = None, dask_address: str | None = None,
                       n_workers: int = cluster.DEFAULT_WORKERS, batch_size: int | None = None,
@@ -664,7 +665,9 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
         figures, or None), ``timings`` (seconds per step: ``validate_s``, ``lookup_s``,
         ``measure_s`` (cluster start included; of it ``warm_s``, the warm-up of this
         process when its threads measure), ``solve_s`` (of it ``read_observations_s``
-        and ``solver_s``), ``commit_s``, ``total_s``).
+        and ``solver_s``), ``commit_s``, ``publish_s``, ``total_s``), ``published`` (a new
+        version's verdict, whether the camera moved, the links of its report and certificate:
+        :func:`flows.publish.publish_version`; None otherwise).
     """
     run = _Run(session, lake, storage_options, settings, get_run_logger())
     t = time.perf_counter()
@@ -672,6 +675,10 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
     run.prepared = validate_session(session, settings)
     run.lap("validate_s", t)
     sess = run.prepared.session
+    try:
+        publish.label_run(sess)
+    except Exception as e:  # noqa: BLE001 - a name and tags are not worth failing a calibration
+        run.logger.warning(f"could not tag the flow run: {e}")
     run.logger.info(f"{sess.camera_id} / {sess.session_id}: {sess.method} method, "
                     f"{len(run.prepared.to_measure)} image(s) to measure, lake {run.base()['lake']}")
     _plan(run, rehash, force)

@@ -75,6 +75,9 @@ def _settings(args) -> dict:
 
 
 def _check_compute(args) -> None:
+    out = getattr(args, "dashboard", None)
+    if out and os.path.exists(out) and not os.path.isdir(out):
+        raise UsageError(f"--dashboard {out}: exists and is not a folder")
     for name in ("workers", "batch_size"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
@@ -188,9 +191,10 @@ def _run_flow(args, lake_url: str, options) -> dict:
 def _fleet_table(summary: dict) -> str:
     import pyarrow as pa
 
+    from fieldcal.fleet import status_text
     from fieldcal.lake.history import to_text
 
-    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": r["status"],
+    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": status_text(r),
              "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
              "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried") else ""))}
             for r in summary["sessions"]]
@@ -217,7 +221,7 @@ def cmd_fleet(args) -> int:
             return recalibrate_fleet(str(lake_url), root=root, storage_options=options, dask_address=args.dask,
                                      n_workers=_workers(args), settings=_settings(args) or None,
                                      batch_size=args.batch_size, cluster_kwargs=_cluster_kwargs(args),
-                                     max_sessions=args.max_sessions)
+                                     max_sessions=args.max_sessions, dashboard=args.dashboard)
 
         summary = _with_api(args, run)
     else:
@@ -226,8 +230,9 @@ def cmd_fleet(args) -> int:
         print(json.dumps(summary, indent=2))
     else:
         sys.stdout.write(_fleet_table(summary))
-        print(f"{summary['n_found']} found, {summary['n_committed']} committed, {summary['n_failed']} failed, "
-              f"{summary['n_skipped']} skipped")
+        partial = f" ({summary['n_partial']} with images left out)" if summary.get("n_partial") else ""
+        print(f"{summary['n_found']} found, {summary['n_committed']} committed{partial}, {summary['n_failed']} "
+              f"failed, {summary['n_skipped']} skipped")
     return 1 if summary["n_failed"] else 0
 
 
@@ -250,6 +255,7 @@ def cmd_serve(args) -> int:
     _check_cron(args.cron)
     fleet.check_root(args.root or (str(lake_url).rstrip("/") + "/sessions"), options)
     params = {k: v for k, v in {"dask_address": args.dask, "n_workers": args.workers, "batch_size": args.batch_size,
+                                "dashboard": os.path.abspath(args.dashboard) if args.dashboard else None,
                                 "settings": _settings(args) or None, "cluster_kwargs": _cluster_kwargs(args),
                                 "storage_options": options}.items() if v is not None}
 
@@ -257,7 +263,8 @@ def cmd_serve(args) -> int:
         from flows.fleet import serve_fleet
 
         print(f"serving recalibrate-fleet/{args.name} on cron '{args.cron}' (UTC); Ctrl-C stops", file=sys.stderr)
-        serve_fleet(str(lake_url), args.root, name=args.name, cron=args.cron, parameters=params)
+        serve_fleet(str(lake_url), args.root, name=args.name, cron=args.cron, parameters=params,
+                    report=lambda line: print(f"fieldcal serve: {line}", file=sys.stderr, flush=True))
 
     _stop_within(_serve_stop_s())
     try:
@@ -312,14 +319,17 @@ def cmd_server(args) -> int:
 
     server.quiet_prefect(False)
     if args.action == "start":
-        state = server.start_server(args.linger, note=lambda s: print(s, file=sys.stderr))
+        state = server.start_server(args.linger, note=lambda s: print(s, file=sys.stderr), ui=args.ui)
         print(state["url"])
+        if state.get("ui_url"):
+            print(f"Prefect UI: {state['ui_url']}", file=sys.stderr)
     elif args.action == "status":
         state = server.server_status()
         if state is None:
             print(f"no local Prefect server under {server.prefect_home()}")
             return 0
-        print(f"{state['url']}  pid {state['pid']}  started {state['started']}  linger {state['linger_s']:g} s")
+        print(f"{state['url']}  pid {state['pid']}  started {state['started']}  linger {state['linger_s']:g} s"
+              + (f"  UI {state['ui_url']}" if state.get("ui_url") else "  (no UI: `server start --ui`)"))
     else:
         state = server.stop_server()
         print(f"stopped the local Prefect server at {state['url']} (pid {state['pid']})" if state
@@ -350,10 +360,12 @@ def cmd_history(args) -> int:
     elif args.camera:
         if args.start or args.end:
             raise UsageError("--from / --to select cameras by date; with --camera use --sql for a range")
-        table = history.camera_history(lake, args.camera, tuple(args.param or ("f_mm", "xp_mm", "yp_mm")),
-                                       all_versions=args.all_versions, as_of=args.as_of)
+        params = tuple(args.param or ("f_mm", "xp_mm", "yp_mm"))
+        table = history.camera_history(lake, args.camera, params, all_versions=args.all_versions, as_of=args.as_of)
+        table = common.shown_columns(table, "camera", args, params)
+        _say_latest_of_sessions(lake, args, table)
     else:
-        table = history.fleet(lake, args.start, args.end, as_of=args.as_of)
+        table = common.shown_columns(history.fleet(lake, args.start, args.end, as_of=args.as_of), "fleet", args)
     from flows.cli_lake import report_problems
 
     report_problems(lake, "fieldcal history")
@@ -361,6 +373,21 @@ def cmd_history(args) -> int:
     if args.format == "json":
         sys.stdout.write("\n")
     return 0
+
+
+def _say_latest_of_sessions(lake, args, table) -> None:
+    """With ``--camera`` and without ``--all-versions``: say on standard error how many
+    versions of re-run sessions the table leaves out."""
+    if args.all_versions:
+        return
+    import pyarrow.dataset as ds
+
+    n_all = lake.catalog(filter=ds.field("camera_id") == args.camera, equal={"camera_id": args.camera},
+                         sort=False, as_of=args.as_of).num_rows
+    hidden = n_all - table.num_rows
+    if hidden > 0:
+        print(f"fieldcal history: the latest version of each session ({table.num_rows}); {hidden} earlier "
+              "version(s) of re-run sessions not shown (--all-versions shows every version)", file=sys.stderr)
 
 
 def cmd_show(args) -> int:
@@ -427,6 +454,11 @@ def _add_compute(p) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="show Prefect's and Dask's logs and warnings")
 
 
+def _add_dashboard(p) -> None:
+    p.add_argument("--dashboard", metavar="DIR", default=None,
+                   help="write the fleet dashboard into DIR after each fleet run (fieldcal dashboard)")
+
+
 def _add_run_commands(sub) -> None:
     p = sub.add_parser("run", help="calibrate one session into the lake; prints the version")
     p.add_argument("session", help="the session folder")
@@ -444,6 +476,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--format", choices=("text", "json"), default="text")
     p.add_argument("--max-sessions", type=int, default=None,
                    help="sessions calibrated at once (default: twice the cluster's worker threads)")
+    _add_dashboard(p)
     _add_compute(p)
     p.set_defaults(func=cmd_fleet)
 
@@ -452,6 +485,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--root", help="root of session folders (default: LAKE/sessions)")
     p.add_argument("--cron", default="0 2 * * *", help="schedule, cron syntax, UTC (default: %(default)s)")
     p.add_argument("--name", default="nightly", help="deployment name (default: %(default)s)")
+    _add_dashboard(p)
     _add_compute(p)
     p.set_defaults(func=cmd_serve)
 
@@ -460,6 +494,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("--linger", type=float, default=None, metavar="SECONDS",
                    help="start: stop by itself this long after the last command (0: only by `server stop`; "
                         "default $FIELDCAL_SERVER_LINGER_S or 600)")
+    p.add_argument("--ui", action="store_true", help="start: also serve Prefect's web UI (its address is printed)")
     p.set_defaults(func=cmd_server)
 
 
@@ -469,8 +504,8 @@ def _add_query_commands(sub) -> None:
     p.add_argument("--camera", help="one camera's calibrations over time")
     p.add_argument("--param", action="append", help="catalog column to show with --camera (repeatable; "
                    "default f_mm, xp_mm, yp_mm)")
-    p.add_argument("--all-versions", action="store_true", help="with --camera: every version, not the "
-                   "latest of each session")
+    p.add_argument("--all-versions", action="store_true", help="with --camera: every version (default: the "
+                   "latest version of each session; a line on standard error says how many are not shown)")
     p.add_argument("--from", dest="start", metavar="DATE", help="every camera's latest calibration acquired "
                    "from this date or time")
     p.add_argument("--to", dest="end", metavar="DATE", help="... up to this date (inclusive) or time")
@@ -478,6 +513,9 @@ def _add_query_commands(sub) -> None:
                    "observations_field, observations_goniometer (no COPY, ATTACH, INSTALL or file access)")
     p.add_argument("--as-of", metavar="TIME", help="answer as the lake was at this time (ISO 8601, UTC)")
     p.add_argument("--format", choices=("text", "csv", "json"), default="text")
+    p.add_argument("--columns", metavar="A,B,...", help="the columns to show, in this order (default, as text: a "
+                   "set that fits a terminal; CSV and JSON: every column)")
+    p.add_argument("--wide", action="store_true", help="every column (the catalog's 57, or --fleet's 21)")
     from flows import cli_products
 
     handler = cli_products.history_extras(p)

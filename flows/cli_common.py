@@ -28,7 +28,8 @@ from fieldcal.errors import FieldcalError, InputError, one_line
 
 __all__ = ["UsageError", "LAKE_ENV", "OPTIONS_ENV", "EXIT_ERROR", "EXIT_USAGE", "add_lake_arguments",
            "lake_arguments", "open_lake", "require_lake", "known_cameras", "require_camera", "resolve_version",
-           "check_output_file", "check_input_file", "is_tty", "progress_sink", "describe", "error_line"]
+           "check_output_file", "check_input_file", "is_tty", "progress_sink", "describe", "error_line",
+           "shown_columns"]
 
 LAKE_ENV = "FIELDCAL_LAKE"
 OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
@@ -231,6 +232,16 @@ def describe(doc: dict) -> list[str]:
         lines.append(f"left out: {', '.join(str(x) for x in left)}")
     lines.append(f"inputs    {doc.get('inputs', {}).get('fingerprint')}   code {doc.get('code_version', '-')}")
     return lines
+
+
+def shown_columns(table, view: str, args, params=("f_mm", "xp_mm", "yp_mm")):
+    """The columns ``history`` prints: ``--columns``, every one with ``--wide`` or in CSV and
+    JSON (scripts), else the default set of ``view`` (:data:`fieldcal.lake.history.DEFAULT_COLUMNS`)."""
+    from fieldcal.lake import history
+
+    columns = [c for c in (getattr(args, "columns", None) or "").replace(",", " ").split() if c]
+    wide = getattr(args, "wide", False) or (not columns and getattr(args, "format", "text") != "text")
+    return history.pick_columns(table, view, columns, wide=wide, params=params)
 
 
 def error_line(command: str, error: BaseException, *, verbose: bool = False) -> tuple[str, int]:

@@ -16,6 +16,11 @@
 ``fieldcal lake migrate OLD --lake NEW``
     Bring a lake of the first layout (one Parquet file per version) into NEW and verify it
     row for row.
+``fieldcal lake fill [--all]``
+    Compute the change tests and acceptances that a lake made before they were kept at the
+    commit lacks (each camera's latest version and its pair with the previous one; ``--all``
+    every version and consecutive pair), with progress on a terminal. Once is enough: the
+    commits keep them from then on.
 ``fieldcal gc [--grace-s S] [--apply]``
     The parts of versions that were never committed (failed or killed commits) older than
     S seconds (default one day). A dry run unless ``--apply``.
@@ -158,6 +163,27 @@ def _migrate(args) -> int:
 
 
 @_run
+def _fill(args) -> int:
+    from fieldcal.products.status import fill
+    from flows.cli_common import is_tty
+
+    lake = _open(args)
+    tty = is_tty(sys.stderr)
+
+    def progress(done: int, total: int) -> None:
+        if tty:
+            print(f"\rfieldcal lake fill: {done} of {total} computed", end="" if done < total else "\n",
+                  file=sys.stderr, flush=True)
+
+    counts = fill(lake, everything=args.all, progress=progress)
+    for line in counts["errors"]:
+        print(f"fieldcal lake fill: cannot compute {line}", file=sys.stderr)
+    print(f"{lake.url}: {counts['pairs']} pair(s) and {counts['versions']} version(s) wanted, "
+          f"{counts['computed']} computed now, {counts['failed']} could not be")
+    return 1 if counts["failed"] else 0
+
+
+@_run
 def _gc(args) -> int:
     lake = _open(args)
     removed = lake.gc(args.grace_s, dry_run=not args.apply)
@@ -179,7 +205,7 @@ def add_commands(subparsers) -> None:
     """Register ``lake`` (log, optimize, vacuum, check, migrate) and ``gc``."""
     from fieldcal.lake.history import FORMATS
 
-    lake_p = subparsers.add_parser("lake", help="the lake's tables: log, optimize, vacuum, check, migrate")
+    lake_p = subparsers.add_parser("lake", help="the lake's tables: log, optimize, vacuum, check, migrate, fill")
     sub = lake_p.add_subparsers(dest="lake_command", metavar="ACTION", required=True)
 
     p = sub.add_parser("log", help="the commits of the lake's tables, newest first (who, what, when)")
@@ -210,6 +236,12 @@ def add_commands(subparsers) -> None:
     p.add_argument("old", help="the lake of the first layout (path or URL)")
     _add_lake(p)
     p.set_defaults(func=_migrate)
+
+    p = sub.add_parser("fill", help="compute the change tests and acceptances an older lake lacks (once)")
+    _add_lake(p)
+    p.add_argument("--all", action="store_true", help="every version and consecutive pair (default: each "
+                   "camera's latest and its previous, what history --fleet and the dashboard read)")
+    p.set_defaults(func=_fill)
 
     p = subparsers.add_parser("gc", help="remove parts of versions never committed (dry run by default)")
     _add_lake(p)

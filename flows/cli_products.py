@@ -16,6 +16,8 @@ sessions).
 - ``fieldcal compare V1 V2 [--plot PNG] [--format text|json] [--out FILE]``: where the same
   ray lands in both, what their uncertainties explain, and the change test
   (:mod:`fieldcal.products.compare`).
+- ``fieldcal dashboard --out DIR``: the fleet dashboard, a static site
+  (:mod:`fieldcal.products.dashboard`); prints the path of its ``index.html``.
 - ``fieldcal export VERSION --format opencv|colmap|metashape|json [--out FILE]``: to standard
   output unless ``--out``; the fit's residual and round trip on standard error
   (:mod:`fieldcal.products.export`). ``--strict`` refuses (exit 3) an export that cannot be exact.
@@ -181,6 +183,27 @@ def _compare(args) -> int:
 
 
 @_run
+def _dashboard(args) -> int:
+    from fieldcal.products.certificate import load_config
+    from fieldcal.products.compare import check_level
+    from fieldcal.products.dashboard import write_dashboard
+
+    load_config(args.config)
+    check_level(args.tolerance_um, args.alpha)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise UsageError(f"--out {args.out}: exists and is not a folder")
+    lake = open_lake(args)
+    with progress.listening(progress_sink(sys.stderr)):
+        progress.emit("stage", text=f"dashboard of {lake.url}")
+        got = write_dashboard(lake, args.out, config_path=args.config, tolerance_um=args.tolerance_um,
+                              alpha=args.alpha, reports_url=args.reports_url)
+    print(got["index"])
+    print(f"{got['cameras']} camera(s): {got['moved']} moved, {got['expired']} expired, {got['failed']} failed",
+          file=sys.stderr)
+    return 0
+
+
+@_run
 def _export(args) -> int:
     from fieldcal.products.export import export_text
     from fieldcal.products.uncertainty import Calibration
@@ -282,6 +305,22 @@ def add_commands(subparsers) -> None:
     p.add_argument("--out", metavar="FILE", default=None, help="write here instead of stdout")
     p.set_defaults(func=_compare, command="compare")
 
+    p = subparsers.add_parser("dashboard", help="write the fleet dashboard: a static site (open DIR/index.html)",
+                              description="One row per camera (latest calibration, verdict, certificate "
+                                          "validity, last change test) with filters, and a page per camera "
+                                          "with history plots and its versions; no server needed.")
+    _add_lake(p)
+    p.add_argument("--out", metavar="DIR", required=True, help="folder of the site (index.html, cameras/)")
+    p.add_argument("--config", metavar="FILE", default=None, help="certificate configuration (validity, "
+                   "acceptance thresholds), as for `fieldcal certificate`")
+    p.add_argument("--tolerance-um", type=float, default=DEFAULT_TOLERANCE_UM,
+                   help=f"tolerance of a change in the image plane [um] (default {DEFAULT_TOLERANCE_UM:g})")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help=f"significance level (default {DEFAULT_ALPHA:g})")
+    p.add_argument("--reports-url", metavar="URL", default=None,
+                   help="the URL the lake is served at: links become URL/reports/... (default: relative to DIR "
+                        "for a local lake, else the lake's URL)")
+    p.set_defaults(func=_dashboard, command="dashboard")
+
     p = subparsers.add_parser("export", help="export a calibration to OpenCV, COLMAP, Metashape "
                                              "or JSON",
                               description="Fit the target model to the calibration and write it; "
@@ -374,7 +413,10 @@ def _history(args) -> int:
         table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
                               start=getattr(args, "start", None), end=getattr(args, "end", None))
         fmt = getattr(args, "format", None) or "text"
-        text = history.format_table(table, fmt if fmt in history.FORMATS else "text")
+        from flows.cli_common import shown_columns
+
+        shown = shown_columns(table, "changes", args)
+        text = history.format_table(shown, fmt if fmt in history.FORMATS else "text")
         _write_text(text, getattr(args, "out", None))
         if args.plot:
             Path(args.plot).write_bytes(plots.to_png(plots.fleet_plot(table,

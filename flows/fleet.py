@@ -30,6 +30,7 @@
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 
 from prefect import flow, get_run_logger, task
@@ -44,8 +45,10 @@ from fieldcal.lake.store import Lake
 
 from . import cluster
 from .calibrate import calibrate_session
+from .publish import fleet_run_name
 
 __all__ = ["recalibrate_fleet", "calibrate_one", "scan_sessions", "fleet_deployment", "serve_fleet",
+           "publish_dashboard", "watch_runs",
            "DEFAULT_CRON", "DEPLOYMENT_NAME", "MAX_THREADS"]
 
 DEFAULT_CRON = "0 2 * * *"
@@ -53,6 +56,8 @@ DEFAULT_CRON = "0 2 * * *"
 DEPLOYMENT_NAME = "nightly"
 MAX_THREADS = 32
 """Threads of the fleet flow's task runner (each session's task mostly waits on the cluster)."""
+SUMMARY_KEY = "fleet-summary"
+"""Key of the fleet run's table artifact (its description: the counts)."""
 RETRIES = 1
 """Further runs of a session whose run failed for a reason outside fieldcal (:func:`_worth_retrying`)."""
 
@@ -98,13 +103,16 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
         logger.error(f"{label}: failed: {entry['reason']}")
         progress.emit("note", text=f"{label}: failed ({entry['seconds']:.1f} s): {entry['reason']}")
     else:
-        entry.update(status=outcome["status"], version=outcome["version"], new=bool(outcome["new"]))
+        entry.update(status=outcome["status"], version=outcome["version"], new=bool(outcome["new"]),
+                     n_images=outcome["images"]["total"], n_left_out=len(outcome["left_out"]))
         if entry["retried"] and outcome["status"] == "unchanged":
             # the session had no version when the fleet started: the first run committed this
             # one and failed after its commit (e.g. closing its connection to the cluster)
             entry.update(status="committed", new=True)
-        logger.info(f"{label}: {entry['status']} {entry['version']} ({entry['seconds']:.1f} s)")
-        progress.emit("note", text=f"{label}: {entry['status']} {entry['version']} ({entry['seconds']:.1f} s)")
+        left = (f", {entry['n_left_out']} of {entry['n_images']} images left out" if entry["n_left_out"] else "")
+        line = f"{label}: {entry['status']} {entry['version']}{left} ({entry['seconds']:.1f} s)"
+        (logger.warning if entry["n_left_out"] else logger.info)(line)
+        progress.emit("note", text=line)
     return entry
 
 
@@ -145,12 +153,13 @@ def _cluster(address: str | None, n_workers: int, cluster_kwargs: dict | None, l
         yield local.scheduler_address
 
 
-@flow(name="recalibrate-fleet", persist_result=False, task_runner=ThreadPoolTaskRunner(max_workers=MAX_THREADS))
+@flow(name="recalibrate-fleet", flow_run_name=fleet_run_name, persist_result=False,
+      task_runner=ThreadPoolTaskRunner(max_workers=MAX_THREADS))
 def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict | None = None,
                       root_storage_options: dict | None = None, dask_address: str | None = None,
                       n_workers: int = cluster.DEFAULT_WORKERS, settings: dict | None = None,
                       batch_size: int | None = None, cluster_kwargs: dict | None = None,
-                      max_sessions: int | None = None) -> dict:
+                      max_sessions: int | None = None, dashboard: str | None = None) -> dict:
     """Calibrate every session under ``root`` that has no committed calibration in ``lake``.
 
     Parameters
@@ -171,6 +180,9 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
     max_sessions : int, optional
         Sessions calibrated at once (default: twice the cluster's worker threads, so that
         one session's validation and commit overlap with the others' work on the cluster).
+    dashboard : str, optional
+        A local folder: the fleet dashboard is written there after the run
+        (:func:`publish_dashboard`).
 
     Returns
     -------
@@ -199,9 +211,46 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
             args = (len(todo), lake, storage_options, root_options, address, n_workers, settings, batch_size)
             results = {id(s): r for s, r in zip(todo, _calibrate_all(todo, at_once, args), strict=True)}
     summary = fleet_lib.summarize(lake, root, found, results)
-    logger.info(f"fleet: {summary['n_found']} found, {summary['n_committed']} committed, "
-                f"{summary['n_failed']} failed, {summary['n_skipped']} skipped")
+    partial = f" ({summary['n_partial']} with images left out)" if summary["n_partial"] else ""
+    counts = (f"{summary['n_found']} found, {summary['n_committed']} committed{partial}, "
+              f"{summary['n_failed']} failed, {summary['n_skipped']} skipped")
+    logger.info(f"fleet: {counts}")
+    _publish_summary(summary, counts)
+    if dashboard:
+        publish_dashboard(lake, storage_options, dashboard)
     return summary
+
+
+@task(name="publish-dashboard", cache_policy=NO_CACHE, persist_result=False)
+def publish_dashboard(lake: str, storage_options: dict | None, out: str) -> str | None:
+    """Write the fleet dashboard (:func:`fieldcal.products.dashboard.write_dashboard`) into
+    ``out`` and link it as an artifact; a failure is logged, never raised (the fleet's
+    versions are committed). Returns the index's path."""
+    from prefect.artifacts import create_link_artifact
+
+    from fieldcal.products.dashboard import write_dashboard
+
+    logger = get_run_logger()
+    try:
+        got = write_dashboard(Lake(lake, storage_options), out)
+    except (FieldcalError, OSError) as e:
+        logger.error(f"the dashboard was not written to {out}: {one_line(e)}")
+        return None
+    logger.info(f"dashboard: {got['index']} ({got['cameras']} cameras: {got['moved']} moved, "
+                f"{got['expired']} expired, {got['failed']} failed)")
+    create_link_artifact(got["index"].resolve().as_uri(), link_text="fleet dashboard", key="fleet-dashboard",
+                         description=f"{got['cameras']} cameras: {got['moved']} moved, {got['expired']} expired, "
+                                     f"{got['failed']} failed")
+    return str(got["index"])
+
+
+def _publish_summary(summary: dict, counts: str) -> None:
+    """The fleet's summary as a table artifact (:data:`SUMMARY_KEY`), its counts as the description."""
+    from prefect.artifacts import create_table_artifact
+
+    rows = [{"camera_id": e["camera_id"], "session_id": e["session_id"], "status": fleet_lib.status_text(e),
+             "version": e["version"], "seconds": e["seconds"], "reason": e["reason"]} for e in summary["sessions"]]
+    create_table_artifact(rows, key=SUMMARY_KEY, description=counts)
 
 
 def _calibrate_all(todo: list, at_once: int, args: tuple) -> list[dict]:
@@ -249,8 +298,80 @@ def fleet_deployment(lake: str, root: str | None = None, *, name: str = DEPLOYME
                                            tags=["fieldcal"], entrypoint_type=EntrypointType.MODULE_PATH)
 
 
-def serve_fleet(lake: str, root: str | None = None, **kwargs) -> None:
-    """Serve :func:`fleet_deployment` from this process until interrupted (``fieldcal serve``)."""
+def serve_fleet(lake: str, root: str | None = None, *, report=None, **kwargs) -> None:
+    """Serve :func:`fleet_deployment` from this process until interrupted (``fieldcal serve``).
+
+    ``report(line)`` (optional) is told each run of the deployment as it starts and how it
+    ended (:func:`watch_runs`, in a thread of this process)."""
     from prefect import serve
 
-    serve(fleet_deployment(lake, root, **kwargs), print_starting_message=False)
+    deployment = fleet_deployment(lake, root, **kwargs)
+    stop = threading.Event()
+    if report is not None:
+        threading.Thread(target=watch_runs, args=(f"recalibrate-fleet/{deployment.name}", report, stop),
+                         daemon=True, name="fieldcal-serve-watch").start()
+    try:
+        serve(deployment, print_starting_message=False)
+    finally:
+        stop.set()
+
+
+def _run_line(run, artifacts) -> str:
+    state = run.state
+    took = f" in {run.total_run_time.total_seconds():.1f} s" if run.total_run_time else ""
+    summary = next((a.description for a in artifacts if a.key == SUMMARY_KEY and a.description), "")
+    what = summary or (one_line(state.message) if state and state.message else "")
+    return f"run {run.name}: {state.name.lower() if state else 'unknown'}{took}" + (f": {what}" if what else "")
+
+
+def _news(client, deployment_id, said: dict, since) -> list[str]:
+    """Lines about the deployment's runs that started (after ``since``) or ended since ``said``
+    (updated). Only runs that started are asked for: a cron deployment keeps up to 100
+    scheduled runs ahead, which would crowd a plain listing."""
+    from prefect.client.schemas.filters import (
+        ArtifactFilter,
+        ArtifactFilterFlowRunId,
+        DeploymentFilter,
+        DeploymentFilterId,
+        FlowRunFilter,
+        FlowRunFilterStartTime,
+    )
+    from prefect.client.schemas.sorting import FlowRunSort
+
+    lines = []
+    runs = client.read_flow_runs(
+        flow_run_filter=FlowRunFilter(start_time=FlowRunFilterStartTime(after_=since)),
+        deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment_id])),
+        sort=FlowRunSort.START_TIME_ASC, limit=50)
+    for run in runs:
+        final = bool(run.state and run.state.is_final())
+        phase = "end" if final else "start" if run.state and run.state.type.value == "RUNNING" else None
+        if phase is None or run.start_time is None or said.get(run.id) in (phase, "end"):
+            continue                                   # not started yet (or cancelled before it started)
+        if phase == "end":
+            arts = client.read_artifacts(artifact_filter=ArtifactFilter(
+                flow_run_id=ArtifactFilterFlowRunId(any_=[run.id])))
+            lines.append(_run_line(run, arts))
+        else:
+            lines.append(f"run {run.name}: started")
+        said[run.id] = phase
+    return lines
+
+
+def watch_runs(deployment: str, report, stop: threading.Event, poll_s: float = 2.0) -> None:
+    """Report each flow run of ``deployment`` ("flow/name") as it starts and as it ends
+    (its state, time and the fleet's counts), until ``stop`` is set; API errors are retried."""
+    import datetime as dt
+
+    from prefect.client.orchestration import get_client
+
+    said: dict = {}
+    since = dt.datetime.now(dt.UTC) - dt.timedelta(seconds=5)
+    while not stop.wait(poll_s):
+        try:
+            with get_client(sync_client=True) as client:
+                dep = client.read_deployment_by_name(deployment)
+                for line in _news(client, dep.id, said, since):
+                    report(line)
+        except Exception:  # noqa: BLE001, S112 - the server may be starting or busy: try again
+            continue

@@ -22,7 +22,8 @@ that outlives a command, and only for ``linger_s``.
 
 The server is Prefect's own application (:func:`prefect.server.api.server.create_app`)
 under uvicorn, with its services (the scheduler of ``fieldcal serve``'s deployment among
-them) and without the web UI (use ``prefect server start`` for the UI).
+them); with the web UI when started by ``fieldcal server start --ui`` (its state's
+``ui_url``), else without it (a command that only needs the API starts faster).
 
 Flow-run heartbeats are off for the flows a command runs against that local server.
 Prefect's heartbeat thread sleeps in steps of a second and is joined when a flow run ends,
@@ -251,14 +252,19 @@ def server_status(home: Path | None = None) -> dict | None:
     return state
 
 
-def _launch(home: Path, port: int, linger_s: float) -> int:
-    """Start ``python -m flows.server`` detached (its own session, not our child); returns its pid."""
+def _launch(home: Path, port: int, linger_s: float, ui: bool = False) -> int:
+    """Start ``python -m flows.server`` detached (its own session, not our child); returns its pid.
+
+    With ``ui`` the server also serves Prefect's web UI at its root, told where its API is
+    (``PREFECT_UI_API_URL``: the port is chosen here)."""
     source = str(Path(__file__).resolve().parents[1])          # where `flows` is, installed or not
-    env = dict(os.environ, PREFECT_HOME=str(home), PREFECT_UI_ENABLED="false",
+    env = dict(os.environ, PREFECT_HOME=str(home), PREFECT_UI_ENABLED="true" if ui else "false",
+               PREFECT_UI_API_URL=f"http://127.0.0.1:{port}/api",
                PREFECT_SERVER_ANALYTICS_ENABLED="false", PREFECT_SERVER_LOGGING_LEVEL="WARNING",
                PYTHONPATH=os.pathsep.join(p for p in (source, os.environ.get("PYTHONPATH")) if p))
     env.pop("PREFECT_API_URL", None)
     cmd = [sys.executable, "-m", "flows.server", "--port", str(port), "--linger", str(linger_s)]
+    cmd += ["--ui"] if ui else []
     launcher = ("import subprocess, sys\n"
                 "log = open(sys.argv[1], 'ab')\n"
                 "p = subprocess.Popen(sys.argv[2:], stdin=subprocess.DEVNULL, stdout=log, stderr=log,"
@@ -277,14 +283,14 @@ def _log_tail(home: Path) -> str:
     return one_line(lines[-1]) if lines else ""
 
 
-def _start(home: Path, linger_s: float, note) -> dict:
+def _start(home: Path, linger_s: float, note, ui: bool = False) -> dict:
     port = _free_port()
     if note:
         kept = f"kept for {linger_s:g} s after the last command" if linger_s > 0 else "kept until stopped"
         note(f"starting a local Prefect server under {home} ({kept}; `fieldcal server stop` stops it, "
              "PREFECT_API_URL uses another)")
     t = time.perf_counter()
-    pid = _launch(home, port, linger_s)
+    pid = _launch(home, port, linger_s, ui)
     deadline = time.monotonic() + START_TIMEOUT_S
     while time.monotonic() < deadline:
         state = _read_state(home)
@@ -301,23 +307,30 @@ def _start(home: Path, linger_s: float, note) -> dict:
     raise ServerError(f"the local Prefect server did not start within {START_TIMEOUT_S:g} s (log: {home / LOG_FILE})")
 
 
-def local_server(home: Path | None = None, *, note=None, linger_s: float | None = None) -> dict:
-    """The running local server's state, starting one when there is none (see the module docstring)."""
+def local_server(home: Path | None = None, *, note=None, linger_s: float | None = None, ui: bool = False) -> dict:
+    """The running local server's state, starting one when there is none (see the module docstring).
+
+    With ``ui`` the server must serve Prefect's UI: a running one without it is an error
+    (:class:`ServerError`: stop it first)."""
     home = home or prefect_home()
     home.mkdir(parents=True, exist_ok=True)
     with _flock(home / START_LOCK, fcntl.LOCK_EX, "another command starting the local Prefect server"):
         state = server_status(home)
         if state is not None:
+            if ui and not state.get("ui_url"):
+                raise ServerError(f"the local Prefect server at {state['url']} runs without its UI; "
+                                  "`fieldcal server stop`, then `fieldcal server start --ui`")
             return state
         stale = _read_state(home)
         if stale is not None:
             _remove_state(home, stale["pid"])
-        return _start(home, linger_seconds() if linger_s is None else float(linger_s), note)
+        return _start(home, linger_seconds() if linger_s is None else float(linger_s), note, ui)
 
 
-def start_server(linger_s: float | None = None, note=None) -> dict:
-    """Start the local server now (``fieldcal server start``); returns its state."""
-    return local_server(note=note, linger_s=linger_s)
+def start_server(linger_s: float | None = None, note=None, ui: bool = False) -> dict:
+    """Start the local server now (``fieldcal server start [--ui]``); returns its state
+    (``ui_url`` the address of Prefect's UI when it serves it)."""
+    return local_server(note=note, linger_s=linger_s, ui=ui)
 
 
 def stop_server(timeout_s: float = 30.0) -> dict | None:
@@ -408,7 +421,7 @@ def _drain_prefect() -> None:
 # --------------------------------------------------------------------------------------
 # the server process: python -m flows.server --port P --linger S
 # --------------------------------------------------------------------------------------
-def _watch(server, home: Path, port: int, linger_s: float) -> None:
+def _watch(server, home: Path, port: int, linger_s: float, ui: bool = False) -> None:
     """Publish the server's address once it serves; stop it when nobody has used it for ``linger_s``."""
     while not server.started:
         if server.should_exit:
@@ -416,6 +429,7 @@ def _watch(server, home: Path, port: int, linger_s: float) -> None:
         time.sleep(0.05)
     pid = os.getpid()
     _write_state(home, {"pid": pid, "url": f"http://127.0.0.1:{port}/api", "port": port,
+                        "ui_url": f"http://127.0.0.1:{port}" if ui else None,
                         "started": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                         "linger_s": linger_s, "log": str(home / LOG_FILE)})
     fd = os.open(home / CLIENTS_FILE, os.O_RDWR | os.O_CREAT, 0o600)
@@ -445,6 +459,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m flows.server")
     ap.add_argument("--port", type=int, required=True)
     ap.add_argument("--linger", type=float, default=DEFAULT_LINGER_S)
+    ap.add_argument("--ui", action="store_true", help="also serve Prefect's web UI")
     args = ap.parse_args(argv)
     import uvicorn
     from prefect.server.api.server import create_app
@@ -454,7 +469,7 @@ def main(argv=None) -> int:
           f"port {args.port}, linger {args.linger:g} s, home {home}", file=sys.stderr, flush=True)
     server = uvicorn.Server(uvicorn.Config(create_app(final=True), host="127.0.0.1", port=args.port,
                                            log_level="error", lifespan="on"))
-    threading.Thread(target=_watch, args=(server, home, args.port, args.linger), daemon=True).start()
+    threading.Thread(target=_watch, args=(server, home, args.port, args.linger, args.ui), daemon=True).start()
     try:
         server.run()
     finally:

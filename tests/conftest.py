@@ -27,6 +27,9 @@ settings.register_profile("ci", derandomize=True, database=None, deadline=None, 
 settings.register_profile("explore", derandomize=False, database=None, deadline=None, max_examples=5000,
                           print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+# a run writes its certificate (and with "all" its report: plots, 2-9 s) into the lake; the
+# tests of that (tests/flows/test_prefect_native.py) turn it on, the other runs skip it
+os.environ.setdefault("FIELDCAL_REPORTS", "off")
 
 HEAVY = (
     "tests/field/test_adjustment.py::test_monte_carlo_sigmas_are_honest",

@@ -54,3 +54,12 @@ def test_a_root_that_does_not_exist_is_an_error(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         fleet.scan_sessions(str(tmp_path / "file"))
+
+
+def test_a_committed_session_with_images_left_out_says_so():
+    from fieldcal.fleet import status_text
+
+    base = {"status": "committed", "n_images": 6, "n_left_out": 0}
+    assert status_text(base) == "committed"
+    assert status_text(dict(base, n_left_out=2)) == "committed, 2 of 6 images left out"
+    assert status_text(dict(base, status="failed", n_left_out=2)) == "failed"

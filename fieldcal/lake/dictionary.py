@@ -12,7 +12,7 @@ import pyarrow as pa
 from fieldcal.lake.tables import PARTITIONS, TABLES, goniometer_spot_schema, table_schema
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["data_dictionary", "column_docs"]
+__all__ = ["data_dictionary", "column_docs", "HISTORY_DOCS"]
 
 _TABLE_DOCS = {
     "catalog": "One row per committed version: the commit point. A version exists exactly when "
@@ -25,7 +25,15 @@ _TABLE_DOCS = {
                           "the pixels. A row with row = -1 marks an image measured with no result.",
     "observations_goniometer": "The spot measured in each goniometer frame: the same cache for "
                                "the goniometer method. row = -1 as above.",
-    "comparisons": "Cached comparisons of two versions (history --fleet); derived, may be deleted.",
+    "comparisons": "The change test of a version against the previous calibration of its camera "
+                   "(fieldcal.lake.order), computed at the commit (and by `fieldcal lake fill`), read by "
+                   "history --fleet and the dashboard; keyed by the pair, so a backfill adds the new "
+                   "pairs and readers pick the pair of the current order. Derived: may be deleted "
+                   "(`fieldcal lake fill` computes it again).",
+    "assessments": "The acceptance of each version against the certificate's criteria (without the "
+                   "change criterion, which comes from `comparisons`), and its radial distortion at "
+                   "fractions of the sensor's half diagonal with sigmas; computed at the commit, read "
+                   "by the dashboard. Derived: may be deleted.",
 }
 
 _KEY_DOCS = {
@@ -40,10 +48,44 @@ _KEY_DOCS = {
     "row": "position of the row in the image's measurement table; -1: measured, nothing found",
     "version_a": "the earlier version compared",
     "version_b": "the later version compared",
-    "settings": "comparison settings (tolerance, alpha, grid) as canonical JSON",
-    "computed": "when the comparison was computed [UTC]",
-    "result": "the comparison's figures as a JSON object",
+    "settings": "what the row was computed with (the test's definition and grid; the acceptance "
+                "thresholds) as canonical JSON",
+    "computed": "when the row was computed [UTC]",
+    "result": "the figures as a JSON object (comparisons: max_um, p_value, the tests with their "
+              "Holm-adjusted p-values ...; the verdict at any alpha and tolerance is derived from them)",
+    "radial": "assessments: the radial distortion at 25/50/75/100 % of the sensor's half diagonal as JSON "
+              "(r_mm, dr_um, sigma_um: its 1-sigma from the covariance) [mm, um]",
+    "verdict": "PASS or FAIL of the acceptance criteria other than the change since the previous "
+               "calibration",
 }
+
+
+HISTORY_DOCS = {
+    "delta_<name>": "`history --camera`: the change of a parameter since the camera's first row of the "
+                    "history [the parameter's unit]",
+    "previous_version": "`history --fleet`: the camera's calibration before its latest (the latest version of "
+                        "the session acquired before; ties by commit order), compared with it",
+    "previous_method": "`history --fleet`: the method of previous_version",
+    "previous_acquired": "`history --fleet`: when the session of previous_version was acquired [UTC]",
+    "region": "`history --fleet`: where the change was tested: sensor (the whole grid) or axes (the scanned "
+              "axes of a goniometer calibration, at its measured spots)",
+    "max_change_px": "`history --fleet`: largest change of where a ray lands, where tested [px]",
+    "max_change_um": "`history --fleet`: the same in the image plane [um]",
+    "rms_change_px": "`history --fleet`: RMS of the change where tested [px]",
+    "rms_change_um": "`history --fleet`: the same in the image plane [um]",
+    "chi2": "`history --fleet`: chi-square of the map test (the correction field where both observe)",
+    "dof": "`history --fleet`: its degrees of freedom",
+    "p_value": "`history --fleet`: the family's p-value (smallest Holm-adjusted p-value of the tests of f, "
+               "the principal point, the edge distortion and the map)",
+    "changed": "`history --fleet`: the quantities that changed significantly at --alpha (f, principal_point, "
+               "edge_distortion, map), comma-separated; none: no quantity did; empty: not compared",
+    "significant": "`history --fleet`: p_value < alpha (or a change outside what the uncertainties explain)",
+    "exceeds_tolerance": "`history --fleet`: max_change_um > tolerance_um",
+    "flagged": "`history --fleet`: significant and exceeds_tolerance: the camera moved",
+    "tolerance_um": "`history --fleet`: the tolerance used [um]",
+    "verdict": "`history --fleet`: the change test in one line (or why there is none)",
+}
+"""The columns the ``history`` command adds to the catalog's (``--camera`` and ``--fleet``)."""
 
 
 def column_docs(name: str) -> dict[str, str]:
@@ -148,6 +190,17 @@ _RESIDUALS = """\
 """
 
 
+def _history_section() -> list[str]:
+    out = ["## What `fieldcal history` shows", "",
+           "Plain `history`: every camera's latest calibration, catalog columns. `--camera ID`: the "
+           "latest version of each session (`--all-versions`: every one), catalog columns and, per "
+           "parameter asked for, `delta_<name>`. `--fleet`: the columns below. As text, a default set "
+           "that fits a terminal (`--columns A,B` names others, `--wide` shows all); CSV and JSON carry "
+           "every column.", "", "| column | description [unit] |", "| --- | --- |"]
+    out += [f"| `{k}` | {v.replace('|', chr(92) + '|')} |" for k, v in HISTORY_DOCS.items()]
+    return out + [""]
+
+
 def data_dictionary() -> str:
     """The text of ``LAKE/README.md``."""
     out = ["# fieldcal lake", "",
@@ -159,7 +212,8 @@ def data_dictionary() -> str:
            "residuals/                  Delta: residuals of every version, partitioned by camera_id",
            "observations_field/         Delta: targets measured per field image (cache), by camera_id",
            "observations_goniometer/    Delta: the spot of each goniometer frame (cache), by camera_id",
-           "comparisons/                Delta: cached comparisons of two versions (derived)",
+           "comparisons/                Delta: the change test of two versions (derived)",
+           "assessments/                Delta: the acceptance of each version (derived)",
            "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
            "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
            "                            exterior/*, correction_field, grid_u_px, grid_v_px",
@@ -173,4 +227,5 @@ def data_dictionary() -> str:
             text = docs.get(f.name, "").replace("|", "\\|")
             out.append(f"| `{f.name}` | {_type(f.type)} | {'yes' if f.nullable else 'no'} | {text} |")
         out.append("")
+    out += _history_section()
     return "\n".join(out) + "\n"

@@ -40,9 +40,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from fieldcal.errors import InputError, LakeError
+from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "to_text", "to_csv",
+__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "pick_columns", "DEFAULT_COLUMNS",
+           "to_text", "to_csv",
            "to_json", "format_table", "FORMATS", "VIEWS", "READ_ONLY_NOTE"]
 
 UTC = dt.UTC
@@ -301,9 +303,9 @@ def fleet(lake, start=None, end=None, *, as_of=None) -> pa.Table:
 def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     """Every camera's latest calibration in ``[start, end]`` and the one before it: one query.
 
-    The *previous* calibration is what :func:`camera_history` lists before the latest (the
-    latest version of each session, ordered by acquisition time, then commit time), found
-    with window functions over one read of the catalog.
+    The *previous* calibration follows :mod:`fieldcal.lake.order` (the latest version of each
+    session, ordered by acquisition time, ties by commit order), found with window functions
+    over one read of the catalog.
 
     Returns
     -------
@@ -315,23 +317,21 @@ def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     lo, hi = _bound(start, end=False), _bound(end, end=True)
     if lo is not None and hi is not None and hi < lo:
         raise InputError(f"end {end!r} is before start {start!r}", "fleet")
-    query = """
+    query = f"""
         WITH sessions AS (
             SELECT * FROM catalog
-            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id
-                                       ORDER BY committed DESC, version DESC) = 1),
+            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id ORDER BY {ORDER_SQL_DESC}) = 1),
         ordered AS (
             SELECT camera_id, version, method, acquired,
                    lag(version) OVER w AS previous_version, lag(method) OVER w AS previous_method,
                    lag(acquired) OVER w AS previous_acquired
             FROM sessions
-            WINDOW w AS (PARTITION BY camera_id ORDER BY acquired ASC NULLS LAST, committed, version)),
+            WINDOW w AS (PARTITION BY camera_id ORDER BY {ORDER_SQL})),
         latest AS (
             SELECT camera_id, version FROM catalog
             WHERE (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) >= ?::TIMESTAMPTZ)
               AND (?::TIMESTAMPTZ IS NULL OR coalesce(acquired, created) <= ?::TIMESTAMPTZ)
-            QUALIFY row_number() OVER (PARTITION BY camera_id ORDER BY coalesce(acquired, created)
-                                       DESC, committed DESC, version DESC) = 1)
+            QUALIFY row_number() OVER (PARTITION BY camera_id ORDER BY {ORDER_SQL_DESC}) = 1)
         SELECT l.camera_id, l.version, c.method, c.acquired,
                o.previous_version, o.previous_method, o.previous_acquired
         FROM latest l JOIN catalog c USING (version)
@@ -339,6 +339,49 @@ def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
         ORDER BY l.camera_id
     """
     return sql(lake, query, [lo, lo, hi, hi], as_of=as_of, views=("catalog",))
+
+
+# --------------------------------------------------------------------------------------
+# columns for people
+# --------------------------------------------------------------------------------------
+DEFAULT_COLUMNS = {
+    "fleet": ("camera_id", "session_id", "acquired", "method", "f_mm", "rmse_px", "n_images"),
+    "camera": ("session_id", "acquired", "{params}"),
+    "changes": ("camera_id", "acquired", "max_change_um", "p_value", "changed", "flagged"),
+}
+"""The columns ``fieldcal history`` shows by default (about 100 characters wide): every
+camera's latest (``fleet``), one camera (``camera``; ``{params}`` stands for each parameter
+asked for and its sigma), ``--fleet`` (``changes``); ``--wide`` shows every column,
+``--columns`` the ones named."""
+
+
+def pick_columns(table: pa.Table, view: str, columns=None, *, wide: bool = False,
+                 params=("f_mm", "xp_mm", "yp_mm")) -> pa.Table:
+    """The columns of ``table`` to show: ``columns`` (names, in that order), every one with
+    ``wide``, else :data:`DEFAULT_COLUMNS` of ``view``.
+
+    Raises
+    ------
+    InputError
+        A name in ``columns`` that the table does not have (the message lists them).
+    """
+    if wide:
+        return table
+    if columns:
+        names = [c for c in dict.fromkeys(columns)]
+        unknown = [c for c in names if c not in table.column_names]
+        if unknown:
+            raise InputError(f"no column {', '.join(map(repr, unknown))} in this table; its columns: "
+                             f"{', '.join(table.column_names)}", "history --columns")
+        return table.select(names)
+    names = []
+    for c in DEFAULT_COLUMNS[view]:
+        if c == "{params}":
+            for p in params:
+                names += [p] + ([f"sigma_{p}"] if f"sigma_{p}" in table.column_names else [])
+        else:
+            names.append(c)
+    return table.select([c for c in dict.fromkeys(names) if c in table.column_names])
 
 
 # --------------------------------------------------------------------------------------

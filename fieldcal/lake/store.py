@@ -8,7 +8,8 @@ query it without fieldcal (``LAKE/README.md``, the data dictionary, says how)::
     LAKE/residuals/                  Delta table: residuals of every version (by camera_id)
     LAKE/observations_field/         Delta table: targets measured per field image (cache)
     LAKE/observations_goniometer/    Delta table: the spot of each goniometer frame (cache)
-    LAKE/comparisons/                Delta table: cached comparisons of two versions
+    LAKE/comparisons/                Delta table: the change test of two versions (derived)
+    LAKE/assessments/                Delta table: the acceptance of each version (derived)
     LAKE/calibrations/C/S/V.zarr     Zarr v3 group: the arrays, the document in attrs
     LAKE/calibrations/C/S/V.json     the calibration document (docs/conventions.md section 4)
     LAKE/README.md                   the data dictionary, written at the first commit
@@ -611,24 +612,63 @@ class Lake:
             out |= set(zip(t["camera_id"].to_pylist(), t["session_id"].to_pylist(), strict=True))
         return sorted(out)
 
-    # -- comparisons cache ----------------------------------------------------------------
-    def cached_comparisons(self, settings: str) -> dict[tuple[str, str], dict]:
-        """``{(version_a, version_b): result}`` remembered for these comparison settings."""
-        t = self.tables.scan("comparisons", filter=ds.field("settings") == settings)
+    # -- derived tables: comparisons and assessments ---------------------------------------
+    def cached_comparisons(self, settings: str, versions_b=None) -> dict[tuple[str, str], dict]:
+        """``{(version_a, version_b): result}`` remembered for these comparison settings.
+
+        ``versions_b``: only pairs whose later version is one of these (only their results
+        are decoded)."""
+        if versions_b is None:
+            t = self.tables.scan("comparisons", filter=ds.field("settings") == settings)
+        else:                         # only the files and row groups that may hold them are read
+            wanted = sorted(set(versions_b))
+            t = self.tables.scan("comparisons", filter=(ds.field("settings") == settings)
+                                 & ds.field("version_b").isin(wanted), equal={"version_b": wanted})
         return {(a, b): json.loads(r) for a, b, r in zip(t["version_a"].to_pylist(),
                                                          t["version_b"].to_pylist(),
                                                          t["result"].to_pylist(), strict=True)}
 
     def remember_comparisons(self, settings: str, results: Mapping) -> None:
-        """Remember comparisons (one append); a lake that cannot be written is left alone."""
-        if not results:
-            return
+        """Remember comparisons ``{(version_a, version_b): result}`` (one append); a lake that
+        cannot be written is left alone (a cache)."""
         pairs = list(results)
-        t = pa.table({"version_a": [a for a, _ in pairs], "version_b": [b for _, b in pairs],
-                      "settings": [settings] * len(pairs), "computed": [utcnow()] * len(pairs),
-                      "result": [json.dumps(results[p], default=_jsonable) for p in pairs]})
+        self._remember("comparisons", {
+            "version_a": [a for a, _ in pairs], "version_b": [b for _, b in pairs],
+            "settings": [settings] * len(pairs), "computed": [utcnow()] * len(pairs),
+            "result": [json.dumps(results[p], default=_jsonable) for p in pairs]})
+
+    def cached_assessments(self, settings: str, versions=None, *, brief: bool = False) -> dict[str, dict]:
+        """``{version: result}`` of the ``assessments`` table for these settings (``versions``:
+        only these). ``brief``: only ``camera_id``, ``verdict`` and ``radial`` of each (the
+        ``result`` column, with every criterion, is not read)."""
+        f = ds.field("settings") == settings
+        equal = None
+        if versions is not None:
+            wanted = sorted(set(versions))
+            f, equal = f & ds.field("version").isin(wanted), {"version": wanted}
+        cols = ["version", "camera_id", "verdict", "radial"] if brief else None
+        t = self.tables.scan("assessments", filter=f, equal=equal, columns=cols)
+        if brief:
+            return {v: {"camera_id": c, "verdict": d, "radial": json.loads(r) if r else None}
+                    for v, c, d, r in zip(*(t[k].to_pylist() for k in cols), strict=True)}
+        return {v: json.loads(r) for v, r in zip(t["version"].to_pylist(), t["result"].to_pylist(), strict=True)}
+
+    def remember_assessments(self, settings: str, results: Mapping) -> None:
+        """Remember assessments ``{version: result}`` (each result has ``camera_id`` and
+        ``verdict``); one append, a lake that cannot be written is left alone."""
+        versions = list(results)
+        self._remember("assessments", {
+            "version": versions, "camera_id": [results[v]["camera_id"] for v in versions],
+            "settings": [settings] * len(versions), "computed": [utcnow()] * len(versions),
+            "verdict": [results[v]["verdict"] for v in versions],
+            "radial": [json.dumps(results[v].get("radial"), default=_jsonable) for v in versions],
+            "result": [json.dumps(results[v], default=_jsonable) for v in versions]})
+
+    def _remember(self, table: str, columns: dict) -> None:
+        if not next(iter(columns.values())):
+            return
         try:
-            self.tables.append("comparisons", t, {"action": "comparisons", **_who()})
+            self.tables.append(table, pa.table(columns), {"action": table, **_who()})
         except Exception:  # noqa: BLE001, S110 - a cache: a read-only lake just computes again
             pass
 

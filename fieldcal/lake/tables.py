@@ -10,7 +10,8 @@ table                        partitioned by   rows
 ``residuals``                ``camera_id``    per-observation residuals of every version
 ``observations_field``       ``camera_id``    targets measured in each field image (cache)
 ``observations_goniometer``  ``camera_id``    the spot of each goniometer frame (cache)
-``comparisons``              (none)           cached comparisons of two versions (derived)
+``comparisons``              (none)           the change test of two versions (derived)
+``assessments``              (none)           the acceptance of each version (derived)
 ===========================  ===============  =====================================================
 
 Writes are Delta commits: appends, an insert-unless-present (``MERGE ... WHEN NOT MATCHED
@@ -43,13 +44,16 @@ from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
 
-TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons")
+TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
-              "observations_goniometer": ["camera_id"], "comparisons": []}
+              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions and checkpoints."""
 ROW_GROUP_ROWS = 4096
 """Rows per row group of the compacted catalog (pruned by their camera_id statistics)."""
+SORTED_BY = {"catalog": "camera_id", "comparisons": "version_b", "assessments": "version"}
+"""The column a compaction sorts a table by (row groups of :data:`ROW_GROUP_ROWS`): reads of
+a camera, or of the latest versions (ids begin with their time), touch few row groups."""
 COMMIT_RETRIES = 200
 """Attempts of an insert-unless-present that keeps meeting concurrent commits."""
 
@@ -103,6 +107,14 @@ def table_schema(name: str) -> pa.Schema:
                           pa.field("version_b", pa.string(), nullable=False),
                           pa.field("settings", pa.string(), nullable=False),
                           pa.field("computed", pa.timestamp("us", "UTC"), nullable=False),
+                          pa.field("result", pa.string(), nullable=False)])
+    if name == "assessments":
+        return pa.schema([pa.field("version", pa.string(), nullable=False),
+                          pa.field("camera_id", pa.string(), nullable=False),
+                          pa.field("settings", pa.string(), nullable=False),
+                          pa.field("computed", pa.timestamp("us", "UTC"), nullable=False),
+                          pa.field("verdict", pa.string(), nullable=False),
+                          pa.field("radial", pa.string()),
                           pa.field("result", pa.string(), nullable=False)])
     raise InputError(f"unknown table {name!r}; the lake's tables are {', '.join(TABLES)}", "lake")
 
@@ -304,12 +316,13 @@ class Tables:
 
     def _compact(self, name: str, target, info: dict | None) -> dict:
         """Compact small files; the catalog is rewritten sorted by camera (Z-order), in row
-        groups of :data:`ROW_GROUP_ROWS`, so that one camera's rows are a few row groups."""
+        groups of :data:`ROW_GROUP_ROWS`, so that one camera's rows are a few row groups (the
+        derived tables by version: :data:`SORTED_BY`)."""
         from deltalake import WriterProperties
 
         props = self._commit_properties(info)
-        if name == "catalog":
-            return target.optimize.z_order(["camera_id"], commit_properties=props,
+        if name in SORTED_BY:
+            return target.optimize.z_order([SORTED_BY[name]], commit_properties=props,
                                            writer_properties=WriterProperties(
                                                max_row_group_size=ROW_GROUP_ROWS))
         return target.optimize.compact(commit_properties=props)
@@ -367,7 +380,7 @@ class Tables:
         ``string_view``, which pyarrow cannot filter), cast to :func:`table_schema` and
         filtered in memory; ``partition`` (``{"camera_id": c}``) selects files first, and
         ``equal`` (``{"version": v}``) skips files whose min/max statistics exclude the
-        value (it does not filter rows: give ``filter`` too).
+        value, or every value of a sorted list (it does not filter rows: give ``filter`` too).
         An unreadable file is left out and reported in :attr:`problems`.
         """
         table = self.open(name, as_of=as_of)
@@ -496,19 +509,31 @@ def _filter_columns(expr, schema: pa.Schema) -> list[str]:
     return [n for n in schema.names if n in text]
 
 
-def _outside(add: dict, column: str, value) -> bool:
-    """True when a file's statistics show it holds no row with ``column == value``."""
-    lo, hi = add.get(f"min.{column}"), add.get(f"max.{column}")
-    if lo is None or hi is None:
-        return False
+def _excludes(value, lo, hi) -> bool:
+    """Whether ``[lo, hi]`` holds no ``value`` (a value, or a sorted list of values: any of them)."""
     try:
+        if isinstance(value, list):
+            import bisect
+
+            i = bisect.bisect_left(value, lo)
+            return i == len(value) or value[i] > hi
         return value < lo or value > hi
     except TypeError:
         return False
 
 
+def _outside(add: dict, column: str, value) -> bool:
+    """True when a file's statistics show it holds no row with ``column == value`` (for a
+    sorted list: with any of its values)."""
+    lo, hi = add.get(f"min.{column}"), add.get(f"max.{column}")
+    if lo is None or hi is None:
+        return False
+    return _excludes(value, lo, hi)
+
+
 def _row_groups(pf, equal: dict) -> list[int]:
-    """Row groups of a Parquet file whose statistics do not exclude ``column == value``."""
+    """Row groups of a Parquet file whose statistics do not exclude ``column == value`` (a
+    sorted list: any of its values)."""
     keep = []
     meta = pf.metadata
     leaf = {meta.schema.column(j).path: j for j in range(meta.num_columns)}
@@ -523,10 +548,7 @@ def _row_groups(pf, equal: dict) -> list[int]:
                 lo, hi = st.min, st.max
                 lo = lo.decode() if isinstance(lo, bytes) else lo
                 hi = hi.decode() if isinstance(hi, bytes) else hi
-                try:
-                    ok = ok and not (value < lo or value > hi)
-                except TypeError:
-                    pass
+                ok = ok and not _excludes(value, lo, hi)
         if ok:
             keep.append(i)
     return keep

@@ -83,7 +83,7 @@ from fieldcal.products.uncertainty import (
     summarise_2x2,
 )
 
-__all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations",
+__all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations", "judge", "check_level",
            "combined_covariance", "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA", "DEFAULT_MIN_SIGMA_PX"]
 
 DEFAULT_TOLERANCE_UM = 2.0
@@ -224,37 +224,41 @@ class Comparison:
                 if self.region == "axes" else "over the sensor"
                 + (", common rotation removed" if self.remove_rotation else ""))
 
+    def _judged(self) -> dict:
+        return judge(self.record(), self.tolerance_um, self.alpha)
+
     @property
     def changed(self) -> list[str]:
         """Keys of the quantities that changed significantly (Holm, level ``alpha``)."""
-        return [t.key for t in self.tests if t.significant(self.alpha)]
+        return self._judged()["changed"]
 
     @property
     def significant(self) -> bool:
-        return bool(self.p_value < self.alpha or self.outside_px > self.outside_tol_px)
+        return self._judged()["significant"]
 
     @property
     def exceeds_tolerance(self) -> bool:
-        return bool(self.max_um > self.tolerance_um)
+        return self._judged()["exceeds_tolerance"]
 
     @property
     def flagged(self) -> bool:
         """Significant and larger than the tolerance."""
-        return self.significant and self.exceeds_tolerance
+        return self._judged()["flagged"]
 
     @property
     def verdict(self) -> str:
-        size = (f"largest change {self.max_um:.3g} µm ({self.max_px:.3g} px) {self.where}, "
-                f"{'>' if self.exceeds_tolerance else '≤'} tolerance {self.tolerance_um:g} µm")
-        if self.outside_px > self.outside_tol_px:
-            why = (f"changed where neither calibration has any uncertainty "
-                   f"({self.outside_px:.3g} px outside the explained range)")
-        elif self.significant:
-            what = ", ".join(self.changed)
-            why = f"significant change in {what} (p = {self.p_value:.2g} < {self.alpha:g}, Holm)"
-        else:
-            why = f"no significant change (p = {self.p_value:.2g} ≥ {self.alpha:g}, Holm)"
-        return f"{why}; {size}" + ("; FLAGGED" if self.flagged else "")
+        return self._judged()["verdict"]
+
+    def record(self) -> dict:
+        """What the change test found, independent of ``alpha`` and ``tolerance_um``: the
+        figures :func:`judge` turns into a verdict at any level and tolerance (the lake's
+        ``comparisons`` table stores it)."""
+        d = {k: getattr(self, k) for k in (
+            "version_a", "version_b", "method_a", "method_b", "region", "where", "chi2", "dof",
+            "map_p_value", "p_value", "outside_px", "outside_tol_px", "max_px", "max_um", "rms_px",
+            "rms_um", "pixel_size_um", "sensor_max_px")}
+        d.update(grid=list(self.grid), tests=[t.to_dict() for t in self.tests], left_out=list(self.left_out))
+        return d
 
     def summary(self) -> dict:
         """Scalars for tables and JSON."""
@@ -268,6 +272,38 @@ class Comparison:
                  flagged=self.flagged, changed=self.changed, verdict=self.verdict,
                  tests=[t.to_dict() for t in self.tests], left_out=list(self.left_out))
         return d
+
+
+def check_level(tolerance_um: float, alpha: float) -> None:
+    """Refuse a tolerance that is not positive or a level outside (0, 1) (:class:`InputError`)."""
+    _check(tolerance_um, alpha, "auto", 0.0)
+
+
+def judge(record: dict, tolerance_um: float, alpha: float) -> dict:
+    """The verdict of a change test's :meth:`Comparison.record` at level ``alpha`` and tolerance.
+
+    Returns ``significant`` (the family's Holm-adjusted p-value below ``alpha``, or a change
+    outside the explained range), ``exceeds_tolerance`` (largest change where tested above
+    ``tolerance_um``), ``flagged`` (both), ``changed`` (keys of the quantities whose own
+    adjusted p-value is below ``alpha``) and ``verdict`` (one line).
+    """
+    check_level(tolerance_um, alpha)
+    outside = record["outside_px"] > record["outside_tol_px"]
+    significant = bool(record["p_value"] < alpha or outside)
+    exceeds = bool(record["max_um"] > tolerance_um)
+    changed = [t["key"] for t in record.get("tests", ()) if t["p_adjusted"] < alpha]
+    size = (f"largest change {record['max_um']:.3g} µm ({record['max_px']:.3g} px) {record['where']}, "
+            f"{'>' if exceeds else '≤'} tolerance {tolerance_um:g} µm")
+    if outside:
+        why = (f"changed where neither calibration has any uncertainty "
+               f"({record['outside_px']:.3g} px outside the explained range)")
+    elif significant:
+        why = f"significant change in {', '.join(changed)} (p = {record['p_value']:.2g} < {alpha:g}, Holm)"
+    else:
+        why = f"no significant change (p = {record['p_value']:.2g} ≥ {alpha:g}, Holm)"
+    flagged = significant and exceeds
+    return {"significant": significant, "exceeds_tolerance": exceeds, "flagged": flagged, "changed": changed,
+            "verdict": f"{why}; {size}" + ("; FLAGGED" if flagged else "")}
 
 
 def _sqrt_psd(cov):

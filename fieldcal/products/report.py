@@ -17,9 +17,9 @@ as ``<out>/<name>.png``. The report holds:
   map (:mod:`fieldcal.products.uncertainty`), the correlation matrix; goniometer method -- the
   distortion along each swept axis before and after the fit (the lab paper's Figs. 4-7).
 
-:func:`fleet_summary` compares every camera's latest calibration with its previous one
-(:func:`fieldcal.products.compare.compare_calibrations`) and flags those that moved significantly
-and by more than a tolerance; :func:`parameter_tolerance` turns an image-plane tolerance
+:func:`fleet_summary` gives every camera's latest calibration against its previous one (the
+change test the commit stored, :mod:`fieldcal.products.status`) and flags those that moved
+significantly and by more than a tolerance; :func:`parameter_tolerance` turns an image-plane tolerance
 into one per parameter for history plots.
 """
 
@@ -39,12 +39,12 @@ from fieldcal.errors import InputError, LakeError
 from fieldcal.model.camera import INDEX, PARAM_NAMES, correction
 from fieldcal.products import content, plots
 from fieldcal.products import report_sections as sections
-from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, compare_calibrations
+from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, check_level, compare_calibrations, judge
 from fieldcal.products.uncertainty import Calibration, uncertainty_map
 
 __all__ = ["FIELD_FIGURES", "GONIOMETER_FIGURES", "UNITS", "ReportFiles", "parameter_rows",
            "inputs_summary", "goniometer_axis_table", "image_table", "build_figures",
-           "render_html", "write_report", "parameter_tolerance", "fleet_summary",
+           "render_html", "write_report", "parameter_tolerance", "fleet_summary", "residual_statistics",
            "CORRELATION_THRESHOLD", "SIGNIFICANCE_SIGMAS"]
 
 FIELD_FIGURES = ("residual_vectors", "residual_histogram", "residuals_per_image", "stations_3d",
@@ -133,6 +133,23 @@ def image_table(cal: Calibration, residuals: pa.Table) -> list[dict]:
                     "mean_abs_v_px": float(np.mean(np.abs(dv))) if dv.size else math.nan,
                     "rmse_px": float(np.sqrt(np.mean(du**2 + dv**2))) if du.size else math.nan})
     return out
+
+
+def residual_statistics(residuals: pa.Table) -> list[dict]:
+    """Per image (or frame) of a residual table, either method: ``image, n_used,
+    n_rejected, rmse_px`` (over the used rows, ``sqrt(mean(du^2 + dv^2))``), ``max_px``."""
+    import pyarrow.compute as pc
+
+    t = residuals.select(["image", "du_px", "dv_px", "used"])
+    sq = pc.add(pc.multiply(t["du_px"], t["du_px"]), pc.multiply(t["dv_px"], t["dv_px"]))
+    used_sq = pc.if_else(t["used"], sq, pa.scalar(None, pa.float64()))
+    g = pa.table({"image": t["image"], "used": pc.cast(t["used"], pa.int64()), "sq": used_sq,
+                  "rejected": pc.cast(pc.invert(t["used"]), pa.int64())}).group_by("image")
+    agg = g.aggregate([("used", "sum"), ("rejected", "sum"), ("sq", "mean"), ("sq", "max")]).sort_by("image")
+    return [{"image": r["image"], "n_used": int(r["used_sum"] or 0), "n_rejected": int(r["rejected_sum"] or 0),
+             "rmse_px": math.sqrt(r["sq_mean"]) if r["sq_mean"] is not None else math.nan,
+             "max_px": math.sqrt(r["sq_max"]) if r["sq_max"] is not None else math.nan}
+            for r in agg.to_pylist()]
 
 
 def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
@@ -642,38 +659,31 @@ same numbers; ``chi2, dof`` are the map test's, ``p_value`` the family's (Holm) 
 (:class:`fieldcal.products.compare.Comparison`)."""
 
 
-COMPARISON_TEST = "holm-family/1"
-"""The definition of the change test (:func:`fieldcal.products.compare.compare_calibrations`)
-that cached fleet comparisons were made with; change it when the test changes."""
-
-
-def _compare_pair(lake, va: str, vb: str, grid, tolerance_um: float, alpha: float) -> dict:
-    """The fleet columns of one comparison of ``va`` with ``vb`` (or why it cannot be made)."""
-    try:
-        a = Calibration.from_lake(lake, va)
-        b = Calibration.from_lake(lake, vb)
-        c = compare_calibrations(a, b, grid=grid, tolerance_um=tolerance_um, alpha=alpha)
-    except (InputError, LakeError) as e:
+def _fleet_columns(record: dict, tolerance_um: float, alpha: float) -> dict:
+    """The fleet columns of a stored change test (:func:`fieldcal.products.compare.judge`)."""
+    if "error" in record:
         return {"significant": False, "exceeds_tolerance": False, "flagged": False,
-                "verdict": f"cannot compare: {e}", "_cache": False}
-    return {"region": c.region, "max_change_px": c.max_px, "max_change_um": c.max_um,
-            "rms_change_px": c.rms_px, "rms_change_um": c.rms_um, "chi2": c.chi2, "dof": c.dof,
-            "p_value": c.p_value, "changed": ", ".join(c.changed), "significant": c.significant,
-            "exceeds_tolerance": c.exceeds_tolerance, "flagged": c.flagged, "verdict": c.verdict}
+                "verdict": f"cannot compare: {record['error']}"}
+    j = judge(record, tolerance_um, alpha)
+    return {"region": record["region"], "max_change_px": record["max_px"], "max_change_um": record["max_um"],
+            "rms_change_px": record["rms_px"], "rms_change_um": record["rms_um"], "chi2": record["chi2"],
+            "dof": record["dof"], "p_value": record["p_value"], "changed": ", ".join(j["changed"]) or "none",
+            "significant": j["significant"], "exceeds_tolerance": j["exceeds_tolerance"],
+            "flagged": j["flagged"], "verdict": j["verdict"]}
 
 
 def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
-                  start=None, end=None, grid: tuple[int, int] = (41, 31)) -> pa.Table:
+                  start=None, end=None) -> pa.Table:
     """Every camera's latest calibration against its previous one, flagged when it moved.
 
-    For each camera, the latest calibration acquired in ``[start, end]`` and the latest
-    version of the session acquired before it come from one read of the catalog
-    (:func:`fieldcal.lake.history.fleet_pairs`); only cameras with a previous version are
-    compared (:func:`fieldcal.products.compare.compare_calibrations`), and each comparison
-    is remembered in the lake per pair of versions and settings
-    (:meth:`fieldcal.lake.store.Lake.cached_comparisons`), so a second run compares only
-    what changed. A camera is *flagged* when the change is significant at ``alpha`` and its
-    largest image-plane change exceeds ``tolerance_um``.
+    For each camera, the latest calibration acquired in ``[start, end]`` and the previous
+    one (:mod:`fieldcal.lake.order`) come from one read of the catalog
+    (:func:`fieldcal.lake.history.fleet_pairs`); their change test is read from the lake's
+    ``comparisons`` table, where the commit put it (:mod:`fieldcal.products.status`); a pair
+    the table lacks (a lake made before, two commits that raced) is compared now and
+    remembered. The verdict at ``alpha`` and ``tolerance_um`` is derived from the stored test:
+    a camera is *flagged* when the change is significant at ``alpha`` and its largest
+    image-plane change exceeds ``tolerance_um``.
 
     Returns
     -------
@@ -681,16 +691,13 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
         :data:`FLEET_SCHEMA`, one row per camera ordered by ``camera_id``; the comparison
         columns are null for a camera with a single calibration.
     """
-    import json
-
     from fieldcal.lake import history
+    from fieldcal.products import status
 
-    # "test" names the comparison's definition: cached results of another definition are not reused
-    settings = json.dumps({"tolerance_um": float(tolerance_um), "alpha": float(alpha),
-                           "grid": list(grid), "test": COMPARISON_TEST}, sort_keys=True)
+    check_level(tolerance_um, alpha)                     # bad settings: refused before any work
     pairs = history.fleet_pairs(lake, start, end).to_pylist()
-    cached = lake.cached_comparisons(settings)
-    fresh = {}
+    records = status.changes(lake, [(r["previous_version"], r["version"]) for r in pairs
+                                    if r["previous_version"] is not None])
     rows = []
     for row in pairs:
         out = dict(row, tolerance_um=float(tolerance_um))
@@ -699,10 +706,6 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
             out.update(verdict="only one calibration", significant=False, exceeds_tolerance=False,
                        flagged=False)
         else:
-            key = (prev, row["version"])
-            if key not in cached and key not in fresh:
-                fresh[key] = _compare_pair(lake, prev, row["version"], grid, tolerance_um, alpha)
-            out.update({k: v for k, v in (cached.get(key) or fresh[key]).items() if k != "_cache"})
+            out.update(_fleet_columns(records[(prev, row["version"])], tolerance_um, alpha))
         rows.append(out)
-    lake.remember_comparisons(settings, {k: v for k, v in fresh.items() if v.get("_cache", True)})
     return pa.Table.from_pylist(rows, schema=FLEET_SCHEMA)

@@ -186,7 +186,10 @@ def test_history_of_a_camera_as_table_csv_and_json(cli_run, capsys):
     version = proc.stdout.strip()
     assert cli.main(["history", "--lake", str(lake), "--camera", "cam-cli", "--param", "f_mm", "--param", "k1"]) == 0
     text = capsys.readouterr().out.splitlines()
-    assert text[0].split()[:3] == ["camera_id", "session_id", "version"] and "sigma_k1" in text[0]
+    assert text[0].split() == ["session_id", "acquired", "f_mm", "sigma_f_mm", "k1", "sigma_k1"]
+    assert cli.main(["history", "--lake", str(lake), "--camera", "cam-cli", "--param", "k1", "--wide"]) == 0
+    text = capsys.readouterr().out.splitlines()
+    assert text[0].split()[:3] == ["camera_id", "session_id", "version"] and "delta_k1" in text[0]
     assert version in text[2]
     assert cli.main(["history", "--lake", str(lake), "--camera", "cam-cli", "--format", "csv"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
@@ -302,6 +305,9 @@ def test_serve_checks_its_input_and_builds_the_scheduled_deployment(monkeypatch,
     assert "no folder of sessions there" in capsys.readouterr().err and not seen
     (tmp_path / "sessions").mkdir()
     assert cli.main(["serve", "--lake", str(tmp_path), "--cron", "30 1 * * *", "--workers", "3"]) == 0
+    report = seen.pop("report")                      # told each run it starts and how it ended
+    report("run fleet/x: completed in 1.0 s")
+    assert "fieldcal serve: run fleet/x: completed in 1.0 s" in capsys.readouterr().err
     assert seen == {"lake": str(tmp_path), "root": None, "name": "nightly", "cron": "30 1 * * *",
                     "parameters": {"n_workers": 3}}
 

@@ -17,6 +17,7 @@ lake. Under SQLAlchemy 2.1.9 the scheduler fails every loop and no run is ever c
 
 import contextlib
 import os
+import re
 import shutil
 import signal
 import socket
@@ -141,3 +142,7 @@ def test_the_schedule_fires_for_fieldcal_serve_and_for_deploy_prefect_yaml(stand
                 p.wait()
         logs.close()
     assert procs[0].returncode == 0                               # Ctrl-C stops `fieldcal serve` cleanly
+    said = (tmp / "serve.log").read_text()                        # each run it starts and how it ended
+    started = re.findall(r"fieldcal serve: run (fleet/cam-sched/\S+|fleet/sessions/\S+): started", said)
+    assert started and re.search(rf"fieldcal serve: run {re.escape(started[0])}: completed in [0-9.]+ s: "
+                                 r"1 found, 1 committed, 0 failed, 0 skipped", said), said[-3000:]

@@ -10,6 +10,7 @@ after its last command ended, also when that command was killed with SIGKILL.
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -208,3 +209,23 @@ def test_ctrl_c_stops_serve_even_when_the_server_no_longer_answers(world):
     assert serve.returncode == 0 and waited_s < 30.0, (waited_s, err)
     if "did not finish" in err:
         assert waited_s >= 3.0 and "fieldcal serve: stopped (Prefect's shutdown did not finish within 3 s" in err
+
+
+def test_server_start_ui_serves_prefects_ui_pointed_at_its_own_api(tmp_path):
+    import httpx
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PREFECT_", "FIELDCAL_"))}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect"), PYTHONPATH=str(ROOT))
+    out = subprocess.run([FIELDCAL, "server", "start", "--ui", "--linger", "0"], env=env, capture_output=True,
+                         text=True, timeout=300)
+    try:
+        assert out.returncode == 0, out.stderr
+        api = out.stdout.strip()
+        ui = re.search(r"Prefect UI: (\S+)", out.stderr).group(1)
+        assert api == f"{ui}/api"
+        assert "<!DOCTYPE html>" in httpx.get(ui, timeout=30).text
+        assert httpx.get(f"{ui}/ui-settings", timeout=30).json()["api_url"] == api
+        status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=60)
+        assert f"UI {ui}" in status.stdout
+    finally:
+        subprocess.run([FIELDCAL, "server", "stop"], env=env, capture_output=True, timeout=120)

@@ -204,3 +204,51 @@ def test_as_of_answers_as_the_lake_was_then(tmp_path):
     assert history.sql(lake, "SELECT count(*) AS n FROM catalog", as_of=before_all)["n"].to_pylist() == [0]
     with pytest.raises(InputError, match="not an ISO 8601"):
         history.fleet(lake, as_of="yesterday-ish")
+
+
+def _cli(args, capsys):
+    from flows.cli import main
+
+    status = main(args)
+    out = capsys.readouterr()
+    return status, out.out, out.err
+
+
+def test_history_fits_a_terminal_by_default_and_shows_more_on_request(lake, capsys):
+    url = lake.uri("")
+    for extra in ([], ["--camera", "cam-a"], ["--fleet"]):
+        status, out, err = _cli(["history", "--lake", url, *extra], capsys)
+        assert status == 0 and max(map(len, out.splitlines())) <= 100, (extra, out)
+    status, out, _ = _cli(["history", "--lake", url, "--wide"], capsys)
+    assert status == 0 and out.splitlines()[0].split() == history.fleet(lake).column_names
+    status, out, _ = _cli(["history", "--lake", url, "--columns", "camera_id,sigma0"], capsys)
+    assert out.splitlines()[0].split() == ["camera_id", "sigma0"] and len(out.splitlines()) == 2 + 3
+    status, out, err = _cli(["history", "--lake", url, "--columns", "camera_id,nope"], capsys)
+    assert status == 2 and "no column 'nope'" in err and "sigma0" in err
+    status, out, _ = _cli(["history", "--lake", url, "--format", "csv"], capsys)        # scripts: everything
+    assert out.splitlines()[0].split(",") == history.fleet(lake).column_names
+
+
+def test_history_of_a_camera_says_it_shows_the_latest_of_each_session(lake, capsys):
+    url = lake.uri("")
+    status, out, err = _cli(["history", "--lake", url, "--camera", "cam-a"], capsys)
+    assert status == 0 and len(out.splitlines()) == 2 + 3
+    assert "latest version of each session (3); 1 earlier version(s)" in err and "--all-versions" in err
+    status, out, err = _cli(["history", "--lake", url, "--camera", "cam-a", "--all-versions"], capsys)
+    assert len(out.splitlines()) == 2 + 4 and err == ""
+    status, out, err = _cli(["history", "--lake", url, "--camera", "cam-b"], capsys)   # nothing hidden
+    assert err == ""
+
+
+def test_every_column_history_shows_is_in_the_data_dictionary(lake):
+    from fieldcal.lake.dictionary import HISTORY_DOCS, column_docs, data_dictionary
+    from fieldcal.products.report import FLEET_SCHEMA
+
+    text = data_dictionary()
+    catalog = column_docs("catalog")
+    shown = set(history.camera_history(lake, "cam-a", ("f_mm", "k1")).column_names) | set(FLEET_SCHEMA.names)
+    for name in shown:
+        key = "delta_<name>" if name.startswith("delta_") else name
+        assert catalog.get(key) or HISTORY_DOCS.get(key), name
+        assert f"`{key}`" in text, name
+    assert "`changed`" in text and "none: no quantity did" in text

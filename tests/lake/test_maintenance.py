@@ -109,18 +109,19 @@ def test_a_table_made_by_an_older_fieldcal_gains_new_columns(tmp_path):
 
 
 def test_fleet_summary_compares_only_where_needed_and_once_per_pair(tmp_path, monkeypatch):
-    from fieldcal.products import report
+    from fieldcal.products import report, status
 
     lake = Lake(tmp_path)
     lake.commit(field_document("cam-a", "s1", acquired="2026-01-01"), {}, residual_table())
     lake.commit(field_document("cam-a", "s2", f_mm=50.01, acquired="2026-02-01"), {}, residual_table())
     lake.commit(field_document("cam-b", "s1"), {}, residual_table())  # one calibration: no comparison
     calls = []
-    real = report.compare_calibrations
-    monkeypatch.setattr(report, "compare_calibrations", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = status.compare_calibrations
+    monkeypatch.setattr(status, "compare_calibrations", lambda *a, **k: calls.append(1) or real(*a, **k))
     first = report.fleet_summary(lake).to_pylist()
     assert len(calls) == 1 and first[0]["p_value"] is not None and first[1]["verdict"] == "only one calibration"
     again = report.fleet_summary(Lake(tmp_path)).to_pylist()
     assert len(calls) == 1 and again == first  # remembered in the lake per pair of versions
-    report.fleet_summary(lake, tolerance_um=0.5)
-    assert len(calls) == 2  # other settings: compared again
+    strict = report.fleet_summary(lake, tolerance_um=1e-6, alpha=0.5).to_pylist()
+    assert len(calls) == 1                     # another tolerance or level: judged from the stored test
+    assert strict[0]["exceeds_tolerance"] and strict[0]["max_change_um"] == first[0]["max_change_um"]
