@@ -244,23 +244,8 @@ def _undistort(args) -> int:
     return 0
 
 
-def add_commands(subparsers) -> None:
-    """Register ``report``, ``certificate``, ``compare``, ``export`` and ``undistort`` (module
-    docstring)."""
-    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
-    from fieldcal.products.export import FORMATS, OPENCV_MODELS
-    from fieldcal.products.undistort import INTERPOLATION
-
-    p = subparsers.add_parser("report", help="write the HTML report of a calibration",
-                              description="Write DIR/report.html (self-contained, plots embedded) "
-                                          "and the plots as PNG.")
-    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
-    _add_camera(p)
-    _add_lake(p)
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="output folder (default ./fieldcal-report-VERSION)")
-    p.set_defaults(func=_report, command="report")
-
+def _add_certificate(subparsers) -> None:
+    """Register ``certificate`` (module docstring)."""
     p = subparsers.add_parser("certificate", help="write the printable calibration certificate",
                               description="Write DIR/certificate.html (and with --pdf DIR/certificate.pdf): "
                                           "identity, interior orientation with expanded uncertainties, the "
@@ -283,6 +268,26 @@ def add_commands(subparsers) -> None:
                    help="refuse (exit 2) when the configuration leaves out what an agency's certificate "
                         "states (camera, lens, facility, issuer, traceability, focus, aperture)")
     p.set_defaults(func=_certificate, command="certificate")
+
+
+def add_commands(subparsers) -> None:
+    """Register ``report``, ``certificate``, ``compare``, ``export`` and ``undistort`` (module
+    docstring)."""
+    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
+    from fieldcal.products.export import FORMATS, OPENCV_MODELS
+    from fieldcal.products.undistort import INTERPOLATION
+
+    p = subparsers.add_parser("report", help="write the HTML report of a calibration",
+                              description="Write DIR/report.html (self-contained, plots embedded) "
+                                          "and the plots as PNG.")
+    p.add_argument("version", metavar="VERSION", help="a version id, or 'latest' with --camera")
+    _add_camera(p)
+    _add_lake(p)
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output folder (default ./fieldcal-report-VERSION)")
+    p.set_defaults(func=_report, command="report")
+
+    _add_certificate(subparsers)
 
     p = subparsers.add_parser("compare", help="compare two calibrations of one camera",
                               description="Where the same ray lands in V1 and V2 over the sensor, "
