@@ -46,7 +46,7 @@ from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
 from fieldcal.session.schemas import shown, validate_json
-from fieldcal.session.store import SessionStore, glob_names, sample_digest
+from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
     MAX_IMAGES,
     check_size,
@@ -281,11 +281,13 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
 
     Files that are missing, empty or not regular are skipped here: measuring reports them.
     Only files of equal size whose middle 64 KiB agree are read whole (module docstring).
-    With a ``store`` the sizes come from its listing and the samples are ranged reads (an
+    With a ``store`` the sizes come from its listing, files its MD5s tell apart are not read
+    (:func:`fieldcal.session.store.distinct_by_md5`), and the samples are ranged reads (an
     object store has no links).
     """
     if store is not None:
-        sizes = {n: store.files[n] for n in names if store.files.get(n)}
+        known = distinct_by_md5(store, names)
+        sizes = {n: store.files[n] for n in names if store.files.get(n) and n not in known}
         _same_bytes(sizes, lambda n, size: sample_digest(store, n, size), store.sha256, where, what)
         return
     by_file: dict[tuple[int, int], str] = {}

@@ -25,15 +25,18 @@ import fnmatch
 import hashlib
 import os
 import posixpath
+import re
 from dataclasses import dataclass, field
 
 from fieldcal.errors import ImageError, InputError, one_line
 from fieldcal.measure.imageio import ImageFile, read_stream
 
-__all__ = ["SessionStore", "is_url", "open_store", "glob_names", "sample_digest", "SMALL_FILES", "REMOTE_CHUNK_BYTES"]
+__all__ = ["SessionStore", "is_url", "open_store", "glob_names", "sample_digest", "distinct_by_md5",
+           "SMALL_FILES", "REMOTE_CHUNK_BYTES"]
 
 SMALL_FILES = (".json", ".csv")
 """Files fetched from an object store to validate a session (everything else is listed only)."""
+_MD5 = re.compile(r"[0-9a-f]{32}")
 REMOTE_CHUNK_BYTES = 16 << 20
 """Bytes per ranged read of an image on an object store (5-7 requests per full-size frame)."""
 
@@ -74,11 +77,15 @@ class SessionStore:
         fsspec options of the store (endpoint, region; credentials best from the environment).
     files : dict
         ``{name: size [bytes]}`` of every file under the folder (names relative, ``/``).
+    md5 : dict
+        ``{name: MD5 hex}`` of the files whose listed ETag is their content's MD5 (an S3
+        object written in one part; :func:`distinct_by_md5`).
     """
 
     url: str
     storage_options: dict | None = None
     files: dict[str, int] = field(default_factory=dict)
+    md5: dict[str, str] = field(default_factory=dict)
 
     def filesystem(self):
         """``(fsspec filesystem, the folder's path in it)`` (fsspec reuses instances)."""
@@ -101,8 +108,11 @@ class SessionStore:
         fs, base = self.filesystem()
         fs.invalidate_cache(base)
         found = fs.find(base, detail=True)
-        self.files = {p[len(base):].lstrip("/"): int(info.get("size") or 0) for p, info in found.items()
-                      if info.get("type", "file") == "file" and p.startswith(base + "/")}
+        files = {p[len(base):].lstrip("/"): info for p, info in found.items()
+                 if info.get("type", "file") == "file" and p.startswith(base + "/")}
+        self.files = {n: int(info.get("size") or 0) for n, info in files.items()}
+        self.md5 = {n: tag for n, tag in ((n, str(info.get("ETag") or "").strip('"').lower())
+                                          for n, info in files.items()) if _MD5.fullmatch(tag)}
         return self.files
 
     def fetch_small_files(self, dest: str) -> None:
@@ -168,6 +178,21 @@ def open_store(url: str, storage_options: dict | None = None) -> SessionStore:
     if not files:
         raise InputError("session folder not found", store.url)
     return store
+
+
+def distinct_by_md5(store: SessionStore, names) -> set[str]:
+    """The names whose bytes differ from every other name's of the same size, by the MD5s of
+    the listing alone: a size shared only by files with known MD5s, and an MD5 no other of
+    them has (the loader reads nothing more of those to tell copies apart)."""
+    by_size: dict[int, list[str]] = {}
+    for n in names:
+        by_size.setdefault(store.files.get(n, 0), []).append(n)
+    out = set()
+    for group in by_size.values():
+        if all(n in store.md5 for n in group):
+            tags = [store.md5[n] for n in group]
+            out.update(n for n, t in zip(group, tags, strict=True) if tags.count(t) == 1)
+    return out
 
 
 def sample_digest(store: SessionStore, name: str, size: int) -> str:

@@ -13,7 +13,7 @@ import pytest
 from fieldcal import batch, pipeline
 from fieldcal.errors import ImageError, InputError
 from fieldcal.session.fingerprint import sha256_file
-from fieldcal.session.store import glob_names
+from fieldcal.session.store import SessionStore, glob_names
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.session_writer import write_field_session
@@ -52,7 +52,12 @@ def test_a_session_on_s3_is_prepared_from_its_small_files_and_its_frames_are_rea
         s3_server, gonio):
     url = upload(s3_server, gonio, "stores/lab-remote")
     local = pipeline.prepare(gonio)
-    remote = pipeline.prepare(url, storage_options=s3_server.storage_options)
+    reads = []
+    with pytest.MonkeyPatch.context() as mp:     # validating reads no image: the listing's MD5s tell them apart
+        mp.setattr(SessionStore, "read_range", lambda self, *a: reads.append(a))
+        mp.setattr(SessionStore, "read_image", lambda self, *a: reads.append(a))
+        remote = pipeline.prepare(url, storage_options=s3_server.storage_options)
+    assert reads == []
     sess = remote.session
     assert sess.store is not None and sess.location == url and sess.session_id == "lab-remote"
     assert remote.to_measure == local.to_measure and remote.tables == local.tables
