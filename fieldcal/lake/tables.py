@@ -14,8 +14,14 @@ table                        partitioned by   rows
 ``assessments``              (none)           the acceptance of each version (derived)
 ===========================  ===============  =====================================================
 
-Writes are Delta commits: appends, an insert-unless-present (``MERGE ... WHEN NOT MATCHED
+Writes are Delta commits: appends, an append *once* per key (the commit carries a Delta
+transaction identifier, ``txn``, naming the key: a table that has it already is not
+appended to, and of two concurrent commits carrying it Delta's conflict check fails the
+second; :meth:`Tables.append`), an insert-unless-present (``MERGE ... WHEN NOT MATCHED
 INSERT``, whose conflict check makes "one row per key" hold under concurrency), deletes.
+A table created by this code carries the identifier :data:`EVERY_KEY_ONCE` from its
+first commit: every key-once append it holds carries its key; a table from before gets it
+from :meth:`Tables.adopt_keys` (with the keys of the rows it has).
 Each carries the caller's commit metadata (code version, host, process, flow run) into the
 table's history. Every ``maintain_every`` commits of a table, the commit that reaches the
 multiple compacts the table's small files (``optimize.compact``) and delta-rs writes a
@@ -56,6 +62,10 @@ SORTED_BY = {"catalog": "camera_id", "comparisons": "version_b", "assessments": 
 a camera, or of the latest versions (ids begin with their time), touch few row groups."""
 COMMIT_RETRIES = 200
 """Attempts of an insert-unless-present that keeps meeting concurrent commits."""
+EVERY_KEY_ONCE = "fieldcal.every-key-once"
+"""Transaction identifier of a table whose rows all have their key's identifier (:meth:`Tables.append`)."""
+KEYED = {"catalog": "fingerprint"}
+"""The column whose values the key-once appends of a table name (:meth:`Tables.adopt_keys`)."""
 
 _KEYS = [pa.field("camera_id", pa.string(), nullable=False),
          pa.field("session_id", pa.string(), nullable=False)]
@@ -219,7 +229,8 @@ class Tables:
         try:
             DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
                               partition_by=PARTITIONS[name] or None, configuration=config,
-                              storage_options=self.storage.delta_options)
+                              storage_options=self.storage.delta_options,
+                              commit_properties=self._commit_properties(None, EVERY_KEY_ONCE))
         except Exception as e:  # noqa: BLE001 - another process created it first: loaded below
             failure = e
         # loaded afresh: the object create() returns may hold a losing creator's metadata
@@ -233,14 +244,34 @@ class Tables:
         return table
 
     # -- writing ------------------------------------------------------------------------
-    def _commit_properties(self, info: dict | None):
-        from deltalake import CommitProperties
+    def _commit_properties(self, info: dict | None, *keys: str):
+        from deltalake import CommitProperties, Transaction
 
         meta = {f"fieldcal.{k}": str(v) for k, v in (info or {}).items() if v is not None}
-        return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES)
+        return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES,
+                                app_transactions=[Transaction(app_id=k, version=1) for k in keys] or None)
 
-    def append(self, name: str, table: pa.Table, info: dict | None = None) -> None:
-        """Append rows (a blind append: concurrent appends never conflict).
+    def has_key(self, name: str, key: str) -> bool | None:
+        """Whether a key-once append of ``key`` is committed to the table (:meth:`append`):
+        True or False when the table holds every key it has rows of (:data:`EVERY_KEY_ONCE`),
+        None when it cannot tell (a table from before, not adopted: look in its rows)."""
+        target = self.open(name)
+        if target is None:
+            return False
+        if target.transaction_version(key) is not None:
+            return True
+        return False if target.transaction_version(EVERY_KEY_ONCE) is not None else None
+
+    def append(self, name: str, table: pa.Table, info: dict | None = None, *, once: str | None = None,
+               exclusive: bool = True) -> bool:
+        """Append rows (a blind append: concurrent appends never conflict); True when appended.
+
+        ``once``: a key (e.g. a fingerprint) the commit names in a Delta transaction
+        identifier. With ``exclusive``, nothing is appended (False) when the table has a
+        commit of that key already, or when a concurrent commit of it wins: Delta's conflict
+        check fails the second of two commits that carry one identifier, whose retry then
+        finds the first. Without ``exclusive`` the key is recorded and the rows appended
+        whatever the table holds (a forced version of a fingerprint).
 
         A table made by an older fieldcal with fewer columns gains the new ones (Delta
         schema evolution); its old rows read them as null.
@@ -250,27 +281,55 @@ class Tables:
 
         target = self.create(name)
         schema = table_schema(name)
+        keys = (once,) if once is not None else ()
         for attempt in range(COMMIT_RETRIES):
+            if once is not None and exclusive and target.transaction_version(once) is not None:
+                return False
             # schema evolution only when needed: a metadata change conflicts with concurrent appends
             have = set(pa.schema(target.schema().to_arrow()).names)
             evolve = "merge" if set(schema.names) - have else None
             try:
                 write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
-                                commit_properties=self._commit_properties(info))
+                                commit_properties=self._commit_properties(info, *keys))
             except CommitFailedError:
                 # a concurrent metadata commit (a racing create or schema evolution on an
-                # object store): the data files are in no commit; write again on the new state
+                # object store) or one of the same key: the data files are in no commit;
+                # look again on the new state
                 time.sleep(0.02 * (1 + random.random()) * min(attempt + 1, 10))
                 target = self._load(name)
+                self._current[name] = target
                 continue
             self._maintain(name, target)
-            return
+            return True
         raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent "
                         "commits in a row")
 
+    def append_once(self, name: str, table: pa.Table, key: str, info: dict | None = None, *,
+                    exclusive: bool = True) -> bool:
+        """:meth:`append` of rows once per ``key`` (``once=key``): the catalog's commit point."""
+        return self.append(name, table, info, once=key, exclusive=exclusive)
+
+    def adopt_keys(self, name: str, info: dict | None = None) -> int:
+        """Give a table from before the key-once appends the identifiers of the keys its rows
+        have (:data:`KEYED`) and :data:`EVERY_KEY_ONCE`, in one commit, so that :meth:`has_key`
+        answers from the table's log; returns the keys adopted (0: nothing to do).
+
+        Run while no older fieldcal writes to the table (its commits carry no identifier)."""
+        from deltalake import write_deltalake
+
+        target = self.open(name)
+        if target is None or target.transaction_version(EVERY_KEY_ONCE) is not None:
+            return 0
+        keys = sorted(set(self.scan(name, columns=[KEYED[name]])[KEYED[name]].to_pylist()) - {None})
+        write_deltalake(target, table_schema(name).empty_table(), mode="append",
+                        commit_properties=self._commit_properties(info, EVERY_KEY_ONCE, *keys))
+        self._current.pop(name, None)
+        return len(keys)
+
     def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
-                      *, poll_s: float = 0.02) -> bool:
+                      *, poll_s: float = 0.02, keys: tuple[str, ...] = ()) -> bool:
         """Insert ``row`` unless a row matching ``match`` exists; True when inserted.
+        ``keys``: transaction identifiers the commit carries (:meth:`append`).
 
         ``match`` is a predicate over ``t`` (the table) and ``s`` (the row), e.g.
         ``t.fingerprint = s.fingerprint``. Two processes inserting rows that match each
@@ -285,7 +344,7 @@ class Tables:
             try:
                 metrics = (target.merge(row.cast(table_schema(name)), match, source_alias="s",
                                         target_alias="t",
-                                        commit_properties=self._commit_properties(info))
+                                        commit_properties=self._commit_properties(info, *keys))
                            .when_not_matched_insert_all().execute())
             except CommitFailedError:
                 time.sleep(poll_s * (1 + random.random()) * min(attempt + 1, 10))
@@ -443,10 +502,13 @@ class Tables:
 
     # -- maintenance and audit ------------------------------------------------------------
     def optimize(self, name: str, info: dict | None = None) -> dict:
-        """Compact the table's small files and write a checkpoint."""
+        """Compact the table's small files and write a checkpoint (a keyed table from before
+        the key-once appends adopts its keys first: :meth:`adopt_keys`)."""
         target = self.open(name)
         if target is None:
             return {"table": name, "files_removed": 0, "files_added": 0}
+        if name in KEYED and self.adopt_keys(name, info):
+            target = self.open(name)
         metrics = self._compact(name, target, info)
         target.update_incremental()
         target.create_checkpoint()
