@@ -10,11 +10,12 @@ candidate, interleaved (candidate order rotated every round), through a fresh ``
 the flow's commit task makes one):
 
 - ``merge``: the catalog row inserted by a Delta MERGE "insert unless a row has this
-  fingerprint or version", after a scan of the catalog for the fingerprint (the commit path
-  before issue 28);
+  fingerprint or version", after a scan of the catalog for the fingerprint, and the Zarr
+  group written object after object through a Zarr store (the commit path before issue 28);
 - ``txn``: the catalog row appended with a Delta transaction identifier naming the
   fingerprint (:meth:`fieldcal.lake.tables.Tables.append` ``once=``), the fingerprint
-  looked up in the snapshot's transaction identifiers (no scan of the catalog).
+  looked up in the snapshot's transaction identifiers (no scan of the catalog); on S3 the
+  Zarr group's objects PUT at once (:meth:`fieldcal.lake.storage.Storage.write_many`).
 
 Per step (seconds, median of the rounds): the pre-check for the fingerprint, the document,
 the Zarr group, the residuals' append, the catalog's commit, the data dictionary; and the
@@ -53,6 +54,16 @@ class MergeLake(Lake):
     """The commit path before issue 28: a catalog scan for the fingerprint, then a MERGE."""
 
     CATALOG_BY_MERGE = True
+
+    def _write_zarr(self, rel: str, arrays: dict, doc: dict) -> None:
+        """The Zarr group written through a Zarr store, object after object (before issue 28)."""
+        import zarr
+
+        store = self._store.zarr_store(rel, read_only=False)
+        try:
+            self._fill_group(zarr.open_group(store=store, mode="w", zarr_format=3), arrays, doc)
+        finally:
+            store.close()
 
 
 def timed(times: dict, lake: Lake):

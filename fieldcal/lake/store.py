@@ -328,7 +328,7 @@ class Lake:
         if self.CATALOG_BY_MERGE and not force:
             return self.tables.insert_unless(
                 "catalog", row, "t.fingerprint = s.fingerprint OR t.version = s.version", meta)
-        if self.tables.has_key("catalog", fp) is None and not force and self.find_committed(fp) is not None:
+        if not force and not self.tables.every_key_once("catalog") and self.find_committed(fp) is not None:
             return False                      # a catalog from before: its rows without identifiers
         return self.tables.append_once("catalog", row, fp, meta, exclusive=not force)
 

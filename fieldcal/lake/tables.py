@@ -24,8 +24,9 @@ first commit: every key-once append it holds carries its key; a table from befor
 from :meth:`Tables.adopt_keys` (with the keys of the rows it has).
 Each carries the caller's commit metadata (code version, host, process, flow run) into the
 table's history. Every ``maintain_every`` commits of a table, the commit that reaches the
-multiple compacts the table's small files (``optimize.compact``) and delta-rs writes a
-checkpoint (``delta.checkpointInterval``), so that reading stays fast as versions pile up.
+multiple compacts the table's small files (``optimize.compact``), and every
+:data:`CHECKPOINT_EVERY` delta-rs writes a checkpoint (``delta.checkpointInterval``), so
+that reading stays fast as versions pile up.
 
 Reads never let one bad file take a table down: a data file that cannot be read (zero
 bytes, garbage, truncated) is skipped and reported as a :class:`Problem`; a damaged commit
@@ -54,7 +55,12 @@ TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
               "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
 DEFAULT_MAINTAIN_EVERY = 100
-"""Commits of a table between compactions and checkpoints."""
+"""Commits of a table between compactions."""
+CHECKPOINT_EVERY = 10
+"""Commits of a table between checkpoints (at most ``maintain_every``): opening a table reads
+its last checkpoint and every commit since, one request each on an object store (with 100,
+a commit on moto S3 read up to ~200 commit files of the catalog and the residuals:
+``bench/bench_commit.py``)."""
 ROW_GROUP_ROWS = 4096
 """Rows per row group of the compacted catalog (pruned by their camera_id statistics)."""
 SORTED_BY = {"catalog": "camera_id", "comparisons": "version_b", "assessments": "version"}
@@ -148,8 +154,10 @@ class Tables:
             raise InputError(f"maintain_every must be >= 2, got {maintain_every}", "lake")
         self.storage = storage
         self.maintain_every = int(maintain_every)
+        self.checkpoint_every = min(self.maintain_every, CHECKPOINT_EVERY)
         self.problems: list[Problem] = []
         self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
+        self._every_key_once: set[str] = set()   # tables known to carry EVERY_KEY_ONCE
 
     # -- opening ------------------------------------------------------------------------
     def uri(self, name: str) -> str:
@@ -222,7 +230,7 @@ class Tables:
             return table
         if self.storage.local:
             os.makedirs(self.storage.root, exist_ok=True)
-        config = {"delta.checkpointInterval": str(self.maintain_every),
+        config = {"delta.checkpointInterval": str(self.checkpoint_every),
                   "delta.logRetentionDuration": "interval 3650 days",
                   "delta.deletedFileRetentionDuration": "interval 7 days"}
         failure = None
@@ -260,7 +268,16 @@ class Tables:
             return False
         if target.transaction_version(key) is not None:
             return True
-        return False if target.transaction_version(EVERY_KEY_ONCE) is not None else None
+        return False if self.every_key_once(name, target) else None
+
+    def every_key_once(self, name: str, target=None) -> bool:
+        """Whether the table carries :data:`EVERY_KEY_ONCE` (remembered: it never goes away).
+        Each look at a transaction identifier reads the table's log since its last checkpoint."""
+        if name not in self._every_key_once:
+            target = target if target is not None else self.open(name)
+            if target is not None and target.transaction_version(EVERY_KEY_ONCE) is not None:
+                self._every_key_once.add(name)
+        return name in self._every_key_once
 
     def append(self, name: str, table: pa.Table, info: dict | None = None, *, once: str | None = None,
                exclusive: bool = True) -> bool:
@@ -318,7 +335,7 @@ class Tables:
         from deltalake import write_deltalake
 
         target = self.open(name)
-        if target is None or target.transaction_version(EVERY_KEY_ONCE) is not None:
+        if target is None or self.every_key_once(name, target):
             return 0
         keys = sorted(set(self.scan(name, columns=[KEYED[name]])[KEYED[name]].to_pylist()) - {None})
         write_deltalake(target, table_schema(name).empty_table(), mode="append",
@@ -509,6 +526,10 @@ class Tables:
             return {"table": name, "files_removed": 0, "files_added": 0}
         if name in KEYED and self.adopt_keys(name, info):
             target = self.open(name)
+        interval = target.metadata().configuration.get("delta.checkpointInterval")
+        if interval is None or int(interval) > self.checkpoint_every:     # a table from before
+            target.alter.set_table_properties({"delta.checkpointInterval": str(self.checkpoint_every)},
+                                              commit_properties=self._commit_properties(info))
         metrics = self._compact(name, target, info)
         target.update_incremental()
         target.create_checkpoint()
