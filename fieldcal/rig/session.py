@@ -110,6 +110,10 @@ def load_rig_session(folder) -> RigSession:
     manifest = read_manifest(folder)
     if "rig" not in manifest:
         raise InputError("not a rig session (no 'rig' in the manifest)", where)
+    for key in ("camera_id", "sensor", "lens"):
+        if key in manifest:
+            raise InputError(f"a rig session names its cameras, sensors and lenses in /rig/cameras: "
+                             f"'{key}' is not allowed beside 'rig' (at /{key})", where)
     validate_json(manifest, "session", where)
     rig = manifest["rig"]
     heads = _heads(rig, where)

@@ -21,6 +21,7 @@ with different seeds are Monte Carlo samples of one truth.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from fieldcal.rig.data import RigData, RigHead
 from fieldcal.rig.poses import head_pose
 from fieldcal.synthetic.field import WIDE_ANGLE, look_at, wide_field
 
-__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "rig_visible"]
+__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "rig_visible", "write_rig_session"]
 
 SECOND_HEAD = {"f_mm": 20.0, "xp_mm": -0.04, "yp_mm": 0.06, "k1": 6.0e-5, "k2": -8.0e-8, "k3": 3.0e-11,
                "p1": -6.0e-6, "p2": 9.0e-6, "a1": 0.0, "a2": -3.0e-5}
@@ -201,3 +202,43 @@ def oblique_rig(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: 
                      np.stack(C_r), targets, image_noise_px=image_noise_px, survey_noise_mm=survey_noise_mm, seed=seed,
                      margin_px=15.0, target_diameter_mm=200.0, marker_size_mm=600.0,
                      settings={"scenario": "oblique", "tilt_deg": tilt_deg})
+
+
+def write_rig_session(folder, sr: SyntheticRig, *, session_id: str | None = None,
+                      acquired: str = "2026-11-20T09:00:00Z") -> Path:
+    """An observation-only rig session on disk (CONTRACT section 3, "Rig sessions"):
+    ``session.json`` with the rig, ``targets.csv`` (the surveyed coordinates) and
+    ``observations.csv`` (the measured points of every head's images). Returns the folder."""
+    import csv
+    import json
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    d = sr.data
+    cameras = [{"camera_id": hd.camera_id, "sensor": hd.sensor.to_dict(),
+                "lens": {"nominal_focal_mm": hd.nominal_focal_mm}} for hd in d.heads]
+    images, obs_rows = [], []
+    for h, hd in enumerate(d.head_data):
+        for i, im in enumerate(hd.images):
+            images.append({"file": im.file, "camera": d.heads[h].camera_id,
+                           "exposure": d.exposures[d.image_exposure[h][i]]})
+        o = hd.obs
+        obs_rows += [[hd.images[o.image[k]].file, str(d.targets.ids[o.target[k]]), f"{o.uv_px[k, 0]:.6f}",
+                      f"{o.uv_px[k, 1]:.6f}", f"{o.sigma_px[k]:.4f}"] for k in range(len(o))]
+    manifest = {"schema": "fieldcal.session/1", "method": "field",
+                "session_id": session_id or folder.name, "acquired": acquired,
+                "rig": {"rig_id": d.rig_id, "reference": d.heads[d.reference].camera_id, "cameras": cameras},
+                "field": {"targets": "targets.csv", "target_diameter_mm": float(sr.target_diameter_mm)},
+                "images": images, "default_sigma_px": float(d.head_data[0].default_sigma_px)}
+    (folder / "session.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    t = d.targets
+    with open(folder / "targets.csv", "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["id", "X", "Y", "Z", "sigma_mm", "code"])
+        w.writerows([[t.ids[k], f"{t.xyz_m[k, 0]:.6f}", f"{t.xyz_m[k, 1]:.6f}", f"{t.xyz_m[k, 2]:.6f}",
+                      f"{t.sigma_mm[k]:.3f}", ""] for k in range(len(t))])
+    with open(folder / "observations.csv", "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["image", "target_id", "u", "v", "sigma_px"])
+        w.writerows(obs_rows)
+    return folder
