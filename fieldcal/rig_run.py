@@ -105,10 +105,11 @@ def _summary(prepared: RigPrepared, res) -> list[str]:
 
 
 def run_rig(folder, lake, *, settings: Settings | None = None, force: bool = False,
-            progress: Callable[[str], None] | None = None):
-    """Prepare, solve and commit a rig session; returns ``(rig version, head versions, outcome)``
-    (``outcome`` None when the same inputs were committed already and nothing was solved)."""
-    prepared = prepare_rig(folder, settings)
+            progress: Callable[[str], None] | None = None, prepared: RigPrepared | None = None):
+    """Prepare (unless ``prepared`` is given), solve and commit a rig session; returns ``(rig
+    version, head versions, outcome)`` (``outcome`` None when the same inputs were committed
+    already and nothing was solved)."""
+    prepared = prepared if prepared is not None else prepare_rig(folder, settings)
     if not force:
         hit = lake.rig_catalog(fingerprint=prepared.fingerprint)
         if hit.num_rows:

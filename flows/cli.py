@@ -150,6 +150,10 @@ def cmd_run(args) -> int:
     if args.json:
         common.check_output_file(args.json, "--json")
     _check_compute(args)
+    from fieldcal.rig.session import is_rig_session
+
+    if is_rig_session(args.session):
+        return _run_rig(args, lake_url, options)
     prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)))
     lake = Lake(lake_url, options)
     human = common.is_tty(sys.stderr)
@@ -170,6 +174,33 @@ def cmd_run(args) -> int:
         version = result["version"]
     if args.json:
         _write_document(lake, version, args.json)
+    print(version)
+    sys.stdout.flush()
+    return 0
+
+
+def _run_rig(args, lake_url: str, options) -> int:
+    """``fieldcal run`` of a rig session (CONTRACT section 3, "Rig sessions"): validated before
+    anything is written, calibrated in this process (its observations need no image work),
+    committed as one version of the rig; prints the rig's version, ``--json`` writes the rig
+    document."""
+    from fieldcal import pipeline, rig_run
+    from fieldcal.lake.store import Lake
+
+    settings = pipeline.Settings(**_settings(args))
+    prepared = rig_run.prepare_rig(args.session, settings)   # bad input: one line, exit 2, nothing written
+    lake = Lake(lake_url, options)
+    human = common.is_tty(sys.stderr)
+    version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)
+    if human:
+        for line in (outcome.summary if outcome is not None else ["unchanged (same inputs and settings; "
+                                                                 "--force for a new version)"]):
+            print(line, file=sys.stderr)
+        print(f"head versions: {', '.join(heads)}", file=sys.stderr)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump(lake.load_rig_document(version), f, indent=2)
+            f.write("\n")
     print(version)
     sys.stdout.flush()
     return 0

@@ -523,7 +523,9 @@ class Lake:
 
     def is_rig_version(self, version: str) -> bool:
         """Whether ``version`` is a committed rig version."""
-        return self.rig_catalog().num_rows > 0 and version in self.rig_catalog()["version"].to_pylist()
+        if not isinstance(version, str) or not VERSION_PATTERN.fullmatch(version):
+            return False
+        return version in self.rig_catalog()["version"].to_pylist()
 
     def load_rig_document(self, version: str) -> dict:
         """The rig document of a committed rig version."""

@@ -128,16 +128,19 @@ def _simulate(name, rig_id, head_names, cameras, R_cr, t, R_wr, C_r, targets, *,
 
 
 def two_head_rig(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 2.0,
-                 convergence_deg: float = 10.0, baseline_m: float = 0.5) -> SyntheticRig:
+                 convergence_deg: float = 10.0, baseline_m: float = 0.5,
+                 head_rotation_arcsec=(0.0, 0.0, 0.0)) -> SyntheticRig:
     """Two convergent, overlapping heads with different sensors and lenses (module docstring).
 
     The reference head is on the left; the second one ``baseline_m`` to its right (rig +x) and
-    turned by ``convergence_deg`` towards it (about the rig's y axis)."""
+    turned by ``convergence_deg`` towards it (about the rig's y axis), then by the small rotation
+    ``head_rotation_arcsec`` about the rig's axes (a boresight that moved: about x or y)."""
     wf = wide_field(seed=0, survey_noise_mm=0.0)            # the wall and its stations (geometry only)
     targets = wf.targets_true
     cams = [Camera.from_dict(Sensor(6000, 4000, 3.9), WIDE_ANGLE),
             Camera.from_dict(Sensor(5000, 3500, 4.4), SECOND_HEAD)]
-    R_cr = np.stack([np.eye(3), R_from_rotvec([0.0, np.radians(convergence_deg), 0.0])])
+    moved = R_from_rotvec(np.radians(np.asarray(head_rotation_arcsec, float) / 3600.0))
+    R_cr = np.stack([np.eye(3), moved @ R_from_rotvec([0.0, np.radians(convergence_deg), 0.0])])
     t = np.array([[0.0, 0.0, 0.0], [baseline_m, 0.0, 0.0]])
     geo = np.random.default_rng(12345)
     station_xy = [(-4.0, -5.5), (-1.5, -6.5), (1.5, -6.5), (4.0, -5.5), (-3.0, -5.0), (0.0, -5.5), (3.0, -5.0),
