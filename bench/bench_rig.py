@@ -1,3 +1,4 @@
+# ruff: noqa: E501 - table rows
 """Monte Carlo of the rig adjustment on the synthetic rigs (fieldcal.synthetic.rig): relative
 orientation errors against truth in units of their sigmas, and each head's accuracy in the rig
 against its calibration alone. Results: bench/README_rig.md.

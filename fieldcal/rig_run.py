@@ -99,7 +99,8 @@ def _summary(prepared: RigPrepared, res) -> list[str]:
         f, sf = res.state.params[h][0], res.sigma[h].get("f_mm")
         rot, t = res.sigma_rotation_arcsec[h], res.sigma_t_mm[h]
         rel = ("reference" if h == prepared.data.reference else
-               f"sigma rotation {', '.join(f'{v:.2g}' for v in rot)} arcsec, lever arm {', '.join(f'{v:.2g}' for v in t)} mm")
+               f"sigma rotation {', '.join(f'{v:.2g}' for v in rot)} arcsec, "
+               f"lever arm {', '.join(f'{v:.2g}' for v in t)} mm")
         lines.append(f"  {hd.camera_id}: f {f:.5f} ± {sf:.2g} mm, rmse {hs['rmse_px']:.3g} px; {rel}")
     return lines
 

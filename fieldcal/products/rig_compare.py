@@ -117,9 +117,12 @@ def rig_comparison_text(c: dict) -> str:
     """The comparison as lines for a terminal."""
     lines = [f"rig {c['rig_id']}: A {c['version_a']}, B {c['version_b']} (reference {c['reference']})"]
     for h in c["heads"]:
-        lines.append(f"  {h['camera_id']}: rotation change {', '.join(f'{v:+.3g}' for v in h['rotation_change_arcsec'])} "
-                     f"arcsec (sigma {', '.join(f'{v:.2g}' for v in h['sigma_rotation_change_arcsec'])}; "
-                     f"q {h['q_rotation']:.2g}), lever arm {', '.join(f'{v:+.3g}' for v in h['lever_arm_change_mm'])} "
-                     f"mm (sigma {', '.join(f'{v:.2g}' for v in h['sigma_lever_arm_change_mm'])}; q {h['q_lever_arm']:.2g})")
+        def three(key, fmt, h=h):
+            return ", ".join(format(v, fmt) for v in h[key])
+
+        lines.append(f"  {h['camera_id']}: rotation change {three('rotation_change_arcsec', '+.3g')} arcsec "
+                     f"(sigma {three('sigma_rotation_change_arcsec', '.2g')}; q {h['q_rotation']:.2g}), "
+                     f"lever arm {three('lever_arm_change_mm', '+.3g')} mm "
+                     f"(sigma {three('sigma_lever_arm_change_mm', '.2g')}; q {h['q_lever_arm']:.2g})")
     lines.append(f"verdict: {c['verdict']}")
     return "\n".join(lines) + "\n"

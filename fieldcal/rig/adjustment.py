@@ -220,7 +220,7 @@ class RigResult:
 
     def stats(self) -> dict:
         """The rig document's ``stats``."""
-        n_img = sum(int(len(np.unique(d.obs.image[u]))) for d, u in zip(self.data.head_data, self.obs_used, strict=True))
+        n_img = sum(self.head_stats(h)["n_images"] for h in range(self.data.n_heads))
         return {"n_exposures": int(self.exposure_used.sum()), "n_images": n_img,
                 "n_observations": int(sum(u.sum() for u in self.obs_used)),
                 "n_rejected": int(sum((r == "blunder").sum() for r in self.obs_reason)),
@@ -410,7 +410,7 @@ class RigProblem:
     # ------------------------------------------------------------------ model
     def _head_blocks(self, h, x, st: RigStart, jacobian: bool):
         """Weighted residuals of head ``h`` and its Jacobian parts (module docstring)."""
-        m, d = self.models[h], self.data.head_data[h]
+        m = self.models[h]
         e_img = self.data.image_exposure[h]
         slot = self.exp_slot[e_img]
         ok = slot >= 0

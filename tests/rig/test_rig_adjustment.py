@@ -61,7 +61,8 @@ def test_the_rig_jacobian_is_the_derivative_of_its_residuals(two_head):
     x[problem.rig_off:problem.n_reduced].reshape(-1, 6)[:, :3] += rng.normal(0, 1e-3, (len(data.exposures), 3))
     r, J = problem.evaluate(x, True)
     Jd = J.to_csr()
-    cols = np.concatenate([np.arange(problem.n_reduced), problem.n_reduced + rng.choice(problem.n_params - problem.n_reduced, 30)])
+    n_tgt = problem.n_params - problem.n_reduced
+    cols = np.concatenate([np.arange(problem.n_reduced), problem.n_reduced + rng.choice(n_tgt, 30)])
     for j in cols:
         ana = Jd[:, j].toarray().ravel()
         h = 1e-4 / np.abs(ana).max()          # a step that moves the residuals by 1e-4 (they are ~1)
