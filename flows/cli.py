@@ -569,8 +569,9 @@ def _add_show_command(sub) -> None:
 def _add_synthetic_commands(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic session (and its truth.json)")
     p.add_argument("out", help="the session folder to write")
-    p.add_argument("--method", choices=("goniometer", "field"), default="goniometer")
-    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide")
+    p.add_argument("--method", choices=("goniometer", "field", "rig"), default="goniometer")
+    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide; "
+                   "rig: two-head (default) or oblique (observation-only rig sessions)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--raster-scale", type=float, default=0.25,
                    help="goniometer: pixel grid scale over the same sensor (default %(default)s)")
