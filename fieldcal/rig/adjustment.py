@@ -552,16 +552,15 @@ def adjust_rig(data: RigData, options: RigOptions | None = None, *,
 
 
 def _solo_blunders(res: FieldResult, d) -> np.ndarray:
-    """(m,) bool: points of ``d`` that the head's calibration alone rejected as blunders."""
+    """(m,) bool: points of ``d`` that the head's calibration alone rejected as blunders (its data
+    are ``d`` without the images it could not orient alone: matched by image name and target)."""
     files = {im.file: i for i, im in enumerate(d.images)}
-    bad = np.zeros(len(d.obs), bool)
     sub = res.data
+    to_d = np.array([files[im.file] for im in sub.images], np.int64)
+    n_t = len(d.targets)
     k = np.flatnonzero(res.obs_reason == "blunder")
-    if len(k):
-        img = np.array([files[sub.images[i].file] for i in sub.obs.image[k]])
-        key = {(int(i), int(t)) for i, t in zip(img, sub.obs.target[k], strict=True)}
-        bad = np.array([(int(i), int(t)) in key for i, t in zip(d.obs.image, d.obs.target, strict=True)])
-    return bad
+    bad_keys = to_d[sub.obs.image[k]] * n_t + sub.obs.target[k]
+    return np.isin(d.obs.image * n_t + d.obs.target, bad_keys)
 
 
 def _iterate(data, o: RigOptions, start, active, reason, exposure_used, progress) -> RigResult:

@@ -146,3 +146,19 @@ def test_a_five_head_oblique_rig_is_recovered_within_its_sigmas():
         assert res.sigma[h]["f_mm"] <= st.solo[h].sigma["f_mm"]
     assert np.all(np.abs(z) < 4.5)                              # 24 values of one draw
     assert 0.4 < np.sqrt(np.mean(np.square(z))) < 1.6            # a loose check of one draw; the bench has the MC
+
+
+def test_blunders_in_one_head_are_rejected():
+    sr = two_head_rig(seed=4)
+    d = sr.data.head_data[1]
+    rng = np.random.default_rng(4)
+    bad = rng.choice(len(d.obs), 12, replace=False)
+    uv = d.obs.uv_px.copy()
+    uv[bad] += rng.choice([-1.0, 1.0], (12, 2)) * 3.0            # 3 px: 30 sigma of the 0.1 px points
+    head_data = list(sr.data.head_data)
+    head_data[1] = d.with_obs(replace(d.obs, uv_px=uv))
+    res = adjust_rig(replace(sr.data, head_data=head_data))
+    assert set(np.flatnonzero(res.obs_reason[1] == "blunder")) == set(bad.tolist())
+    assert not (res.obs_reason[0] == "blunder").any()
+    err = rotvec_from_R(res.state.R_camera_to_rig[1] @ sr.R_camera_to_rig[1].T) * ARCSEC_PER_RAD
+    assert np.all(np.abs(err) < 4.0 * res.sigma_rotation_arcsec[1]) and 0.9 < res.sigma0 < 1.1
