@@ -35,7 +35,7 @@ DEFAULT_TOLERANCE_ARCSEC = 10.0
 DEFAULT_TOLERANCE_MM = 1.0
 """A lever-arm change below this [mm] is not worth flagging (default)."""
 ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
-_ROT, _T = ("rot_x", "rot_y", "rot_z"), ("t_x_m", "t_y_m", "t_z_m")
+_ROT, _T = ("rot_x_arcsec", "rot_y_arcsec", "rot_z_arcsec"), ("t_x_mm", "t_y_mm", "t_z_mm")
 
 
 def _block(doc: dict, camera_id: str, comps) -> np.ndarray:

@@ -24,7 +24,7 @@ from fieldcal.session.document import calibration_document, utc_now_iso
 from fieldcal.session.schemas import validate_json
 
 __all__ = ["RIG_SCHEMA", "head_document", "head_arrays", "head_residual_table", "rig_document",
-           "validate_rig_document", "relative_units"]
+           "validate_rig_document", "relative_units", "document_names", "DOCUMENT_COMPONENTS"]
 
 RIG_SCHEMA = "fieldcal.rig/1"
 
@@ -109,10 +109,20 @@ def head_residual_table(res: RigResult, h: int) -> pa.Table:
         "reason": pa.array(reason, pa.string()), "normalized_residual": np.full(len(d.obs), np.nan)})
 
 
+DOCUMENT_COMPONENTS = {"rot_x": "rot_x_arcsec", "rot_y": "rot_y_arcsec", "rot_z": "rot_z_arcsec",
+                       "t_x_m": "t_x_mm", "t_y_m": "t_y_mm", "t_z_m": "t_z_mm"}
+"""The adjustment's relative-orientation components [rad, m] -> the rig document's names [arcsec, mm]."""
+
+
 def relative_units(names) -> np.ndarray:
     """Factors from the adjustment's units (rad, m) to the rig document's (arcsec, mm) of the
     relative-orientation parameters ``names``."""
     return np.array([ARCSEC_PER_RAD if n.split(":")[-1].startswith("rot_") else 1000.0 for n in names])
+
+
+def document_names(names) -> list[str]:
+    """``CAMERA:rot_x`` -> ``CAMERA:rot_x_arcsec``, ``CAMERA:t_x_m`` -> ``CAMERA:t_x_mm``."""
+    return [n.rsplit(":", 1)[0] + ":" + DOCUMENT_COMPONENTS[n.rsplit(":", 1)[1]] for n in names]
 
 
 def rig_document(res: RigResult, *, session_id: str, head_versions: list[str], fingerprint: str,
@@ -133,8 +143,8 @@ def rig_document(res: RigResult, *, session_id: str, head_versions: list[str], f
     return {"schema": RIG_SCHEMA, "rig_id": d.rig_id, "session_id": session_id, "version": version,
             "created": created or utc_now_iso(), "acquired": acquired,
             "reference": d.heads[d.reference].camera_id, "heads": heads,
-            "covariance": {"names": names, "units": "rot_*: arcsec (small rotations about the rig frame's axes); "
-                                                    "t_*: mm", "matrix": cov.tolist()},
+            "covariance": {"names": document_names(names), "units": "arcsec (small rotations about the rig "
+                           "frame's axes) and mm", "matrix": cov.tolist()},
             "stats": res.stats(), "inputs": {"fingerprint": fingerprint}}
 
 
