@@ -41,6 +41,7 @@ say otherwise (:data:`THREAD_DEFAULTS`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -332,6 +333,7 @@ def _stop_within(grace_s: float) -> None:
     def give_up():
         print(f"fieldcal serve: stopped (Prefect's shutdown did not finish within {grace_s:g} s; "
               "the served schedule may still be active on the server)", file=sys.stderr, flush=True)
+        _end_children()
         os._exit(0)
 
     timer = threading.Timer(grace_s, give_up)
@@ -343,6 +345,22 @@ def _stop_within(grace_s: float) -> None:
         signal.default_int_handler(signum, frame)
 
     signal.signal(signal.SIGINT, on_sigint)
+
+
+def _end_children(wait_s: float = 2.0) -> None:
+    """Kill this process's children (a flow run Prefect's runner started, a helper) before
+    ``os._exit``: they would outlive it, orphaned, holding its standard error open. The
+    local Prefect server is not among them (it runs detached, :func:`flows.server._launch`)."""
+    import psutil
+
+    try:
+        children = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return
+    for child in children:
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    psutil.wait_procs(children, timeout=wait_s)
 
 
 def cmd_server(args) -> int:
