@@ -51,9 +51,10 @@ from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
 
-TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments")
+TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments",
+          "rigs")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
-              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
+              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": [], "rigs": []}
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions."""
 CHECKPOINT_EVERY = 10
@@ -132,7 +133,23 @@ def table_schema(name: str) -> pa.Schema:
                           pa.field("verdict", pa.string(), nullable=False),
                           pa.field("radial", pa.string()),
                           pa.field("result", pa.string(), nullable=False)])
+    if name == "rigs":
+        return RIGS_SCHEMA
     raise InputError(f"unknown table {name!r}; the lake's tables are {', '.join(TABLES)}", "lake")
+
+
+RIGS_SCHEMA = pa.schema([
+    pa.field("rig_id", pa.string(), nullable=False), pa.field("session_id", pa.string(), nullable=False),
+    pa.field("version", pa.string(), nullable=False), pa.field("reference", pa.string(), nullable=False),
+    pa.field("created", pa.timestamp("us", "UTC"), nullable=False),
+    pa.field("committed", pa.timestamp("us", "UTC"), nullable=False),
+    pa.field("acquired", pa.timestamp("us", "UTC")),
+    pa.field("fingerprint", pa.string(), nullable=False),
+    pa.field("camera_ids", pa.list_(pa.string()), nullable=False),
+    pa.field("head_versions", pa.list_(pa.string()), nullable=False),
+    pa.field("n_exposures", pa.int32()), pa.field("sigma0", pa.float64()),
+    pa.field("document_path", pa.string(), nullable=False)])
+"""The ``rigs`` table: one row per committed rig version (CONTRACT section 3, "Rig sessions")."""
 
 
 def _quote(text: str) -> str:
@@ -279,13 +296,13 @@ class Tables:
                 self._every_key_once.add(name)
         return name in self._every_key_once
 
-    def append(self, name: str, table: pa.Table, info: dict | None = None, *, once: str | None = None,
+    def append(self, name: str, table: pa.Table, info: dict | None = None, *, once=None,
                exclusive: bool = True) -> bool:
         """Append rows (a blind append: concurrent appends never conflict); True when appended.
 
-        ``once``: a key (e.g. a fingerprint) the commit names in a Delta transaction
-        identifier. With ``exclusive``, nothing is appended (False) when the table has a
-        commit of that key already, or when a concurrent commit of it wins: Delta's conflict
+        ``once``: a key (e.g. a fingerprint), or a list of keys, the commit names in Delta
+        transaction identifiers. With ``exclusive``, nothing is appended (False) when the table
+        has a commit of such a key already, or when a concurrent commit of one wins: Delta's conflict
         check fails the second of two commits that carry one identifier, whose retry then
         finds the first. Without ``exclusive`` the key is recorded and the rows appended
         whatever the table holds (a forced version of a fingerprint).
@@ -298,9 +315,9 @@ class Tables:
 
         target = self.create(name)
         schema = table_schema(name)
-        keys = (once,) if once is not None else ()
+        keys = () if once is None else (once,) if isinstance(once, str) else tuple(once)
         for attempt in range(COMMIT_RETRIES):
-            if once is not None and exclusive and target.transaction_version(once) is not None:
+            if exclusive and any(target.transaction_version(k) is not None for k in keys):
                 return False
             # schema evolution only when needed: a metadata change conflicts with concurrent appends
             have = set(pa.schema(target.schema().to_arrow()).names)
@@ -321,9 +338,10 @@ class Tables:
         raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent "
                         "commits in a row")
 
-    def append_once(self, name: str, table: pa.Table, key: str, info: dict | None = None, *,
+    def append_once(self, name: str, table: pa.Table, key, info: dict | None = None, *,
                     exclusive: bool = True) -> bool:
-        """:meth:`append` of rows once per ``key`` (``once=key``): the catalog's commit point."""
+        """:meth:`append` of rows once per ``key`` (``once=key``; a key or a list of keys): the
+        catalog's commit point."""
         return self.append(name, table, info, once=key, exclusive=exclusive)
 
     def adopt_keys(self, name: str, info: dict | None = None) -> int:
