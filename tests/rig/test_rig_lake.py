@@ -24,10 +24,10 @@ def test_a_crash_before_the_rig_row_is_finished_by_a_rerun(tmp_path, outcome, mo
     lake = Lake(tmp_path / "lake")
     real = lake.tables.append
 
-    def failing(name, table, info=None):
+    def failing(name, table, info=None, **kwargs):
         if name == "rigs":
             raise LakeError("simulated crash before the rig row")
-        return real(name, table, info)
+        return real(name, table, info, **kwargs)
 
     monkeypatch.setattr(lake.tables, "append", failing)
     with pytest.raises(LakeError, match="simulated crash"):
@@ -46,10 +46,10 @@ def test_a_failed_head_leaves_no_catalog_row(tmp_path, outcome, monkeypatch):
     lake = Lake(tmp_path / "lake")
     real = lake.tables.append
 
-    def failing(name, table, info=None):
+    def failing(name, table, info=None, **kwargs):
         if name == "catalog":
             raise OSError(28, "No space left on device")
-        return real(name, table, info)
+        return real(name, table, info, **kwargs)
 
     monkeypatch.setattr(lake.tables, "append", failing)
     with pytest.raises(LakeError, match="No space left"):
