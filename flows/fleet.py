@@ -126,7 +126,8 @@ def _run_session(folder: str, lake: str, storage_options: dict | None, root_opti
             runner = cluster.task_runner(address, n_workers)
             state = calibrate_session.with_options(task_runner=runner)(
                 folder, lake, storage_options=storage_options, settings=settings, batch_size=batch_size,
-                session_storage_options=root_options, return_state=True)
+                session_storage_options=None if root_options == storage_options else root_options,
+                return_state=True)
             return state.result(raise_on_failure=False)
     except Exception as e:  # noqa: BLE001 - e.g. the store cannot be reached: record it, go on
         return e
