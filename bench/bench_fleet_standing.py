@@ -10,8 +10,9 @@ started once, one of threads in this process and one of worker processes (fieldc
 settings), so that no run pays for starting workers (``bench/README_fleet.md``: 14-24 s for
 two processes at load 8-10). One warm-up fleet on each (imports, kernels), then two rounds of
 ``recalibrate_fleet`` on each, interleaved, each into a fresh lake. Printed per run: the wall
-time, the median of the sessions' ``solver_s`` (inside the solve task) and of their
-``total_s`` (the session flow's body), and the load.
+time, the median of the sessions' ``solver_s`` (inside the solve task), of their
+``total_s`` (the session flow's body) and of their runs (``seconds`` of the fleet's summary:
+the sub-flow run from its creation to its result), and the load.
 """
 
 from __future__ import annotations
@@ -72,8 +73,9 @@ def main() -> None:
                         wall = time.perf_counter() - t
                         print(f"{m:9s} round {rnd}: wall {wall:.1f} s, committed {s['n_committed']}, solver_s median "
                               f"{statistics.median(x['solver_s'] for x in TIMINGS):.2f}, session body median "
-                              f"{statistics.median(x['total_s'] for x in TIMINGS):.2f}, load {os.getloadavg()[0]:.1f}",
-                              flush=True)
+                              f"{statistics.median(x['total_s'] for x in TIMINGS):.2f}, session run median "
+                              f"{statistics.median(e['seconds'] for e in s['sessions']):.2f}, "
+                              f"load {os.getloadavg()[0]:.1f}", flush=True)
             finally:
                 for c in clusters.values():
                     c.close()
