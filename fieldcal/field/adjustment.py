@@ -176,15 +176,15 @@ class AdjustmentOptions:
 def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMAGE) -> None:
     """Refuse data the adjustment cannot use, naming what and where.
 
-    NaN or infinite coordinates, duplicate target ids, non-positive sigmas, observations
-    of unknown targets or images, images with fewer than ``min_points`` points, and fewer
-    than :data:`MIN_IMAGES` images.
+    Infinite or partly NaN coordinates (all three NaN: an unsurveyed target), duplicate target
+    ids, non-positive sigmas, observations of unknown targets or images, images with fewer
+    than ``min_points`` points, and fewer than :data:`MIN_IMAGES` images.
     """
     t = data.targets
     if len(np.unique(t.ids)) != len(t.ids):
         ids, counts = np.unique(t.ids, return_counts=True)
         raise InputError(f"duplicate target id(s) {list(ids[counts > 1][:5])}", "targets")
-    bad = ~np.isfinite(t.xyz_m).all(axis=1)
+    bad = ~np.isfinite(t.xyz_m).all(axis=1) & ~np.isnan(t.xyz_m).all(axis=1)   # all NaN: unsurveyed
     if bad.any():
         raise InputError(f"target '{t.ids[np.argmax(bad)]}' has non-finite coordinates", "targets")
     if not (np.isfinite(t.sigma_mm) & (t.sigma_mm > 0)).all():
@@ -332,6 +332,8 @@ class FieldResult:
         du = self.residual_px[used]
         norm = np.hypot(du[:, 0], du[:, 1])
         observed = np.unique(self.data.obs.target[used])
+        rejected = ((~self.survey_used[observed] & self.data.targets.surveyed[observed])
+                    if self.options.targets_adjusted else np.zeros(len(observed), bool))
         return {
             "n_images": int(len(np.unique(self.data.obs.image[used]))),
             "n_targets": int(len(observed)),
@@ -346,9 +348,9 @@ class FieldResult:
             "solver": self.options.method,
             "targets_adjusted": bool(self.options.targets_adjusted),
             "fixed_parameters": dict(self.fixed_parameters),
-            "n_surveys_rejected": int((~self.survey_used[observed]).sum()) if self.options.targets_adjusted else 0,
-            "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][~self.survey_used[observed]]]
-            if self.options.targets_adjusted else [],
+            "n_surveys_rejected": int(rejected.sum()),
+            "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][rejected]],
+            **self.unsurveyed_stats(),
             "n_left_out": int(((~used) & (self.obs_reason != "blunder") & (self.obs_reason != CHECK_POINT)).sum()),
             "iterations_total": int(self.iterations_total),
             "lsq_status": self.lsq.message,
@@ -356,6 +358,24 @@ class FieldResult:
             "variance_components": self.variance_components.to_dict(),
             **({"check_points": self.check_points.to_stats()} if self.check_points is not None else {}),
         }
+
+    def unsurveyed_stats(self) -> dict:
+        """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
+        adjustment estimated, the ids targets.csv does not list, and each one's adjusted
+        coordinates and sigmas (``{}`` when every target is surveyed)."""
+        t = self.data.targets
+        observed = np.unique(self.data.obs.target[self.obs_used])
+        uns = observed[~t.surveyed[observed]]
+        unlisted = list(self.data.meta.get("unlisted_targets", []))
+        if not len(uns) and not unlisted:
+            return {}
+        sigma = (self.sigma_targets_m[uns] * 1000.0 if self.sigma_targets_m is not None
+                 else np.full((len(uns), 3), np.nan))
+        return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
+                "unlisted_targets": unlisted,
+                "unsurveyed_targets": [{"id": str(t.ids[j]), "xyz_m": [float(v) for v in self.targets_m[j]],
+                                        "sigma_mm": [float(v) for v in sig]}
+                                       for j, sig in zip(uns, sigma, strict=True)]}
 
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
@@ -404,6 +424,8 @@ class _Solver:
         self.R = init.R_world_to_camera.copy()
         self.C = init.center_m.copy()
         self.X = data.targets.xyz_m.copy()
+        if init.targets_m is not None:          # unsurveyed targets: their intersections
+            self.X = np.where(data.targets.surveyed[:, None], self.X, init.targets_m)
         self.iterations = 0
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
@@ -991,8 +1013,13 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     local, origin = centred(data)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
-    init = (replace(initial, center_m=np.asarray(initial.center_m, float) - origin) if initial is not None
-            else initial_values(local, full))
+    _check_unsurveyed(data, o)
+    if initial is not None:
+        init = replace(initial, center_m=np.asarray(initial.center_m, float) - origin)
+        if initial.targets_m is not None:
+            init = replace(init, targets_m=np.asarray(initial.targets_m, float) - origin)
+    else:
+        init = initial_values(local, full)
     if progress:
         progress(f"initial values: {init.how}; f {init.params[0]:.4f} mm; "
                  f"{init.outliers.sum()} points flagged by the robust initialisers")
@@ -1000,6 +1027,7 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     solver = _Solver(local, o, init, progress)
     if initial_targets_m is not None and o.targets_adjusted:
         solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
+    _start_unsurveyed(solver, flags)
     estimate = list(full)
     try:
         model, result = _solve_clean(solver, flags, estimate, o, "adjustment")
@@ -1029,6 +1057,35 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     return res
 
 
+UNPLACED = "unsurveyed target not intersected"
+"""The residual table's ``reason`` of a point of an unsurveyed target the initial values could
+not place (seen in fewer than two oriented images, or at too narrow an angle)."""
+
+
+def _check_unsurveyed(data: FieldData, o: AdjustmentOptions) -> None:
+    """Unsurveyed targets are unknowns: they cannot be held fixed."""
+    observed = np.unique(data.obs.target)
+    n = int((~data.targets.surveyed[observed]).sum())
+    if n and not o.targets_adjusted:
+        raise InputError(f"{n} observed target(s) are unsurveyed (e.g. "
+                         f"{str(data.targets.ids[observed][~data.targets.surveyed[observed]][0])!r}); "
+                         "their coordinates must be adjusted: targets cannot be held fixed", "targets")
+
+
+def _start_unsurveyed(solver: _Solver, flags: _Flags) -> None:
+    """Unsurveyed targets start at their intersections (``InitialValues.targets_m``) with no
+    survey; the points of those that could not be placed are left out (:data:`UNPLACED`)."""
+    surveyed = solver.data.targets.surveyed
+    flags.survey_active &= surveyed
+    if surveyed.all():
+        return
+    placed = np.isfinite(solver.X).all(axis=1)
+    solver.X[~placed] = 0.0
+    lost = ~placed[solver.data.obs.target]
+    flags.obs_active[lost] = False
+    flags.reason[lost] = UNPLACED
+
+
 def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str:
     """What this adjustment ended with: the parameters estimated and held, and its sigma0 -- the
     document's, of the session's own a-priori sigmas, which after a re-weighting by the variance
@@ -1055,7 +1112,7 @@ def _check_options(o: AdjustmentOptions) -> None:
 
 
 def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
-    """The data translated so that the rounded centroid of the observed targets is the origin.
+    """The data translated so that the rounded centroid of the observed surveyed targets is the origin.
 
     Returns the translated :class:`FieldData` (only the target coordinates change) and the
     origin (3,) [m] in the data's frame. Rounding to whole metres keeps the subtraction
@@ -1063,6 +1120,7 @@ def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
     in local coordinates become the same numbers up to the rounding of their inputs.
     """
     observed = np.unique(data.obs.target)
+    observed = observed[data.targets.surveyed[observed]]          # unsurveyed targets: NaN
     origin = np.round(np.mean(data.targets.xyz_m[observed], axis=0)) if len(observed) else np.zeros(3)
     targets = replace(data.targets, xyz_m=data.targets.xyz_m - origin)
     return replace(data, targets=targets), origin

@@ -33,7 +33,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
@@ -43,6 +43,7 @@ from fieldcal.session.tables import (
     check_size,
     read_marks_csv,
     read_observations_csv,
+    read_scale_bars_csv,
     read_targets_csv,
 )
 
@@ -55,6 +56,7 @@ __all__ = [
 MANIFEST = "session.json"
 OBSERVATIONS = "observations.csv"
 MARKS = "marks.csv"
+SCALE_BARS = "scale_bars.csv"
 
 
 @dataclass
@@ -92,6 +94,9 @@ class Session:
     coded: dict | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
+    scale_bars_path: Path | None = None
+    strict_targets: bool = False
+    datum: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -356,6 +361,8 @@ def load_session(folder) -> Session:
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
+        sess.strict_targets = bool(fld.get("strict_targets", False))
+        sess.datum = str(fld.get("datum", "auto"))
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -364,7 +371,8 @@ def load_session(folder) -> Session:
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         check_distinct_files(folder, [im.file for im in sess.images], where)
-        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
+        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path"),
+                           (SCALE_BARS, "scale_bars_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
                 setattr(sess, attr, p)
@@ -389,11 +397,23 @@ def field_data_from_observations(sess: Session) -> FieldData:
     if "observations" not in sess._read:
         images = list(sess.images)
         allow_new = isinstance(sess.manifest["images"], str) and not images
+        unlisted = None if sess.strict_targets else []
         obs = read_observations_csv(sess.observations_path, targets, images,
                                     default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
-                                    sensor=sess.sensor)
-        sess._read["observations"] = (images, obs)
-    images, obs = copy.deepcopy(sess._read["observations"])
+                                    sensor=sess.sensor, unlisted=unlisted)
+        sess._read["observations"] = (images, obs, unlisted or [])
+    images, obs, unlisted = copy.deepcopy(sess._read["observations"])
+    targets = targets.with_unsurveyed(unlisted)
+    meta = {"camera_id": sess.camera_id, "session_id": sess.session_id}
+    if unlisted:
+        meta["unlisted_targets"] = list(unlisted)
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
-                     meta={"camera_id": sess.camera_id, "session_id": sess.session_id})
+                     meta=meta, scale_bars=scale_bars_of(sess, targets))
+
+
+def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """``scale_bars.csv`` of the session over ``targets`` (None when the session has none)."""
+    if sess.scale_bars_path is None:
+        return None
+    return read_scale_bars_csv(sess.scale_bars_path, targets)
