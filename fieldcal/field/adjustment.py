@@ -61,6 +61,7 @@ from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
+from fieldcal.field.datum import MIN_CONTROL_POINTS, minimal_constraints, to_minimum_trace
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.field.variance_components import (
     MIN_GROUP_REDUNDANCY,
@@ -158,6 +159,7 @@ class AdjustmentOptions:
     check_points: tuple[str, ...] = ()
     check_fraction: float = 0.0
     check_seed: int = 0
+    datum: str = "auto"
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
@@ -169,7 +171,7 @@ class AdjustmentOptions:
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
                 "max_rel_sigma_f": self.max_rel_sigma_f, "variance_components": self.variance_components,
                 "check_points": list(self.check_points), "check_fraction": self.check_fraction,
-                "check_seed": self.check_seed}
+                "check_seed": self.check_seed, **({"datum": self.datum} if self.datum != "auto" else {})}
 
 
 # ---------------------------------------------------------------------------- validation
@@ -240,6 +242,7 @@ class FieldProblem:
         if like is not None and like._template is not None and _same_pattern(like.model, m):
             self._template, self._structure = like._template, like._structure
         self._last = None               # (x, r, J) of the last evaluation with the Jacobian
+        self.datum = None               # MinimalConstraints of a free network (fieldcal.field.datum)
 
     def evaluate(self, x, jacobian: bool):
         """``(r, J)`` at ``x``; the last evaluation with the Jacobian is kept, and asked again at
@@ -249,6 +252,8 @@ class FieldProblem:
             return self._last[1], self._last[2]
         m = self.model
         r, jb, sd = m.residuals_and_blocks(x, jacobian)
+        if self.datum is not None:
+            r = np.concatenate([r, self.datum.residuals(x)])
         if not jacobian:
             return r, None
         parts = [(self._cols_int, jb.d_int), (self._cols_ext, jb.d_ext)]
@@ -264,7 +269,11 @@ class FieldProblem:
             blocks = [self._template[0].with_values(*[p[1] for p in parts], combined=jb.combined)]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
-        J = BlockSparseJacobian(m.n_rows, m.n_params, self.n_dense, self.block_size, blocks,
+        n_rows = m.n_rows
+        if self.datum is not None:
+            blocks = [*blocks, self.datum.block(m.n_rows)]
+            n_rows += 7
+        J = BlockSparseJacobian(n_rows, m.n_params, self.n_dense, self.block_size, blocks,
                                 structure=self._structure)
         self._structure = J.structure
         self._last = (np.array(x, float), r, J)
@@ -321,6 +330,7 @@ class FieldResult:
     rounds: list = field(default_factory=list)
     variance_components: VarianceComponents = field(default_factory=VarianceComponents)
     check_points: CheckPoints | None = None
+    datum: dict = field(default_factory=dict)
 
     @property
     def camera(self) -> Camera:
@@ -351,6 +361,7 @@ class FieldResult:
             "n_surveys_rejected": int(rejected.sum()),
             "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][rejected]],
             **self.unsurveyed_stats(),
+            **({"datum": self.datum} if self.datum else {}),
             "n_left_out": int(((~used) & (self.obs_reason != "blunder") & (self.obs_reason != CHECK_POINT)).sum()),
             "iterations_total": int(self.iterations_total),
             "lsq_status": self.lsq.message,
@@ -430,6 +441,7 @@ class _Solver:
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
         self.problem: FieldProblem | None = None
+        self.free = False                                  # a free network (fieldcal.field.datum)
         self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
         self.sigma_mm0 = data.targets.sigma_mm.copy()
         self.vc = VarianceComponents()
@@ -456,6 +468,8 @@ class _Solver:
         x0 = model.pack(self.params, self.C, self.X)
         self.model = model
         problem = FieldProblem(model, like=self.problem)
+        if self.free:
+            problem.datum = minimal_constraints(model, x0, np.bincount(model.img, minlength=model.n_images))
         self.problem = problem
         if before is not None:
             r0, J0 = problem.evaluate(x0, True)
@@ -1028,6 +1042,8 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     if initial_targets_m is not None and o.targets_adjusted:
         solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
     _start_unsurveyed(solver, flags)
+    solver.free = _free_network(local, flags, o, progress)
+    solver.X_start = solver.X.copy()
     estimate = list(full)
     try:
         model, result = _solve_clean(solver, flags, estimate, o, "adjustment")
@@ -1086,6 +1102,21 @@ def _start_unsurveyed(solver: _Solver, flags: _Flags) -> None:
     flags.reason[lost] = UNPLACED
 
 
+def _free_network(data: FieldData, flags: _Flags, o: AdjustmentOptions, progress) -> bool:
+    """Whether the datum is a free network (:mod:`fieldcal.field.datum`); then no survey enters."""
+    observed = np.zeros(len(data.targets), bool)
+    observed[data.obs.target[flags.obs_active]] = True
+    n = int((observed & flags.survey_active).sum())
+    free = o.datum == "free" or n < MIN_CONTROL_POINTS
+    if free:
+        flags.survey_active[:] = False
+        if progress:
+            why = "field.datum 'free'" if o.datum == "free" else f"{n} surveyed target(s)"
+            progress(f"datum: free network, inner constraints ({why}; surveyed coordinates serve as "
+                     "initial values only)")
+    return free
+
+
 def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str:
     """What this adjustment ended with: the parameters estimated and held, and its sigma0 -- the
     document's, of the session's own a-priori sigmas, which after a re-weighting by the variance
@@ -1100,6 +1131,8 @@ def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str
 
 
 def _check_options(o: AdjustmentOptions) -> None:
+    if o.datum not in ("auto", "free"):
+        raise InputError(f"datum must be 'auto' or 'free', got {o.datum!r}", "adjustment options")
     if o.method not in ("lmqn", "lm"):
         raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
     if not (np.isfinite(o.check_fraction) and 0.0 <= o.check_fraction < 1.0):
@@ -1207,15 +1240,27 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
     cov, s, corr = stats
     params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
+    X, var_X = solver.X, None
+    datum = {"type": "weighted control", "n_control": int(len(model.survey_k))}
+    if solver.free:
+        fn = to_minimum_trace(model, result, R, C, solver.X, solver.X_start, solver.data.scale_bars, result.sigma0)
+        R, C, X = fn.R, fn.C, fn.X
+        cov = fn.cov_reduced * result.sigma0**2
+        var_X = np.einsum("kii->ki", fn.cov_targets)
+        datum = {"type": "free network", "constraints": "inner (minimum trace over the adjusted targets)",
+                 "scale": f"{len(fn.info['scale_bars'])} scale bar(s)" if "scale_bars" in fn.info
+                 else "the initial values' (no scale bars)", **fn.info}
     ext_var = np.diag(cov)[model.n_int:].reshape(-1, 6)
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
         sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
-        sigma_X[model.target_index] = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
+        if var_X is None:
+            var_X = np.einsum("kii->ki", ne.covariance_elim_blocks())
+        sigma_X[model.target_index] = np.sqrt(var_X) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
-    targets_m = solver.X + origin
-    survey_res = (solver.data.targets.xyz_m - solver.X) * 1000.0
+    targets_m = X + origin
+    survey_res = (solver.data.targets.xyz_m - X) * 1000.0
     residual_px = solver.residuals_all()
     sigma0 = result.sigma0
     if solver.vc.rounds:           # re-weighted: sigma0 of the session's own a-priori sigmas
@@ -1232,4 +1277,5 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=residual_px,
         obs_used=flags.obs_active.copy(), obs_reason=flags.reason.astype(str), obs_test=flags.test,
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
-        iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc)
+        iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc,
+        datum=datum)

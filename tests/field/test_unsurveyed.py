@@ -1,0 +1,171 @@
+"""Unsurveyed targets, free networks and scale bars (issue 26; CONTRACT section 3).
+
+Truth: the synthetic wide-angle field (fieldcal.synthetic.field.wide_field, 326 targets, 24
+images, 0.1 px noise, surveys 5 mm). Four targets near the middle of the wall keep their
+(noisy) survey; the other ~320 are unsurveyed.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fieldcal.errors import InputError
+from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
+from fieldcal.field.data import ScaleBars
+from fieldcal.model.camera import INDEX
+from fieldcal.session.loader import field_data_from_observations, load_session
+from fieldcal.synthetic.field import wide_field
+from fieldcal.synthetic.session_writer import write_field_session
+
+CORE = ("f_mm", "xp_mm", "yp_mm", "k1")
+
+
+@pytest.fixture(scope="module")
+def field():
+    sf = wide_field(seed=3)
+    X = sf.data.targets.xyz_m
+    spots = [(-1.5, 1.0), (1.5, 1.0), (-1.5, 3.0), (1.5, 3.0)]
+    control = [int(np.argmin(np.hypot(X[:, 0] - a, X[:, 2] - b))) for a, b in spots]
+    xyz = np.full_like(X, np.nan)
+    xyz[control] = X[control]
+    data = replace(sf.data, targets=replace(sf.data.targets, xyz_m=xyz))
+    return sf, data, control
+
+
+@pytest.fixture(scope="module")
+def results(field):
+    sf, data, control = field
+    Xt = sf.targets_true.xyz_m
+    a, b, c = control[0], control[1], control[3]
+    bar1 = ScaleBars([a], [b], [np.linalg.norm(Xt[b] - Xt[a]) * 1e3], [0.02])
+    bar2 = ScaleBars([a, b], [b, c], [np.linalg.norm(Xt[b] - Xt[a]) * 1e3, np.linalg.norm(Xt[c] - Xt[b]) * 1e3],
+                     [0.02, 0.02])
+    free = AdjustmentOptions(datum="free")
+    return {"surveyed": adjust_field(sf.data),
+            "control": adjust_field(data),
+            "free": adjust_field(data, free),
+            "free, 1 bar": adjust_field(replace(data, scale_bars=bar1), free),
+            "free, 2 bars": adjust_field(replace(data, scale_bars=bar2), free)}
+
+
+def test_four_control_points_and_unsurveyed_targets_give_the_surveyed_cases_camera(field, results):
+    sf, data, _ = field
+    res, ref = results["control"], results["surveyed"]
+    stats = res.stats()
+    assert stats["n_unsurveyed_targets"] >= 200          # the tie points entered (and are reported)
+    assert stats["datum"]["type"] == "weighted control" and stats["datum"]["n_control"] == 4
+    row = stats["unsurveyed_targets"][0]
+    assert len(row["xyz_m"]) == 3 and all(0 < s < 50 for s in row["sigma_mm"])   # the datum: 4 points at 5 mm
+    truth = sf.camera.params
+    for name in res.estimate:
+        z = (res.params[INDEX[name]] - truth[INDEX[name]]) / res.sigma[name]
+        assert abs(z) < 4.0, (name, z)                    # honest sigma: within 4 sigma of the truth
+        # the surveyed field's 5 mm surveys add next to nothing: the same precision within 10 %
+        assert res.sigma[name] == pytest.approx(ref.sigma[name], rel=0.10), name
+
+
+def test_interior_orientation_does_not_depend_on_the_datum(results):
+    free = results["free"]
+    for label in ("free, 1 bar", "free, 2 bars"):
+        res = results[label]
+        for name in CORE:
+            j = INDEX[name]
+            # round-off: 1e-6 of a sigma (the same image points, another datum)
+            assert abs(res.params[j] - free.params[j]) < 1e-6 * free.sigma[name], (label, name)
+            assert res.sigma[name] == pytest.approx(free.sigma[name], rel=1e-6), (label, name)
+    control = results["control"]
+    for name in CORE:
+        # weighted control of 4 points at 5 mm is not a minimal datum: it adds (a little) shape
+        assert abs(control.params[INDEX[name]] - free.params[INDEX[name]]) < 0.01 * free.sigma[name], name
+        assert control.sigma[name] == pytest.approx(free.sigma[name], rel=0.01), name
+    assert free.stats()["datum"]["type"] == "free network"
+    assert free.stats()["datum"]["scale"].startswith("the initial values")
+
+
+def _helmert_errors(res, truth_xyz):
+    """Adjusted minus true coordinates after the best similarity onto the truth [m], and sigmas."""
+    ok = np.isfinite(res.sigma_targets_m).all(axis=1)
+    P, Q = res.targets_m[ok], truth_xyz[ok]
+    mp, mq = P.mean(0), Q.mean(0)
+    U, s, Vt = np.linalg.svd((Q - mq).T @ (P - mp))
+    R = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    scale = np.sum(s * [1, 1, np.sign(np.linalg.det(U @ Vt))]) / np.sum((P - mp) ** 2)
+    return scale * (P - mp) @ R.T + mq - Q, res.sigma_targets_m[ok], scale
+
+
+def test_free_network_targets_have_honest_minimum_trace_sigmas(field, results):
+    sf, _, _ = field
+    err, sigma, _ = _helmert_errors(results["free"], sf.targets_true.xyz_m)
+    z = err / sigma
+    # the minimum-trace sigmas describe the shape: |error| / sigma about 1 (not the 5 mm of the survey)
+    assert 0.6 < np.sqrt(np.mean(z**2)) < 1.6
+    assert np.median(sigma) < 0.5e-3
+
+
+def test_scale_bar_scales_the_free_network(field, results):
+    sf, data, control = field
+    res = results["free, 1 bar"]
+    Xt = sf.targets_true.xyz_m
+    a, b = control[0], control[3]                      # a distance the bar does not measure
+    true = np.linalg.norm(Xt[b] - Xt[a])
+    got = np.linalg.norm(res.targets_m[b] - res.targets_m[a])
+    assert abs(got - true) < 4 * np.hypot(*res.sigma_targets_m[[a, b]].max(axis=1)) + 0.1e-3
+    bars = res.stats()["datum"]["scale_bars"]
+    assert bars[0]["adjusted_mm"] == pytest.approx(bars[0]["length_mm"], abs=1e-6)   # one bar: exact
+    two = results["free, 2 bars"].stats()["datum"]["scale_bars"]
+    assert all(abs(r["adjusted_mm"] - r["length_mm"]) < 4 * np.hypot(r["sigma_mm"], r["sigma_adjusted_mm"])
+               for r in two)
+
+
+def test_photomodeler_style_export_with_points_not_in_the_control_list(tmp_path, field):
+    """An observations-only session whose targets.csv lists the 4 control points and a few
+    unsurveyed ids, while observations.csv also names ids it does not list."""
+    sf, _, control = field
+    folder = tmp_path / "pm"
+    write_field_session(folder, sf, images=False, observations_csv=True, coded=False)
+    t = sf.data.targets
+    listed = set(control) | set(range(10, 20))
+    lines = ["id,X,Y,Z,sigma_mm,code"]
+    for j in sorted(listed):
+        xyz = ",".join(f"{v:.6f}" for v in t.xyz_m[j]) if j in control else ",,"
+        lines.append(f"{t.ids[j]},{xyz},5,")
+    (folder / "targets.csv").write_text("\n".join(lines) + "\n")
+    data = field_data_from_observations(load_session(folder))
+    n_unlisted = len(set(np.unique(sf.data.obs.target)) - listed)
+    assert len(data.meta["unlisted_targets"]) == n_unlisted > 200
+    assert int(data.targets.surveyed.sum()) == 4
+    res = adjust_field(data)
+    stats = res.stats()
+    assert stats["n_unlisted_targets"] == n_unlisted
+    assert stats["n_unsurveyed_targets"] > 200
+    for name in CORE:
+        assert abs(res.params[INDEX[name]] - sf.camera.params[INDEX[name]]) < 4 * res.sigma[name], name
+    # the session asks for strictness: the first unlisted id is refused, naming file and line
+    manifest = json.loads((folder / "session.json").read_text())
+    manifest["field"]["strict_targets"] = True
+    (folder / "session.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match=r"observations\.csv:\d+: target_id '\w+' is not in targets\.csv"):
+        field_data_from_observations(load_session(folder))
+
+
+def test_scale_bars_csv_names_targets_of_the_session(tmp_path, field):
+    sf, _, control = field
+    folder = tmp_path / "bars"
+    write_field_session(folder, sf, images=False, observations_csv=True, coded=False)
+    ids = sf.data.targets.ids
+    (folder / "scale_bars.csv").write_text(f"from_id,to_id,length_mm,sigma_mm\n{ids[0]},{ids[1]},1000.0,0.02\n")
+    data = field_data_from_observations(load_session(folder))
+    assert len(data.scale_bars) == 1 and data.scale_bars.length_mm[0] == 1000.0
+    (folder / "scale_bars.csv").write_text(f"from_id,to_id,length_mm,sigma_mm\n{ids[0]},nosuch,1000.0,0.02\n")
+    with pytest.raises(InputError, match=r"scale_bars\.csv:2: to_id 'nosuch' is not a target"):
+        field_data_from_observations(load_session(folder))
+
+
+def test_unsurveyed_targets_cannot_be_held_fixed(field):
+    _, data, _ = field
+    with pytest.raises(InputError, match="unsurveyed.*cannot be held fixed"):
+        adjust_field(data, AdjustmentOptions(targets_adjusted=False))
