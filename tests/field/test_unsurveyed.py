@@ -169,3 +169,37 @@ def test_unsurveyed_targets_cannot_be_held_fixed(field):
     _, data, _ = field
     with pytest.raises(InputError, match="unsurveyed.*cannot be held fixed"):
         adjust_field(data, AdjustmentOptions(targets_adjusted=False))
+
+
+def test_minimum_trace_covariance_equals_the_bordered_inner_constraint_system(field, monkeypatch):
+    """An independent reference: the inverse of the bordered normal equations
+    ``[[N, K], [K^T, 0]]`` (dense, the data rows only) has the inner-constraint covariance in its
+    top-left block; the S-transformation of the minimal-constraint solve must give it."""
+    import fieldcal.field.adjustment as adjustment
+    import fieldcal.field.datum as datum
+
+    _, data, _ = field
+    seen = {}
+
+    def spy(model, result, R, C, X, X0, bars, sigma0):
+        out = datum.to_minimum_trace(model, result, R, C, X, X0, bars, sigma0)
+        seen.update(model=model, result=result, R=R, C=C, X=X, out=out)
+        return out
+
+    monkeypatch.setattr(adjustment, "to_minimum_trace", spy)
+    adjust_field(data, AdjustmentOptions(datum="free"))
+    m, out = seen["model"], seen["out"]
+    J = seen["result"].jac.to_csr()[:-7].toarray()          # without the 7 minimal-constraint rows
+    E = datum.null_space(m, seen["R"], seen["C"], seen["X"][m.target_index])
+    assert np.abs(J @ E).max() < 1e-9 * np.abs(J).max()    # E is the null space of the image points
+    K = np.zeros_like(E)
+    K[m.n_reduced:] = E[m.n_reduced:]
+    n = J.shape[1]
+    Q = np.linalg.inv(np.block([[J.T @ J, K], [K.T, np.zeros((7, 7))]]))[:n, :n]
+    s = out.info["similarity"]["scale"]
+    nt = len(m.target_index)
+    blocks = Q[m.n_reduced:, m.n_reduced:].reshape(nt, 3, nt, 3)[np.arange(nt), :, np.arange(nt), :]
+    # traces: invariant under the similarity's rotation; lengths scale by s
+    np.testing.assert_allclose(np.einsum("kii->k", out.cov_targets), np.einsum("kii->k", blocks) * s**2, rtol=1e-6)
+    io = slice(0, m.n_int)
+    np.testing.assert_allclose(out.cov_reduced[io, io], Q[io, io], rtol=1e-6, atol=0)
