@@ -947,7 +947,29 @@ def _check_core_determined(model, result, corr, sigma, o):
         rel = sigma[names.index("f_mm")] / max(abs(result.x[names.index("f_mm")]), 1e-12)
         if not (rel <= o.max_rel_sigma_f):
             cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
+            jf = names.index("f_mm")
+            rel_images = np.sqrt(max(cov[jf, jf], 0.0)) / max(abs(result.x[jf]), 1e-12)
+            if not model.targets_adjusted and rel_images <= o.max_rel_sigma_f:
+                raise _survey_dominates(model, rel, rel_images)
             raise _f_undetermined(rel, *_f_determination(model, cov, fixed_extras=False)[1:])
+
+
+def _survey_dominates(model, rel, rel_images) -> GeometryError:
+    """The diagnosis when the fixed targets' survey errors, not the geometry, leave f undetermined
+    (issue 26, goal 4): names the surveys with the largest sigmas and the remedies."""
+    t = model.data.targets
+    seen = np.unique(model.tgt)
+    sig = t.sigma_mm[seen]
+    order = np.argsort(-sig, kind="stable")
+    top = order[sig[order] >= 0.5 * sig[order[0]]]
+    ids = ", ".join(repr(str(x)) for x in t.ids[seen][top[:4]]) + (f" and {len(top) - 4} more" if len(top) > 4 else "")
+    return GeometryError(
+        f"the principal distance is not determined: its sigma is {100 * rel:.3g} % of f, and the survey "
+        f"of the fixed targets makes it so (the image geometry alone gives {100 * rel_images:.2g} %): the "
+        f"targets are held fixed and their survey errors enter the uncertainty; target(s) {ids} have "
+        f"sigma_mm {sig[order[0]]:.4g} (the median is {np.median(sig):.3g}): adjust the targets "
+        "(targets_adjusted, the default), give those points a realistic sigma_mm, or leave them "
+        "unsurveyed (empty X, Y, Z in targets.csv)")
 
 
 def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,

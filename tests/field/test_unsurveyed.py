@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fieldcal.errors import InputError
+from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.data import ScaleBars
 from fieldcal.model.camera import INDEX
@@ -203,3 +203,21 @@ def test_minimum_trace_covariance_equals_the_bordered_inner_constraint_system(fi
     np.testing.assert_allclose(np.einsum("kii->k", out.cov_targets), np.einsum("kii->k", blocks) * s**2, rtol=1e-6)
     io = slice(0, m.n_int)
     np.testing.assert_allclose(out.cov_reduced[io, io], Q[io, io], rtol=1e-6, atol=0)
+
+
+def test_a_survey_that_dominates_the_uncertainty_is_named_with_its_remedy(field):
+    """Issue 26 goal 4: targets held fixed, four of them with a dummy survey sigma (545 mm, as
+    PhotoModeler writes for points the user called unknown): f's sigma is then the survey's,
+    not the geometry's, and the diagnosis says so, naming the targets and the remedies."""
+    sf, _, _ = field
+    t = sf.data.targets
+    busiest = np.argsort(np.bincount(sf.data.obs.target, minlength=len(t)), kind="stable")[::-1][:4]
+    sigma = t.sigma_mm.copy()
+    sigma[busiest] = 545.0
+    data = replace(sf.data, targets=replace(t, sigma_mm=sigma))
+    with pytest.raises(GeometryError, match=r"survey of the fixed targets makes it so \(the image geometry alone "
+                                        r"gives 0\.\d+ %\).*" + str(t.ids[busiest[0]]) +
+                                        r".*sigma_mm 545.*adjust the targets.*realistic sigma_mm.*unsurveyed"):
+        adjust_field(data, AdjustmentOptions(targets_adjusted=False))
+    res = adjust_field(data)                    # the first remedy: the targets adjusted
+    assert abs(res.params[INDEX["f_mm"]] - sf.camera.params[INDEX["f_mm"]]) < 4 * res.sigma["f_mm"]
