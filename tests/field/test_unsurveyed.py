@@ -221,3 +221,33 @@ def test_a_survey_that_dominates_the_uncertainty_is_named_with_its_remedy(field)
         adjust_field(data, AdjustmentOptions(targets_adjusted=False))
     res = adjust_field(data)                    # the first remedy: the targets adjusted
     assert abs(res.params[INDEX["f_mm"]] - sf.camera.params[INDEX["f_mm"]]) < 4 * res.sigma["f_mm"]
+
+
+def test_a_session_with_unsurveyed_targets_and_scale_bars_runs_through_the_pipeline(tmp_path, field):
+    """prepare + solve of an observations-only session: 4 surveyed targets, the rest unlisted,
+    a free network (session.json field.datum) scaled by scale_bars.csv; the document validates."""
+    from fieldcal import pipeline
+    from fieldcal.session.schemas import validate_json
+
+    sf, _, control = field
+    folder = tmp_path / "free"
+    write_field_session(folder, sf, images=False, observations_csv=True, coded=False)
+    t = sf.data.targets
+    rows = [f"{t.ids[j]},{t.xyz_m[j, 0]:.6f},{t.xyz_m[j, 1]:.6f},{t.xyz_m[j, 2]:.6f},5," for j in control]
+    (folder / "targets.csv").write_text("id,X,Y,Z,sigma_mm,code\n" + "\n".join(rows) + "\n")
+    Xt = sf.targets_true.xyz_m
+    length = np.linalg.norm(Xt[control[1]] - Xt[control[0]]) * 1e3
+    (folder / "scale_bars.csv").write_text(f"from_id,to_id,length_mm,sigma_mm\n{t.ids[control[0]]},"
+                                           f"{t.ids[control[1]]},{length:.4f},0.02\n")
+    manifest = json.loads((folder / "session.json").read_text())
+    manifest["field"]["datum"] = "free"
+    (folder / "session.json").write_text(json.dumps(manifest))
+    prepared = pipeline.prepare(folder)
+    assert "scale_bars.csv" in prepared.tables                  # in the inputs' fingerprint
+    outcome = pipeline.solve(prepared, {}, fingerprint_=pipeline.input_fingerprint(prepared, {}))
+    doc = outcome.document
+    validate_json(dict(doc, version="20261204T000000Z-0123abcd-0001"), "calibration", "document")   # version: at commit
+    stats = doc["stats"]
+    assert stats["datum"]["type"] == "free network" and stats["datum"]["scale"] == "1 scale bar(s)"
+    assert stats["n_unlisted_targets"] > 200
+    assert abs(doc["parameters"]["f_mm"] - sf.camera.f_mm) < 4 * doc["sigma"]["f_mm"]
