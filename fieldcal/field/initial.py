@@ -33,6 +33,7 @@ from fieldcal.field.distortion_init import distortion_lsq
 from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_coplanar
 from fieldcal.field.intersection import intersect_targets
+from fieldcal.field.relative_orientation import orient_pair
 from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import INDEX, Camera
 
@@ -284,24 +285,29 @@ def _bootstrap(data: FieldData):
     Returns ``(X (n, 3), how)``: surveyed coordinates, intersections, NaN for targets that
     could not be placed."""
     X = np.where(data.targets.surveyed[:, None], data.targets.xyz_m, np.nan)
-    if not data.targets.surveyed.any():
-        raise GeometryError("no surveyed target: initial values for a network without any "
-                            "surveyed coordinates (relative orientation) are not implemented; "
-                            "survey at least four targets seen in several images (their coordinates "
-                            "may serve the initial values only: field.datum 'free')")
     n_img = len(data.images)
-    known = _known(data, X)
-    groups = per_image(known)
-    dlt_f, dlt_pp, _, _ = _dlts(known, groups)
-    params = np.zeros(13)
-    if data.nominal_focal_mm is None and not np.isfinite(dlt_f).any():
-        raise GeometryError("unsurveyed targets and no nominal focal length: give lens.nominal_focal_mm "
-                            "(the images are resected from the few surveyed targets with it)")
-    params, how = _common_interior(known, groups, dlt_f, dlt_pp)
-    camera = Camera(data.sensor, params)
     threshold_px = max(8.0, 0.002 * max(data.sensor.width_px, data.sensor.height_px))
     R, C = np.zeros((n_img, 3, 3)), np.zeros((n_img, 3))
     oriented = np.zeros(n_img, bool)
+    if not data.targets.surveyed[np.unique(data.obs.target)].any():
+        if data.nominal_focal_mm is None:
+            raise GeometryError("no surveyed target and no nominal focal length: give lens.nominal_focal_mm "
+                                "(the network is started by the relative orientation of two images with it)")
+        params = np.zeros(13)
+        params[INDEX["f_mm"]] = data.nominal_focal_mm
+        i, j, R_pair, C_pair = orient_pair(data, params, threshold_px)
+        R[[i, j]], C[[i, j]], oriented[[i, j]] = R_pair, C_pair, True
+        how = (f"relative orientation of {data.images[i].file} and {data.images[j].file} "
+               "(five-point essential matrix, nominal focal length)")
+    else:
+        known = _known(data, X)
+        groups = per_image(known)
+        dlt_f, dlt_pp, _, _ = _dlts(known, groups)
+        if data.nominal_focal_mm is None and not np.isfinite(dlt_f).any():
+            raise GeometryError("unsurveyed targets and no nominal focal length: give lens.nominal_focal_mm "
+                                "(the images are resected from the few surveyed targets with it)")
+        params, how = _common_interior(known, groups, dlt_f, dlt_pp)
+    camera = Camera(data.sensor, params)
     while True:
         known = _known(data, X)
         counts = np.bincount(known.obs.image, minlength=n_img)
@@ -334,7 +340,7 @@ def _bootstrap(data: FieldData):
     n_uns = int((~data.targets.surveyed[np.unique(data.obs.target)]).sum())
     n_placed = int((~data.targets.surveyed & np.isfinite(X).all(axis=1)).sum())
     return X, (f"{n_placed} of {n_uns} unsurveyed targets intersected from {int(oriented.sum())} images "
-               f"resected on the surveyed ones ({how})")
+               f"oriented on the surveyed ones and the growing network ({how})")
 
 
 def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:

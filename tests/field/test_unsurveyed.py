@@ -251,3 +251,32 @@ def test_a_session_with_unsurveyed_targets_and_scale_bars_runs_through_the_pipel
     assert stats["datum"]["type"] == "free network" and stats["datum"]["scale"] == "1 scale bar(s)"
     assert stats["n_unlisted_targets"] > 200
     assert abs(doc["parameters"]["f_mm"] - sf.camera.f_mm) < 4 * doc["sigma"]["f_mm"]
+
+
+def test_a_network_without_any_survey_starts_by_relative_orientation_and_is_scaled_by_two_bars(field, results):
+    """Issue 26 goals 3 and 5: no target surveyed; the network starts from the relative
+    orientation of a pair, is a free network, and two scale bars give it its scale."""
+    sf, _, _ = field
+    d = sf.data
+    Xt = sf.targets_true.xyz_m
+    busy = np.argsort(-np.bincount(d.obs.target, minlength=len(Xt)), kind="stable")
+    a, b, c, e = busy[:4]
+    bars = ScaleBars([a, c], [b, e], [np.linalg.norm(Xt[b] - Xt[a]) * 1e3, np.linalg.norm(Xt[e] - Xt[c]) * 1e3],
+                     [0.02, 0.02])
+    data = replace(d, targets=replace(d.targets, xyz_m=np.full_like(d.targets.xyz_m, np.nan)), scale_bars=bars)
+    res = adjust_field(data)
+    assert "relative orientation" in res.initial.how
+    stats = res.stats()
+    assert stats["datum"]["type"] == "free network" and stats["datum"]["scale"] == "2 scale bar(s)"
+    ref = results["surveyed"]
+    for name in CORE:
+        j = INDEX[name]
+        assert abs(res.params[j] - sf.camera.params[j]) < 4 * res.sigma[name], name
+        assert res.sigma[name] == pytest.approx(ref.sigma[name], rel=0.05), name
+    # the bars' scale: a distance no bar measures, against the truth (within 4 sigma + 0.05 mm)
+    f, g = busy[4], busy[5]
+    got = np.linalg.norm(res.targets_m[g] - res.targets_m[f])
+    true = np.linalg.norm(Xt[g] - Xt[f])
+    assert abs(got - true) < 4 * np.linalg.norm(res.sigma_targets_m[[f, g]]) + 0.05e-3
+    with pytest.raises(GeometryError, match="no surveyed target and no nominal focal length"):
+        adjust_field(replace(data, nominal_focal_mm=None))
