@@ -1155,6 +1155,10 @@ def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str
 def _check_options(o: AdjustmentOptions) -> None:
     if o.datum not in ("auto", "free"):
         raise InputError(f"datum must be 'auto' or 'free', got {o.datum!r}", "adjustment options")
+    if o.datum == "free" and (o.check_points or o.check_fraction > 0):
+        raise InputError("check points are compared with their survey in the control's frame: a free "
+                         "network (datum 'free') has none; leave out check_points or the free datum",
+                         "adjustment options")
     if o.method not in ("lmqn", "lm"):
         raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
     if not (np.isfinite(o.check_fraction) and 0.0 <= o.check_fraction < 1.0):
@@ -1282,6 +1286,9 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         sigma_X[model.target_index] = np.sqrt(var_X) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
     targets_m = X + origin
+    adjusted = np.zeros(len(data.targets), bool)
+    adjusted[model.target_index] = True
+    targets_m[~solver.data.targets.surveyed & ~adjusted] = np.nan     # unsurveyed, not placed
     survey_res = (solver.data.targets.xyz_m - X) * 1000.0
     residual_px = solver.residuals_all()
     sigma0 = result.sigma0
