@@ -280,3 +280,40 @@ def test_a_network_without_any_survey_starts_by_relative_orientation_and_is_scal
     assert abs(got - true) < 4 * np.linalg.norm(res.sigma_targets_m[[f, g]]) + 0.05e-3
     with pytest.raises(GeometryError, match="no surveyed target and no nominal focal length"):
         adjust_field(replace(data, nominal_focal_mm=None))
+
+
+def test_intersection_of_exact_rays_is_the_truth(field):
+    """fieldcal.field.intersection on noise-free points through the true cameras."""
+    from fieldcal.field.intersection import intersect_targets
+
+    sf, _, _ = field
+    data = replace(sf.data, obs=replace(sf.data.obs, uv_px=sf.uv_true_px))
+    X, inlier = intersect_targets(data, sf.camera.params, sf.R_world_to_camera, sf.center_m,
+                                  np.ones(len(data.obs), bool))
+    placed = np.isfinite(X).all(axis=1)
+    assert placed.sum() > 200
+    np.testing.assert_allclose(X[placed], sf.targets_true.xyz_m[placed], atol=1e-7)   # 0.1 um: Newton's tolerance
+    assert inlier[placed[data.obs.target]].all()
+
+
+def test_dbat_sheet_with_four_control_points_is_datum_invariant():
+    """The real DBAT sheet (PhotoModeler's marks): 1001-1004 surveyed (0.001 units), 96 targets
+    unsurveyed; the free network scaled by two sides gives the same camera."""
+    from tests.realdata import dbat_field_data
+
+    pm = dbat_field_data()
+    t = pm.targets
+    corners = {"1001": (0, 1, 0), "1002": (1, 1, 0), "1003": (0, 0, 0), "1004": (1, 0, 0)}
+    xyz = np.array([corners.get(str(i), (np.nan,) * 3) for i in t.ids], float)
+    data = replace(pm, targets=replace(t, xyz_m=xyz, sigma_mm=np.where(np.isfinite(xyz[:, 0]), 1.0, t.sigma_mm)))
+    k = data.targets.index()
+    bars = ScaleBars([k["1001"], k["1003"]], [k["1002"], k["1001"]], [1000.0, 1000.0], [0.1, 0.1])
+    control = adjust_field(data)
+    free = adjust_field(replace(data, scale_bars=bars), AdjustmentOptions(datum="free"))
+    assert control.stats()["n_unsurveyed_targets"] == 96
+    for name in CORE:
+        assert abs(control.params[INDEX[name]] - free.params[INDEX[name]]) < 0.05 * free.sigma[name], name
+        assert control.sigma[name] == pytest.approx(free.sigma[name], rel=0.02), name
+    assert control.sigma["f_mm"] < 0.002                  # mm: 0.6 px of 3.19 um
+    for bar in free.stats()["datum"]["scale_bars"]:
+        assert abs(bar["adjusted_mm"] - bar["length_mm"]) < 4 * np.hypot(bar["sigma_mm"], bar["sigma_adjusted_mm"])
