@@ -435,8 +435,8 @@ class _Solver:
         self.R = init.R_world_to_camera.copy()
         self.C = init.center_m.copy()
         self.X = data.targets.xyz_m.copy()
-        if init.targets_m is not None:          # unsurveyed targets: their intersections
-            self.X = np.where(data.targets.surveyed[:, None], self.X, init.targets_m)
+        if init.targets_m is not None:          # unsurveyed targets: their intersections (NaN: not placed)
+            self.X = np.array(init.targets_m, float)
         self.iterations = 0
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
@@ -1064,7 +1064,7 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     if initial_targets_m is not None and o.targets_adjusted:
         solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
     _start_unsurveyed(solver, flags)
-    solver.free = _free_network(local, flags, o, progress)
+    solver.free = _free_network(local, flags, o, progress, init.free_frame)
     solver.X_start = solver.X.copy()
     estimate = list(full)
     try:
@@ -1113,27 +1113,27 @@ def _check_unsurveyed(data: FieldData, o: AdjustmentOptions) -> None:
 def _start_unsurveyed(solver: _Solver, flags: _Flags) -> None:
     """Unsurveyed targets start at their intersections (``InitialValues.targets_m``) with no
     survey; the points of those that could not be placed are left out (:data:`UNPLACED`)."""
-    surveyed = solver.data.targets.surveyed
-    flags.survey_active &= surveyed
-    if surveyed.all():
-        return
+    flags.survey_active &= solver.data.targets.surveyed
     placed = np.isfinite(solver.X).all(axis=1)
+    if placed.all():
+        return
     solver.X[~placed] = 0.0
     lost = ~placed[solver.data.obs.target]
     flags.obs_active[lost] = False
     flags.reason[lost] = UNPLACED
 
 
-def _free_network(data: FieldData, flags: _Flags, o: AdjustmentOptions, progress) -> bool:
+def _free_network(data: FieldData, flags: _Flags, o: AdjustmentOptions, progress, free_frame: bool) -> bool:
     """Whether the datum is a free network (:mod:`fieldcal.field.datum`); then no survey enters."""
     observed = np.zeros(len(data.targets), bool)
     observed[data.obs.target[flags.obs_active]] = True
     n = int((observed & flags.survey_active).sum())
-    free = o.datum == "free" or n < MIN_CONTROL_POINTS
+    free = o.datum == "free" or n < MIN_CONTROL_POINTS or free_frame
     if free:
         flags.survey_active[:] = False
         if progress:
-            why = "field.datum 'free'" if o.datum == "free" else f"{n} surveyed target(s)"
+            why = ("field.datum 'free'" if o.datum == "free" else "the network's start could not be moved onto "
+                   "the survey" if free_frame and n >= MIN_CONTROL_POINTS else f"{n} surveyed target(s)")
             progress(f"datum: free network, inner constraints ({why}; surveyed coordinates serve as "
                      "initial values only)")
     return free

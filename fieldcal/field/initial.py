@@ -62,6 +62,7 @@ class InitialValues:
     how: str
     lm_tau: float | None = None   # a warm start: the LM damping the adjustment it comes from ended with
     targets_m: np.ndarray | None = None   # (n_targets, 3) start (unsurveyed: intersected; NaN: not placed)
+    free_frame: bool = False      # started by relative orientation and not moved onto the survey
 
 
 def per_image(data: FieldData) -> list[np.ndarray]:
@@ -282,14 +283,24 @@ def _bootstrap(data: FieldData):
     allow one), the unsurveyed targets seen by two of them intersected, the images that now
     see enough targets of known coordinates resected, and so on while the network grows.
 
-    Returns ``(X (n, 3), how)``: surveyed coordinates, intersections, NaN for targets that
-    could not be placed."""
-    X = np.where(data.targets.surveyed[:, None], data.targets.xyz_m, np.nan)
+    No image sees enough surveyed targets: the network starts from the relative orientation of
+    a pair (:mod:`fieldcal.field.relative_orientation`) and is moved onto the survey
+    (:func:`_onto_survey`).
+
+    Returns ``(X (n, 3), how, free_frame)``: surveyed coordinates, intersections, NaN for
+    targets that could not be placed; ``free_frame`` when X is in a pair's frame although
+    some targets are surveyed."""
+    surveyed = data.targets.surveyed
     n_img = len(data.images)
     threshold_px = max(8.0, 0.002 * max(data.sensor.width_px, data.sensor.height_px))
     R, C = np.zeros((n_img, 3, 3)), np.zeros((n_img, 3))
     oriented = np.zeros(n_img, bool)
-    if not data.targets.surveyed[np.unique(data.obs.target)].any():
+    n_seen = np.bincount(data.obs.image[surveyed[data.obs.target]], minlength=n_img)
+    relative = not (n_seen >= MIN_RESECTION_POINTS).any()     # no image can be resected on the survey
+    # relative orientation: every target is placed in the pair's frame first (surveyed ones too)
+    unknown = np.ones(len(surveyed), bool) if relative else ~surveyed
+    X = np.where(unknown[:, None], np.nan, data.targets.xyz_m)
+    if relative:
         if data.nominal_focal_mm is None:
             raise GeometryError("no surveyed target and no nominal focal length: give lens.nominal_focal_mm "
                                 "(the network is started by the relative orientation of two images with it)")
@@ -327,20 +338,40 @@ def _bootstrap(data: FieldData):
             except GeometryError:
                 continue
             R[i], C[i], oriented[i] = res.R_world_to_camera, res.center_m, True
-        use = oriented[data.obs.image] & ~data.targets.surveyed[data.obs.target]
+        use = oriented[data.obs.image] & unknown[data.obs.target]
         Xi, _ = intersect_targets(data, params, R, C, use, threshold_px=threshold_px)
-        new = ~data.targets.surveyed & np.isfinite(Xi).all(axis=1) & ~np.isfinite(X).all(axis=1)
+        new = unknown & np.isfinite(Xi).all(axis=1) & ~np.isfinite(X).all(axis=1)
         X[new] = Xi[new]
         if not new.any() and not len(todo):
             break
-    if not oriented.any():
-        raise GeometryError(f"no image sees {MIN_RESECTION_POINTS} surveyed targets: with unsurveyed targets "
-                            "the images are first oriented on the surveyed ones: survey at least four "
-                            "targets that several images see")
-    n_uns = int((~data.targets.surveyed[np.unique(data.obs.target)]).sum())
-    n_placed = int((~data.targets.surveyed & np.isfinite(X).all(axis=1)).sum())
+    free_frame = False
+    if relative:
+        X, how, free_frame = _onto_survey(data, X, how)
+    n_uns = int((~surveyed[np.unique(data.obs.target)]).sum())
+    n_placed = int((~surveyed & np.isfinite(X).all(axis=1)).sum())
     return X, (f"{n_placed} of {n_uns} unsurveyed targets intersected from {int(oriented.sum())} images "
-               f"oriented on the surveyed ones and the growing network ({how})")
+               f"oriented on the surveyed ones and the growing network ({how})"), free_frame
+
+
+def _onto_survey(data: FieldData, X, how: str):
+    """A network started by relative orientation, moved onto the survey: the similarity that
+    fits its intersections of the surveyed targets to their surveyed coordinates (Umeyama
+    1991; three or more, not collinear), then the surveyed coordinates themselves. With fewer,
+    the pair's frame stays (a free network) and the surveyed coordinates are not used.
+    Returns ``(X, how, free_frame)``."""
+    s = data.targets.surveyed & np.isfinite(X).all(axis=1)
+    P, Q = X[s], data.targets.xyz_m[s]
+    if len(P) >= 3:
+        mp, mq = P.mean(0), Q.mean(0)
+        U, sv, Vt = np.linalg.svd((Q - mq).T @ (P - mp))
+        d = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        if sv[1] > 1e-6 * sv[0]:                    # not collinear
+            Rm = U @ d @ Vt
+            scale = np.trace(np.diag(sv) @ d) / np.sum((P - mp) ** 2)
+            X = scale * (X - mp) @ Rm.T + mq
+            X[data.targets.surveyed] = data.targets.xyz_m[data.targets.surveyed]
+            return X, f"{how}, moved onto {len(P)} surveyed targets", False
+    return X, how, bool(data.targets.surveyed[np.unique(data.obs.target)].any())
 
 
 def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
@@ -369,7 +400,7 @@ def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
 
 def _with_unsurveyed(data: FieldData, estimate: Sequence[str]) -> InitialValues:
     """:func:`initial_values` of a network with unsurveyed targets."""
-    X, how = _bootstrap(data)
+    X, how, free_frame = _bootstrap(data)
     placed = np.isfinite(X).all(axis=1)[data.obs.target]
     sub = _known(data, X)
     init = _initial_values(sub, estimate)
@@ -387,7 +418,7 @@ def _with_unsurveyed(data: FieldData, estimate: Sequence[str]) -> InitialValues:
     outliers |= ~np.isfinite(X).all(axis=1)[data.obs.target]
     outliers |= unsurveyed[data.obs.target] & ~inlier
     return InitialValues(init.params, init.R_world_to_camera, init.center_m, outliers, init.dlt_f_mm,
-                         f"{how}; then {init.how}", targets_m=X)
+                         f"{how}; then {init.how}", targets_m=X, free_frame=free_frame)
 
 
 def _initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:

@@ -317,3 +317,21 @@ def test_dbat_sheet_with_four_control_points_is_datum_invariant():
     assert control.sigma["f_mm"] < 0.002                  # mm: 0.6 px of 3.19 um
     for bar in free.stats()["datum"]["scale_bars"]:
         assert abs(bar["adjusted_mm"] - bar["length_mm"]) < 4 * np.hypot(bar["sigma_mm"], bar["sigma_adjusted_mm"])
+
+
+def test_three_control_points_that_no_image_sees_four_of_start_by_relative_orientation(field):
+    """No image sees four surveyed targets: the network starts from a pair's relative
+    orientation, is moved onto the three surveyed targets, and they are its weighted datum."""
+    sf, _, _ = field
+    X = sf.data.targets.xyz_m
+    control = [int(np.argmin(np.hypot(X[:, 0] - a, X[:, 2] - b))) for a, b in [(-1.5, 1.0), (1.5, 1.0), (0.0, 3.0)]]
+    xyz = np.full_like(X, np.nan)
+    xyz[control] = X[control]
+    res = adjust_field(replace(sf.data, targets=replace(sf.data.targets, xyz_m=xyz)))
+    assert "relative orientation" in res.initial.how and "moved onto 3 surveyed targets" in res.initial.how
+    assert res.stats()["datum"] == {"type": "weighted control", "n_control": 3}
+    for name in CORE:
+        assert abs(res.params[INDEX[name]] - sf.camera.params[INDEX[name]]) < 4 * res.sigma[name], name
+    # in the survey's frame: an unsurveyed target lies where the truth is, within the datum's few mm
+    other = int(np.argmax(np.isfinite(res.sigma_targets_m).all(axis=1) & ~np.isin(np.arange(len(X)), control)))
+    assert np.linalg.norm(res.targets_m[other] - sf.targets_true.xyz_m[other]) < 0.05
