@@ -40,7 +40,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField
 from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
@@ -48,10 +48,13 @@ from fieldcal.session.names import normal_file_name
 from fieldcal.session.schemas import shown, validate_json
 from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
+    MARKS_COLUMNS,
     MAX_IMAGES,
     check_size,
+    read_csv_table,
     read_marks_csv,
     read_observations_csv,
+    read_scale_bars_csv,
     read_targets_csv,
 )
 
@@ -64,6 +67,7 @@ __all__ = [
 MANIFEST = "session.json"
 OBSERVATIONS = "observations.csv"
 MARKS = "marks.csv"
+SCALE_BARS = "scale_bars.csv"
 
 
 @dataclass
@@ -105,6 +109,9 @@ class Session:
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
     store: SessionStore | None = None
+    scale_bars_path: Path | None = None
+    strict_targets: bool = False
+    datum: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -115,13 +122,16 @@ class Session:
             self._read["targets"] = read_targets_csv(self.targets_path)
         return copy.deepcopy(self._read["targets"])
 
-    def marks(self) -> dict:
-        """marks.csv of a field session (:func:`read_marks_csv`), read once; ``{}`` without one."""
+    def marks(self, targets: TargetField | None = None) -> dict:
+        """marks.csv of a field session over ``targets`` (default: :meth:`targets`)
+        (:func:`read_marks_csv`); the file is read once, so this works where the session's
+        folder is not (a worker); ``{}`` without one."""
         if self.marks_path is None:
             return {}
-        if "marks" not in self._read:
-            self._read["marks"] = read_marks_csv(self.marks_path, self.targets(), list(self.images))
-        return copy.deepcopy(self._read["marks"])
+        if "marks.csv" not in self._read:
+            self._read["marks.csv"] = read_csv_table(self.marks_path, MARKS_COLUMNS, kind="marks.csv")
+        return read_marks_csv(self.marks_path, self.targets() if targets is None else targets, list(self.images),
+                              table=self._read["marks.csv"])
 
     def image_path(self, name: str) -> Path:
         """The local file of an image named as in the session (checked to stay inside the
@@ -466,6 +476,8 @@ def load_session(folder, store: SessionStore | None = None) -> Session:
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
+        sess.strict_targets = bool(fld.get("strict_targets", False))
+        sess.datum = str(fld.get("datum", "auto"))
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -474,7 +486,8 @@ def load_session(folder, store: SessionStore | None = None) -> Session:
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         check_distinct_files(folder, [im.file for im in sess.images], where, store=store)
-        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
+        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path"),
+                           (SCALE_BARS, "scale_bars_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
                 setattr(sess, attr, p)
@@ -499,11 +512,23 @@ def field_data_from_observations(sess: Session) -> FieldData:
     if "observations" not in sess._read:
         images = list(sess.images)
         allow_new = isinstance(sess.manifest["images"], str) and not images
+        unlisted = None if sess.strict_targets else []
         obs = read_observations_csv(sess.observations_path, targets, images,
                                     default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
-                                    sensor=sess.sensor)
-        sess._read["observations"] = (images, obs)
-    images, obs = copy.deepcopy(sess._read["observations"])
+                                    sensor=sess.sensor, unlisted=unlisted)
+        sess._read["observations"] = (images, obs, unlisted or [])
+    images, obs, unlisted = copy.deepcopy(sess._read["observations"])
+    targets = targets.with_unsurveyed(unlisted)
+    meta = {"camera_id": sess.camera_id, "session_id": sess.session_id}
+    if unlisted:
+        meta["unlisted_targets"] = list(unlisted)
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
-                     meta={"camera_id": sess.camera_id, "session_id": sess.session_id})
+                     meta=meta, scale_bars=scale_bars_of(sess, targets))
+
+
+def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """``scale_bars.csv`` of the session over ``targets`` (None when the session has none)."""
+    if sess.scale_bars_path is None:
+        return None
+    return read_scale_bars_csv(sess.scale_bars_path, targets)
