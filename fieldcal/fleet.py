@@ -56,7 +56,9 @@ def root_filesystem(root: str, storage_options: dict | None = None):
     if "://" in text and not text.startswith("file://"):
         import fsspec
 
-        fs, path = fsspec.core.url_to_fs(text, **(storage_options or {}))
+        from fieldcal.lake import secrets
+
+        fs, path = fsspec.core.url_to_fs(text, **(secrets.resolve(storage_options) or {}))
         return fs, path.rstrip("/")
     return None, os.path.abspath(text.removeprefix("file://"))
 

@@ -181,8 +181,8 @@ def _run_flow(args, lake_url: str, options) -> dict:
 
     runner = cluster.task_runner(args.dask, _workers(args), _cluster_kwargs(args))
     return calibrate_session.with_options(task_runner=runner)(
-        str(args.session), str(lake_url), storage_options=options, force=args.force, rehash=args.rehash,
-        settings=_settings(args) or None, batch_size=args.batch_size)
+        str(args.session), str(lake_url), storage_options=common.flow_options(options), force=args.force,
+        rehash=args.rehash, settings=_settings(args) or None, batch_size=args.batch_size)
 
 
 # --------------------------------------------------------------------------------------
@@ -218,7 +218,8 @@ def cmd_fleet(args) -> int:
         def run():
             from flows.fleet import recalibrate_fleet
 
-            return recalibrate_fleet(str(lake_url), root=root, storage_options=options, dask_address=args.dask,
+            return recalibrate_fleet(str(lake_url), root=root, storage_options=common.flow_options(options),
+                                     dask_address=args.dask,
                                      n_workers=_workers(args), settings=_settings(args) or None,
                                      batch_size=args.batch_size, cluster_kwargs=_cluster_kwargs(args),
                                      max_sessions=args.max_sessions, dashboard=args.dashboard)
@@ -257,7 +258,7 @@ def cmd_serve(args) -> int:
     params = {k: v for k, v in {"dask_address": args.dask, "n_workers": args.workers, "batch_size": args.batch_size,
                                 "dashboard": os.path.abspath(args.dashboard) if args.dashboard else None,
                                 "settings": _settings(args) or None, "cluster_kwargs": _cluster_kwargs(args),
-                                "storage_options": options}.items() if v is not None}
+                                "storage_options": common.flow_options(options)}.items() if v is not None}
 
     def serve():
         from flows.fleet import serve_fleet

@@ -25,14 +25,16 @@ import os
 import re
 
 from fieldcal.errors import FieldcalError, InputError, one_line
+from fieldcal.lake import secrets
 
 __all__ = ["UsageError", "LAKE_ENV", "OPTIONS_ENV", "EXIT_ERROR", "EXIT_USAGE", "add_lake_arguments",
-           "lake_arguments", "open_lake", "require_lake", "known_cameras", "require_camera", "resolve_version",
+           "lake_arguments", "flow_options", "open_lake", "require_lake", "known_cameras", "require_camera",
+           "resolve_version",
            "check_output_file", "check_input_file", "is_tty", "progress_sink", "describe", "error_line",
            "shown_columns"]
 
 LAKE_ENV = "FIELDCAL_LAKE"
-OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
+OPTIONS_ENV = secrets.OPTIONS_ENV
 EXIT_ERROR = 1
 EXIT_USAGE = 2
 _CONTEXT_WORD = re.compile(r"[a-z_]+")
@@ -67,6 +69,18 @@ def lake_arguments(args) -> tuple[str, dict | None]:
         if not isinstance(options, dict):
             raise UsageError("--storage-options must be a JSON object")
     return lake, options
+
+
+def flow_options(options: dict | None) -> dict | None:
+    """The lake's storage options as a Prefect flow may record them: secrets redacted.
+
+    Their values go into this process's ``FIELDCAL_STORAGE_OPTIONS`` (seen by the flow run in
+    this process, its Dask worker threads and the worker processes it starts), where the
+    lake, opened there, finds them (:mod:`fieldcal.lake.secrets`); a worker elsewhere needs
+    them in its own environment or the storage's own configuration (``AWS_*``)."""
+    if options and secrets.secret_values(options):
+        os.environ[OPTIONS_ENV] = json.dumps(options)
+    return secrets.redact(options)
 
 
 def require_lake(lake) -> None:

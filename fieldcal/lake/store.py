@@ -85,6 +85,7 @@ from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
 from fieldcal.products.correction import CORRECTION_GRID
 from fieldcal.session.fingerprint import code_version, is_fingerprint
+from fieldcal.session.loader import check_acquired_not_ahead
 from fieldcal.session.schemas import validate_json
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
@@ -241,6 +242,8 @@ class Lake:
         now = utcnow()
         doc, explicit = self._prepare_document(document, now, acquired)
         where = f"calibration {doc['camera_id']}/{doc['session_id']}"
+        if original is None and doc.get("acquired") is not None:   # a typo would stay the latest for years
+            check_acquired_not_ahead(parse_time(doc["acquired"], where), now, where)
         res = conform_residuals(residuals, where)
         zarr_arrays = prepare_arrays(doc, arrays or {}, array_attrs or {}, where)
         fp = doc["inputs"]["fingerprint"]

@@ -29,7 +29,7 @@ import os
 import stat
 from collections import defaultdict
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from fieldcal.errors import InputError
@@ -50,6 +50,8 @@ __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
     "parse_acquired",
+    "check_acquired_not_ahead",
+    "ACQUIRED_AHEAD",
 ]
 
 MANIFEST = "session.json"
@@ -112,8 +114,23 @@ class Session:
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
 
 
+ACQUIRED_AHEAD = timedelta(days=1)
+"""How far after now a session's ``acquired`` may be (clocks and time zones); later is a typo
+that would stay the camera's latest calibration until then (docs/reliability_inputs.md)."""
+
+
+def check_acquired_not_ahead(acquired: datetime, now: datetime, where: str) -> None:
+    """InputError when ``acquired`` is more than :data:`ACQUIRED_AHEAD` after ``now``."""
+    if acquired > now + ACQUIRED_AHEAD:
+        raise InputError(f"'acquired' {acquired.isoformat().replace('+00:00', 'Z')} is after now "
+                         f"({now.replace(microsecond=0).isoformat().replace('+00:00', 'Z')}) plus "
+                         f"{ACQUIRED_AHEAD.days} day: a typo? (at /acquired)", where)
+
+
 def parse_acquired(text: str, where: str) -> datetime:
-    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC)."""
+    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC).
+
+    A time more than :data:`ACQUIRED_AHEAD` after now is refused (:func:`check_acquired_not_ahead`)."""
     t = text.strip()
     if t.endswith("Z"):
         t = t[:-1] + "+00:00"
@@ -125,9 +142,11 @@ def parse_acquired(text: str, where: str) -> datetime:
     if value.tzinfo is None:
         value = value.replace(tzinfo=UTC)
     try:
-        return value.astimezone(UTC)
+        value = value.astimezone(UTC)
     except OverflowError:                  # e.g. 9999-12-31T23:59-23:00 is after the year 9999 in UTC
         raise InputError(f"'acquired' is out of range in UTC: {text!r} (at /acquired)", where) from None
+    check_acquired_not_ahead(value, datetime.now(UTC), where)
+    return value
 
 
 def safe_path(folder: Path, relative: str, what: str, *, base: Path | None = None) -> Path:
