@@ -142,9 +142,10 @@ def require_camera(lake, camera: str) -> None:
 def resolve_version(lake, name: str, camera: str | None = None, session: str | None = None) -> str:
     """A committed version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``).
 
-    ``latest``: the camera's (or the camera's session's) most recent version; ``previous``:
-    the version before the latest among the camera's sessions. Raises :class:`UsageError`
-    saying what exists when there is no such version.
+    ``latest``: the camera's (or the camera's session's) latest version, ``previous``: the
+    calibration before it, both by the one rule of :mod:`fieldcal.lake.order` (acquisition
+    time, ties by commit order; what ``history --fleet`` and the certificate use). Raises
+    :class:`UsageError` saying what exists when there is no such version.
     """
     if name not in ("latest", "previous"):
         versions = lake.catalog()["version"].to_pylist()
@@ -154,22 +155,18 @@ def resolve_version(lake, name: str, camera: str | None = None, session: str | N
     if not camera:
         raise UsageError(f"{name!r} needs --camera ID")
     require_camera(lake, camera)
+    from fieldcal.lake import order
+
     if name == "latest":
         v = lake.latest(camera, session)
         if v is None:
             raise UsageError(f"camera {camera!r} has no calibration of session {session!r} in {lake.url}")
         return v
-    from fieldcal.lake import history
-
-    versions = history.camera_history(lake, camera)["version"].to_pylist()
-    latest = lake.latest(camera)
-    if latest in versions:
-        i = versions.index(latest)
-        if i > 0:
-            return versions[i - 1]
-    elif len(versions) >= 2:
-        return versions[-2]
-    raise UsageError(f"camera {camera!r} has no calibration before its latest in {lake.url}")
+    rows = lake.camera_rows(camera)
+    v = order.previous(rows, order.latest(rows))
+    if v is None:
+        raise UsageError(f"camera {camera!r} has no calibration before its latest in {lake.url}")
+    return v
 
 
 # --------------------------------------------------------------------------------------
