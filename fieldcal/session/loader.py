@@ -13,7 +13,11 @@ columns, unique ids and finite numbers (errors name file and row).
   are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
   file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
   Copies are found by size, then a 64 KiB sample from the middle of the file, then the
-  SHA-256 of the whole file; only files that agree on the first two are read whole.
+  SHA-256 of the whole file; only files that agree on the first two are read whole. The
+  same photograph in another encoding (other compression, a byte appended, tiles instead
+  of strips) has other bytes but the same pixels: a band of rows in the middle of every
+  image is decoded, and images whose bands agree are decoded whole and compared by the
+  SHA-256 of their pixels (issue 24).
 - The ``images`` glob is matched inside the session folder (the folder's own name is
   never a pattern: ``runs/g[1]`` is a folder, not a choice of ``g1``).
 """
@@ -215,7 +219,8 @@ def _sample_digest(path: Path, size: int) -> str:
 
 
 def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image") -> None:
-    """Refuse two names of one photograph: one file reached twice (a link) or the same bytes.
+    """Refuse two names of one photograph: one file reached twice (a link), the same bytes, or the
+    same decoded pixels (another encoding).
 
     Parameters
     ----------
@@ -227,7 +232,8 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
         The file that lists them, for the message.
 
     Files that are missing, empty or not regular are skipped here: measuring reports them.
-    Only files of equal size whose middle 64 KiB agree are read whole (module docstring).
+    Only files of equal size whose middle 64 KiB agree are read whole (module docstring);
+    then the same pixels in another encoding (:func:`_check_distinct_pixels`).
     """
     by_file: dict[tuple[int, int], str] = {}
     by_size: dict[int, list[str]] = defaultdict(list)
@@ -264,6 +270,32 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
                     raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
                                      f"(SHA-256 {h[:12]}...): a photograph counts once", where)
                 by_hash[h] = name
+    _check_distinct_pixels(folder, [n for group in by_size.values() for n in group], where, what)
+
+
+def _check_distinct_pixels(folder: Path, names: list[str], where: str, what: str) -> None:
+    """Refuse two files with the same decoded pixels: one photograph in two encodings (another
+    compression, a byte appended, striped or tiled), which would count twice and shrink the
+    sigmas. Every image's middle band of rows is decoded
+    (:func:`fieldcal.measure.imageio.pixel_sample_digest`: only its strips or tiles are read);
+    images whose bands agree are decoded whole and compared by the SHA-256 of their pixels."""
+    from fieldcal.measure.imageio import pixel_digest, pixel_sample_digest
+
+    by_sample: dict[str, list[str]] = defaultdict(list)
+    for name in names:
+        d = pixel_sample_digest(folder / name)
+        if d is not None:
+            by_sample[d].append(name)
+    for same in (g for g in by_sample.values() if len(g) > 1):
+        by_pixels: dict[str, str] = {}
+        for name in same:
+            h = pixel_digest(folder / name)
+            if h is None:
+                continue
+            if h in by_pixels:
+                raise InputError(f"{what} {shown(name)} has the same pixels as {shown(by_pixels[h])} in another "
+                                 f"encoding (pixels' SHA-256 {h[:12]}...): a photograph counts once", where)
+            by_pixels[h] = name
 
 
 def default_session_id(manifest: dict, folder) -> str:
