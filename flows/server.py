@@ -256,7 +256,7 @@ def env_seconds(name: str, default: float, *, positive: bool = False, error=None
         value = float(text)
     except ValueError:
         value = None
-    if value is None or (positive and not value > 0):
+    if value is None or value != value or abs(value) == float("inf") or (positive and not value > 0):
         kind = "a positive number" if positive else "a number"
         raise (error or ServerError)(f"{name} must be {kind} of seconds, got {text!r}")
     return value

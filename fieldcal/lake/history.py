@@ -258,10 +258,18 @@ def _bound(value, *, end: bool):
         value = parsed.date() if is_date else parsed
     if isinstance(value, dt.datetime):
         t = value if value.tzinfo else value.replace(tzinfo=UTC)
-        return t.astimezone(UTC)
+        try:
+            return t.astimezone(UTC)
+        except OverflowError:         # 9999-12-31T23:59-23:00 is after the year 9999 in UTC
+            raise InputError(f"out of range in UTC (years 1 to 9999): {value.isoformat()}", "fleet") from None
     if isinstance(value, dt.date):
         t = dt.datetime(value.year, value.month, value.day, tzinfo=UTC)
-        return t + dt.timedelta(days=1) - dt.timedelta(microseconds=1) if end else t
+        if not end:
+            return t
+        try:
+            return t + dt.timedelta(days=1) - dt.timedelta(microseconds=1)
+        except OverflowError:         # the end of 9999-12-31: the last representable time
+            return dt.datetime.max.replace(tzinfo=UTC)
     raise InputError(f"expected a date or time, got {type(value).__name__}", "fleet")
 
 

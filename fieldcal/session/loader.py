@@ -386,6 +386,9 @@ def load_session(folder) -> Session:
     estimate = manifest.get("estimate")
     allowed = FIELD_PARAMS if method == "field" else GONIOMETER_PARAMS
     if estimate is not None:
+        if not estimate:
+            raise InputError(f"estimate is empty: a calibration must estimate some of {list(allowed)} "
+                             "(leave 'estimate' out for the method's full set) (at /estimate)", where)
         bad = [p for p in estimate if p not in allowed]
         if bad:
             raise InputError(f"estimate names {bad}, not estimable by the {method} method "
