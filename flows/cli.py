@@ -47,7 +47,7 @@ import os
 import sys
 import warnings
 
-from fieldcal.errors import one_line
+from fieldcal.errors import FieldcalError, one_line
 from flows import cli_common as common
 from flows.cli_common import UsageError
 
@@ -168,7 +168,11 @@ def cmd_run(args) -> int:
         _report_run(result, args, human)
         version = result["version"]
     if args.json:
-        _write_document(lake, version, args.json)
+        try:
+            _write_document(lake, version, args.json)
+        except OSError as e:                 # committed: say which version, then why the copy failed
+            print(version)
+            raise FieldcalError(f"committed {version}, but --json {args.json}: {e.strerror}") from None
     print(version)
     sys.stdout.flush()
     return 0

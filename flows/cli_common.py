@@ -251,14 +251,17 @@ def write_output(path, data: bytes | str) -> None:
 
     p = os.path.abspath(os.fspath(path))
     raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(p)}.", suffix=".tmp", dir=os.path.dirname(p))
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(p)}.", suffix=".tmp", dir=os.path.dirname(p))
         with os.fdopen(fd, "wb") as f:
             f.write(raw)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, p)
+    except OSError as e:                      # a full device, a quota: name the output, not the temporary
+        raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
     finally:
-        if os.path.lexists(tmp):
+        if tmp is not None and os.path.lexists(tmp):
             os.unlink(tmp)
 
 

@@ -451,7 +451,7 @@ def check_grid(grid) -> tuple[int, int]:
 
 def _check(tolerance_um, alpha, region, min_sigma_px) -> None:
     if not (0 < tolerance_um < math.inf):
-        raise InputError(f"tolerance_um must be a positive finite number, got {tolerance_um}", "compare")
+        raise InputError(f"tolerance_um must be positive and finite, got {tolerance_um}", "compare")
     if not (0 < alpha < 1):
         raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
     if region not in ("auto", "sensor", "axes"):

@@ -40,6 +40,17 @@ def world(tmp_path_factory):
         m = json.loads((folder / "session.json").read_text())
         m["estimate"] = estimate
         (folder / "session.json").write_text(json.dumps(m))
+    absurd = make_session(tmp / "absurd-pitch", CAMERA, "2026-03-01", 3)
+    m = json.loads((absurd / "session.json").read_text())
+    m["sensor"]["pixel_size_um"] = 1e-9
+    (absurd / "session.json").write_text(json.dumps(m))
+    for name, table, col, value in (("absurd-sigma-px", "observations.csv", 4, "1e-30"),
+                                    ("absurd-sigma-mm", "targets.csv", 4, "1e-12")):
+        folder = make_session(tmp / name, CAMERA, "2026-03-01", 3)
+        head, first, *rest = (folder / table).read_text().splitlines()
+        cells = first.split(",")
+        cells[col] = value
+        (folder / table).write_text("\n".join([head, ",".join(cells), *rest]) + "\n")
     tifffile.imwrite(tmp / "photo.tif", np.zeros((SENSOR.height_px, SENSOR.width_px), np.uint8))
     (tmp / "notalake").mkdir()
     (tmp / "notalake" / "holiday.jpg").write_bytes(b"not a lake")
@@ -66,12 +77,12 @@ CASES = {
     "fleet alpha 2": (["history", "--fleet", "--alpha", "2"], r"alpha must be in \(0, 1\), got 2"),
     "fleet alpha 0": (["history", "--fleet", "--alpha", "0"], r"alpha must be in \(0, 1\)"),
     "fleet alpha nan": (["history", "--fleet", "--alpha", "nan"], r"alpha must be in \(0, 1\), got nan"),
-    "fleet tolerance -1": (["history", "--fleet", "--tolerance-um", "-1"], r"tolerance_um must be a positive finite"),
-    "fleet tolerance inf": (["history", "--fleet", "--tolerance-um", "inf"], r"positive finite number, got inf"),
-    "fleet tolerance nan": (["history", "--fleet", "--tolerance-um", "nan"], r"positive finite number, got nan"),
-    "dashboard tolerance inf": (["dashboard", "--out", "site", "--tolerance-um", "inf"], r"positive finite"),
+    "fleet tolerance -1": (["history", "--fleet", "--tolerance-um", "-1"], r"tolerance_um must be positive and finite"),
+    "fleet tolerance inf": (["history", "--fleet", "--tolerance-um", "inf"], r"positive and finite, got inf"),
+    "fleet tolerance nan": (["history", "--fleet", "--tolerance-um", "nan"], r"positive and finite, got nan"),
+    "dashboard tolerance inf": (["dashboard", "--out", "site", "--tolerance-um", "inf"], r"positive and finite"),
     "compare alpha 1": (["compare", *PV, "--alpha", "1"], r"alpha must be in \(0, 1\)"),
-    "compare tolerance 0": (["compare", *PV, "--tolerance-um", "0"], r"tolerance_um must be a positive finite"),
+    "compare tolerance 0": (["compare", *PV, "--tolerance-um", "0"], r"tolerance_um must be positive and finite"),
     # grids: empty, negative, one point, 10^10 points (was: ValueError / MemoryError, exit 1)
     "grid 0 0": (["compare", *PV, "--grid", "0", "0"], r"grid must have 2 to 1000 points along each axis, got 0 x 0"),
     "grid -3 5": (["compare", *PV, "--grid", "-3", "5"], r"got -3 x 5"),
@@ -92,6 +103,9 @@ CASES = {
     # the session
     "estimate []": (["run", "empty-estimate"], r"estimate is empty: a calibration must estimate some of"),
     "estimate twice": (["run", "twice-estimate"], r"\['f_mm', 'xp_mm', 'f_mm'\] has non-unique elements"),
+    "absurd pixel pitch": (["run", "absurd-pitch"], r"1e-09 is less than the minimum of 0\.1 \(at /sensor/pixel_size"),
+    "absurd sigma_px": (["run", "absurd-sigma-px"], r"observations\.csv:2: sigma_px 1e-30 px is not a plausible"),
+    "absurd sigma_mm": (["run", "absurd-sigma-mm"], r"targets\.csv:2: sigma_mm 1e-12 mm is not a plausible"),
     # a lake that is not one, refused before any work
     "run --lake FILE": (["run", "root/2026-01/wall", "--lake", "afile"], r"no lake at .*afile: it is a file"),
     "run --lake not a lake": (["run", "root/2026-01/wall", "--lake", "notalake"],
@@ -158,3 +172,21 @@ def test_extreme_range_bounds_are_answered(env, capsys):
     assert main(["history", "--from", "0001-01-01", "--to", "9999-12-31", "--format", "json"]) == 0
     assert {r["camera_id"] for r in json.loads(capsys.readouterr().out)} == {CAMERA}
     assert Path(env / "lake").is_dir()
+
+
+def test_json_on_a_full_device_prints_the_version_and_names_the_file(env, tmp_path):
+    """The write fails as on a full disk (the kernel's file size limit: EFBIG); the answer (an
+    unchanged rerun: no server) is still printed, and the line names the output, not a temporary."""
+    import resource
+    import subprocess
+    import sys
+
+    (version,) = [r["version"] for r in Lake(str(env / "lake")).catalog().to_pylist() if r["acquired"].month == 1]
+    out = tmp_path / "doc.json"
+    fieldcal = str(Path(sys.executable).with_name("fieldcal"))
+    proc = subprocess.run([fieldcal, "run", "root/2026-01/wall", "--lake", str(env / "lake"), "--json", str(out)],
+                          cwd=env, env=dict(os.environ), capture_output=True, text=True, timeout=300,
+                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (512, 512)))
+    assert proc.returncode == 1 and proc.stdout == version + "\n", proc.stderr
+    assert proc.stderr == f"fieldcal run: committed {version}, but --json {out}: File too large\n"
+    assert not out.exists() and list(tmp_path.iterdir()) == []          # no temporary left either
