@@ -157,7 +157,8 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
     for s in found:
         if s.error:
             continue
-        mine = rows.get((s.camera_id, s.session_id, s.acquired))    # same-named folders: by acquisition
+        # same-named folders: told apart by acquisition (a version without one: by its name)
+        mine = rows.get((s.camera_id, s.session_id, s.acquired)) or rows.get((s.camera_id, s.session_id, None))
         if mine:
             s.version = order.latest(mine)
         else:

@@ -79,9 +79,7 @@ def flow_options(options: dict | None) -> dict | None:
     this process, its Dask worker threads and the worker processes it starts), where the
     lake, opened there, finds them (:mod:`fieldcal.lake.secrets`); a worker elsewhere needs
     them in its own environment or the storage's own configuration (``AWS_*``)."""
-    if options and secrets.secret_values(options):
-        os.environ[OPTIONS_ENV] = json.dumps(options)
-    return secrets.redact(options)
+    return secrets.for_flow(options)
 
 
 LAKE_DATA = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments",

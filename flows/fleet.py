@@ -208,7 +208,8 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
         if s.error:
             logger.error(f"{s.folder}: {s.error}")
     if todo:
-        with _cluster(dask_address, n_workers, cluster_kwargs, logger) as address:
+        # the sessions' subflows get the options redacted; their lakes find the values here
+        with secrets.exported(storage_options), _cluster(dask_address, n_workers, cluster_kwargs, logger) as address:
             threads = n_workers if cluster.dask_address(dask_address) is None else _threads(address)
             at_once = max(1, int(max_sessions or 2 * threads))
             logger.info(f"calibrating {len(todo)} session(s), at most {at_once} at once, on {address}")

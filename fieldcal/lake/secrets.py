@@ -22,11 +22,12 @@ A *secret* is a string value under a name (at any depth, case ignored) that cont
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 
-__all__ = ["REDACTED", "OPTIONS_ENV", "is_secret_name", "redact", "resolve", "secret_values"]
+__all__ = ["REDACTED", "OPTIONS_ENV", "is_secret_name", "redact", "resolve", "secret_values", "for_flow", "exported"]
 
 REDACTED = "<redacted: from FIELDCAL_STORAGE_OPTIONS on the worker>"
 """What a secret option's value is replaced with in anything a workflow engine records."""
@@ -117,3 +118,31 @@ def resolve(options: dict | None, environ=None) -> dict | None:
     if not options or not _has_redacted(options):
         return options
     return _fill(options, _environment_options(os.environ if environ is None else environ))
+
+
+def for_flow(options: dict | None) -> dict | None:
+    """The options to give a Prefect flow (or a subflow): :func:`redact`'s copy.
+
+    Their secret values go into this process's ``FIELDCAL_STORAGE_OPTIONS`` first (seen by
+    the flow runs of this process, its Dask worker threads and the worker processes it
+    starts), where :func:`resolve` finds them; options already redacted change nothing. A
+    worker on another host needs them in its own environment or the storage's configuration."""
+    if options and secret_values(options):
+        os.environ[OPTIONS_ENV] = json.dumps(options)
+    return redact(options)
+
+
+@contextlib.contextmanager
+def exported(options: dict | None):
+    """:func:`for_flow` for the block only: ``FIELDCAL_STORAGE_OPTIONS`` is what it was after it.
+
+    For a flow called from Python with its credentials, which runs subflows with the
+    redacted copy (``flows.fleet``); yields that copy."""
+    before = os.environ.get(OPTIONS_ENV)
+    try:
+        yield for_flow(options)
+    finally:
+        if before is None:
+            os.environ.pop(OPTIONS_ENV, None)
+        else:
+            os.environ[OPTIONS_ENV] = before

@@ -72,6 +72,17 @@ def test_a_lake_opened_with_redacted_options_uses_the_environments_values(monkey
     assert store.delta_options["AWS_SECRET_ACCESS_KEY"] == PLANTED
 
 
+def test_exported_holds_the_values_for_the_block_only(monkeypatch):
+    monkeypatch.setenv(secrets.OPTIONS_ENV, '{"endpoint_url": "http://before"}')
+    full = {"endpoint_url": "http://x", "secret": PLANTED}
+    with secrets.exported(full) as red:
+        assert red == {"endpoint_url": "http://x", "secret": secrets.REDACTED}
+        assert secrets.resolve(red) == full                       # what a lake opened inside finds
+    assert os.environ[secrets.OPTIONS_ENV] == '{"endpoint_url": "http://before"}'
+    with secrets.exported(red):                                   # already redacted: nothing changes
+        assert os.environ[secrets.OPTIONS_ENV] == '{"endpoint_url": "http://before"}'
+
+
 def _database_file() -> Path:
     from prefect.settings import PREFECT_API_DATABASE_CONNECTION_URL
 
