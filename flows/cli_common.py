@@ -83,7 +83,7 @@ def flow_options(options: dict | None) -> dict | None:
 
 
 LAKE_DATA = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments",
-             "calibrations")
+             "rigs", "calibrations")
 """Entries at a lake's root that only a lake has (its Delta tables, the versions' folders)."""
 LAKE_NAMES = LAKE_DATA + ("README.md", "reports", "sessions")
 """Every entry a lake's root may hold (``sessions``: the fleet's default root in it)."""

@@ -53,9 +53,7 @@ from fieldcal.session.tables import (
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired",
-    "check_acquired_not_ahead",
-    "ACQUIRED_AHEAD",
+    "parse_acquired", "read_manifest", "check_acquired_not_ahead", "ACQUIRED_AHEAD",
 ]
 
 MANIFEST = "session.json"
@@ -346,13 +344,14 @@ def _check_frame_paths(folder: Path, frames_path: Path) -> None:
     check_distinct_files(folder, list(first), str(frames_path), "frame")
 
 
-def load_session(folder) -> Session:
-    """Read and validate ``folder/session.json`` and resolve the paths it names.
+def read_manifest(folder) -> dict:
+    """``folder/session.json`` parsed as strict JSON (no NaN, no duplicate keys), not yet
+    validated against the schema.
 
     Raises
     ------
     InputError
-        One line naming the file and what is wrong (the JSON pointer for schema errors).
+        The folder or its manifest is missing, too large, or not a JSON object.
     """
     folder = Path(folder)
     where = str(folder / MANIFEST)
@@ -374,7 +373,23 @@ def load_session(folder) -> Session:
         raise InputError(f"invalid JSON: {text[:200]}", where) from None
     if not isinstance(manifest, dict):
         raise InputError("must be a JSON object", where)
+    return manifest
+
+
+def load_session(folder) -> Session:
+    """Read and validate ``folder/session.json`` and resolve the paths it names.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and what is wrong (the JSON pointer for schema errors).
+    """
+    folder = Path(folder)
+    where = str(folder / MANIFEST)
+    manifest = read_manifest(folder)
     validate_json(manifest, "session", where)
+    if "rig" in manifest:
+        raise InputError("a rig session (it has a 'rig'): read it with fieldcal.rig.load_rig_session", where)
 
     s = manifest["sensor"]
     sensor = Sensor(int(s["width_px"]), int(s["height_px"]), float(s["pixel_size_um"]))
