@@ -123,7 +123,9 @@ def prepare(folder, settings: Settings | None = None, storage_options: dict | No
         raise InputError(f"check_fraction must lie in [0, 1), got {settings.check_fraction}", "settings")
     if not is_url(folder):
         return _prepare(load_session(folder), settings)
-    store = open_store(str(folder), storage_options)
+    from fieldcal.lake import secrets
+
+    store = open_store(str(folder), storage_options, resolve=secrets.resolve)   # redacted credentials: env
     with tempfile.TemporaryDirectory(prefix="fieldcal-session-") as tmp:
         local = os.path.join(tmp, store.name)
         store.fetch_small_files(local)

@@ -26,6 +26,7 @@ import hashlib
 import os
 import posixpath
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from fieldcal.errors import ImageError, InputError, one_line
@@ -80,18 +81,25 @@ class SessionStore:
     md5 : dict
         ``{name: MD5 hex}`` of the files whose listed ETag is their content's MD5 (an S3
         object written in one part; :func:`distinct_by_md5`).
+    resolve : callable or None
+        ``resolve(storage_options) -> options`` applied where the store is opened (the flow's
+        process, a worker): the application gives :func:`fieldcal.lake.secrets.resolve`, which
+        fills redacted credentials from that process's environment. A module-level function,
+        so that it travels with the store by reference.
     """
 
     url: str
     storage_options: dict | None = None
     files: dict[str, int] = field(default_factory=dict)
     md5: dict[str, str] = field(default_factory=dict)
+    resolve: Callable[[dict | None], dict | None] | None = None
 
     def filesystem(self):
         """``(fsspec filesystem, the folder's path in it)`` (fsspec reuses instances)."""
         import fsspec
 
-        fs, path = fsspec.core.url_to_fs(self.url, **(self.storage_options or {}))
+        options = self.resolve(self.storage_options) if self.resolve is not None else self.storage_options
+        fs, path = fsspec.core.url_to_fs(self.url, **(options or {}))
         return fs, path.rstrip("/")
 
     @property
@@ -162,15 +170,15 @@ class SessionStore:
         return self.read_image(name).sha256
 
 
-def open_store(url: str, storage_options: dict | None = None) -> SessionStore:
-    """The :class:`SessionStore` of a session folder's URL, listed.
+def open_store(url: str, storage_options: dict | None = None, resolve=None) -> SessionStore:
+    """The :class:`SessionStore` of a session folder's URL, listed (``resolve``: :class:`SessionStore`).
 
     Raises
     ------
     InputError
         Nothing is there, or it cannot be listed (named by its URL).
     """
-    store = SessionStore(url.rstrip("/"), storage_options)
+    store = SessionStore(url.rstrip("/"), storage_options, resolve=resolve)
     try:
         files = store.list()
     except OSError as e:
