@@ -226,10 +226,15 @@ def _fleet_table(summary: dict) -> str:
     from fieldcal.fleet import status_text
     from fieldcal.lake.history import to_text
 
-    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": status_text(r),
-             "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
-             "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried") else ""))}
-            for r in summary["sessions"]]
+    rows = []
+    for r in summary["sessions"]:
+        rows.append({"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "",
+                     "status": ("rig: " if r.get("rig") else "") + status_text(r), "version": r["version"] or "",
+                     "seconds": float(r["seconds"] or 0.0),
+                     "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried")
+                                                        else ""))})
+        rows += [{"camera_id": "  " + h["camera_id"], "session_id": r["session_id"] or "", "status": "head",
+                  "version": h["version"] or "", "seconds": None, "reason": ""} for h in r.get("heads") or ()]
     schema = pa.schema([("camera_id", pa.string()), ("session_id", pa.string()), ("status", pa.string()),
                         ("version", pa.string()), ("seconds", pa.float64()), ("reason", pa.string())])
     return to_text(pa.Table.from_pylist(rows, schema=schema))
