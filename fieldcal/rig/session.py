@@ -198,6 +198,11 @@ def rig_data_from_observations(sess: RigSession) -> RigData:
     images = list(sess.images)
     obs = read_observations_csv(sess.observations_path, targets, images, default_sigma_px=sess.default_sigma_px,
                                 allow_new_images=False)
+    unsurveyed = ~targets.surveyed[np.unique(obs.target)]
+    if unsurveyed.any():
+        first = str(targets.ids[np.unique(obs.target)][unsurveyed][0])
+        raise InputError(f"target {first!r} is unsurveyed (empty X, Y, Z): a rig session needs surveyed "
+                         "targets (unsurveyed ones are supported in single-camera sessions)", str(sess.targets_path))
     head_data, head_exp = [], []
     for h, head in enumerate(sess.heads):
         idx = np.flatnonzero(sess.image_head == h)
