@@ -58,7 +58,7 @@ def prepare_rig(folder, settings: Settings | None = None) -> RigPrepared:
     ------
     InputError
         One line naming the file and what is wrong (also: a rig session of images without
-        coded targets, or whose images' folder does not exist).
+        coded targets, or whose images' folder does not exist, or with unsurveyed targets).
     """
     settings = settings or Settings()
     if settings.solver not in ("lmqn", "lm"):
@@ -67,18 +67,29 @@ def prepare_rig(folder, settings: Settings | None = None) -> RigPrepared:
     parts = {"session": sha256_bytes((sess.folder / "session.json").read_bytes()),
              "targets": sha256_bytes(sess.targets_path.read_bytes()), "settings": settings.to_dict(), "kind": "rig"}
     if sess.observations_path is not None:
-        data = rig_data_from_observations(sess)
+        data = rig_data_from_observations(sess)                    # refuses unsurveyed targets it observes
         parts["observations"] = sha256_bytes(sess.observations_path.read_bytes())
         return RigPrepared(sess, settings, data, fingerprint(parts))
     if sess.coded is None:
         raise InputError("a rig session measured from its images needs coded targets (field.coded; marks.csv "
                          "is not supported for rigs)", sess.where)
-    sess.targets()                                                  # validated now
+    _refuse_unsurveyed(sess, sess.targets())                        # validated now
     names = [im.file for im in sess.images]
     _check_image_folders(sess, names)
     parts["images"] = {n: sha256_file(safe_path(sess.folder, n, "image")) for n in names
                        if safe_path(sess.folder, n, "image").is_file()}
     return RigPrepared(sess, settings, None, fingerprint(parts), to_measure=names)
+
+
+def _refuse_unsurveyed(sess: RigSession, targets) -> None:
+    """Bad input (for now): unsurveyed targets in a rig session of images (as
+    :func:`fieldcal.rig.session.rig_data_from_observations` refuses them in its observations):
+    the rig adjustment holds every target by its survey."""
+    bad = targets.ids[~targets.surveyed]
+    if len(bad):
+        raise InputError(f"{len(bad)} unsurveyed target(s) ({', '.join(map(str, bad[:3]))}"
+                         f"{', ...' if len(bad) > 3 else ''}): a rig session needs every target surveyed "
+                         "(unsurveyed targets are supported for single cameras only)", str(sess.targets_path))
 
 
 def _check_image_folders(sess: RigSession, names) -> None:

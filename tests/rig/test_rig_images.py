@@ -82,3 +82,18 @@ def test_fieldcal_run_commits_a_rig_session_of_images(session, tmp_path, capsys)
     assert doc["version"] == version and doc["stats"]["n_images"] == 16 and doc["stats"]["n_exposures"] == 8
     heads = [Lake(lake).load_document(h["version"]) for h in doc["heads"]]
     assert [len(h["images"]) for h in heads] == [8, 8] and all(h["rig"]["rig_id"] == "bar2" for h in heads)
+
+
+def test_a_rig_session_of_images_with_an_unsurveyed_target_is_refused(session, tmp_path):
+    import shutil
+
+    from fieldcal.errors import InputError
+
+    folder = tmp_path / "bar2-unsurveyed"
+    shutil.copytree(session[1]["folder"], folder)
+    rows = (folder / "targets.csv").read_text().splitlines()
+    first = rows[1].split(",")
+    rows[1] = ",".join([first[0], "", "", ""] + first[4:])        # its coordinates not surveyed
+    (folder / "targets.csv").write_text("\n".join(rows) + "\n")
+    with pytest.raises(InputError, match=rf"1 unsurveyed target\(s\) \({first[0]}\): a rig session needs"):
+        rig_run.prepare_rig(folder)
