@@ -98,4 +98,3 @@ def test_a_bad_rig_session_is_one_line_exit_2_and_nothing_written(rig_lake, caps
     assert status == 2 and out == "" and err.count("\n") == 1
     assert "session.json" in err and "reference 'bar2-middle'" in err
     assert not (tmp_path / "lake").exists()
-
