@@ -6,24 +6,27 @@ known, a disc of image ``i`` is a ray ``C_i + s d`` (``d = R_i^T unproject(uv)``
 :func:`fieldcal.model.camera.unproject`); its match in image ``j`` lies on the ray's image
 there, the epipolar line. The procedure (all images' discs at once, vectorised per image pair):
 
+Steps 1-2 work in the ideal image plane (``correct`` of each disc once, pinhole projections,
+the gate ``gate_px`` times the pixel size), step 3 in pixels through the full camera.
+
 1. **Pairs** (epipolar geometry). For images ``i < j`` whose centres are at least
    ``min_base_m`` apart, every disc ``a`` of ``i`` and ``b`` of ``j``: the two rays' nearest
    points, their midpoint ``X_ab`` (in front of both cameras, rays at least ``min_angle_deg``
-   apart), projected into ``i`` and ``j`` (:func:`fieldcal.model.camera.project`): a
+   apart), projected into ``i`` and ``j``: a
    candidate when both reprojections lie within ``gate_px`` (the epipolar distance of the
    pair, measured where it matters, in pixels).
 2. **Verification** (as the identification verifies a pose: by what else it predicts).
    ``X_ab`` is projected into every other oriented image; there the nearest unreferenced disc
    within ``gate_px`` supports it. A candidate seen (with support) in at least ``min_views``
    images is a track.
-3. **Acceptance**, greedy: the tracks with the most views first (then the smallest RMS
-   reprojection); a track is taken when none of its discs belongs to a track taken before; it
-   is intersected again from all its rays (least squares, as :mod:`fieldcal.field.intersection`)
+3. **Acceptance**, greedy: of a pair's tracks, the ones with the most views first; a track is
+   taken when none of its discs belongs to a track taken before; it is intersected again
+   from all its rays (least squares, as :mod:`fieldcal.field.intersection`)
    and kept when every ray reprojects within ``gate_px`` and it is seen in at least
    ``min_seen_fraction`` of the images whose frame it falls in. Pairs are taken in turn, and
-   a pair only looks at the discs no track has taken yet (the cost falls as tracks are found). Ambiguity along an epipolar line
-   (several discs on it) is resolved by the third and further views: a wrong pair predicts
-   nothing elsewhere.
+   a pair only looks at the discs no track has taken yet (the cost falls as tracks are
+   found). Ambiguity along an epipolar line (several discs on it) is resolved by the third
+   and further views: a wrong pair predicts nothing elsewhere.
 
 Each track becomes an unsurveyed target with an id of its own (``prefix`` and a number) and
 enters the adjustment as any unsurveyed target (:mod:`fieldcal.field.adjustment`), which
