@@ -37,13 +37,17 @@ calibration (:func:`calibrate_from_measurements`):
    to the measurement noise, and targets near the corners, where the nominal camera's missing
    distortion was too large, are found too. Images left out so far are tried again from their
    seeds.
-6. **Final adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+6. **Final adjustment**: the result (unless step 7 follows). The markers' a-priori sigmas are first scaled by how
    much more their normalised residuals scatter than the discs' did in the first adjustment
    (a variance component, at least 1): the corner-based centres of markers measure worse
    than the detector's edge-line sigma says. It starts from the latest adjustment (a warm
    start: its interior orientation, poses and targets, with the suspects a cold start would
    have: the initialisers' outliers that were never readmitted and the gross errors), so it
    reaches the same optimum without the initial values and with fewer rounds.
+
+7. **Automatic referencing** (optional, ``referencing``; :mod:`fieldcal.field.referencing`):
+   the discs no target names are matched across the adjusted images, become unsurveyed
+   targets (``AR0001``, ...) and the adjustment is repeated from step 6's (warm).
 
 The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
 ``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
@@ -502,8 +506,8 @@ class _Run:
 
 def _surveyed_only(targets, say):
     """From photographs, targets are identified by their surveyed coordinates: unsurveyed rows of
-    targets.csv are left out, with a line saying so (they enter with observations.csv;
-    finding unsurveyed discs in the photographs, automatic referencing, is not implemented).
+    targets.csv are left out, with a line saying so (they enter with observations.csv, or
+    their discs through automatic referencing, step 7, under ids of its own).
     Returns ``(surveyed targets, all targets, mask)``."""
     keep = targets.surveyed
     if keep.all():
