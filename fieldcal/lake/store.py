@@ -68,6 +68,7 @@ import pyarrow.dataset as ds
 
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake import observations as obs
+from fieldcal.lake import order
 from fieldcal.lake.ids import (
     VERSION_PATTERN,
     check_id,
@@ -85,6 +86,7 @@ from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
 from fieldcal.products.correction import CORRECTION_GRID
 from fieldcal.session.fingerprint import code_version, is_fingerprint
+from fieldcal.session.loader import check_acquired_not_ahead
 from fieldcal.session.schemas import validate_json
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
@@ -241,6 +243,8 @@ class Lake:
         now = utcnow()
         doc, explicit = self._prepare_document(document, now, acquired)
         where = f"calibration {doc['camera_id']}/{doc['session_id']}"
+        if original is None and doc.get("acquired") is not None:   # a typo would stay the latest for years
+            check_acquired_not_ahead(parse_time(doc["acquired"], where), now, where)
         res = conform_residuals(residuals, where)
         zarr_arrays = prepare_arrays(doc, arrays or {}, array_attrs or {}, where)
         fp = doc["inputs"]["fingerprint"]
@@ -576,13 +580,20 @@ class Lake:
         return hits[-1] if hits else None
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
-        """The most recently committed version of a camera (of one session), or None."""
+        """A camera's latest version (of its sessions named ``session_id``), or None.
+
+        "Latest" by :mod:`fieldcal.lake.order`: acquisition time, ties by commit order (not
+        the last commit: a backfill or a forced rerun of an old session is not the latest)."""
+        return order.latest(self.camera_rows(camera_id, session_id))
+
+    def camera_rows(self, camera_id: str, session_id: str | None = None) -> list[dict]:
+        """The catalog rows of a camera (of its sessions named ``session_id``) with the
+        columns :mod:`fieldcal.lake.order` reads (:data:`fieldcal.lake.order.ROW_COLUMNS`)."""
         check_id(camera_id, "camera_id")
         f = ds.field("camera_id") == camera_id
         if session_id is not None:
             f = f & (ds.field("session_id") == check_id(session_id, "session_id"))
-        hits = self.catalog(filter=f, equal={"camera_id": camera_id})["version"].to_pylist()
-        return hits[-1] if hits else None
+        return self.catalog(filter=f, equal={"camera_id": camera_id}).select(list(order.ROW_COLUMNS)).to_pylist()
 
     def sessions_with_calibration(self) -> list[tuple[str, str]]:
         """(camera_id, session_id) of every session with at least one committed version."""

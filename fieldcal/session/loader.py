@@ -13,7 +13,11 @@ columns, unique ids and finite numbers (errors name file and row).
   are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
   file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
   Copies are found by size, then a 64 KiB sample from the middle of the file, then the
-  SHA-256 of the whole file; only files that agree on the first two are read whole.
+  SHA-256 of the whole file; only files that agree on the first two are read whole. The
+  same photograph in another encoding (other compression, a byte appended, tiles instead
+  of strips) has other bytes but the same pixels: a band of rows in the middle of every
+  image is decoded, and images whose bands agree are decoded whole and compared by the
+  SHA-256 of their pixels (issue 24).
 - The ``images`` glob is matched inside the session folder (the folder's own name is
   never a pattern: ``runs/g[1]`` is a folder, not a choice of ``g1``).
 """
@@ -29,7 +33,7 @@ import os
 import stat
 from collections import defaultdict
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from fieldcal.errors import InputError
@@ -50,7 +54,7 @@ from fieldcal.session.tables import (
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired", "read_manifest",
+    "parse_acquired", "read_manifest", "check_acquired_not_ahead", "ACQUIRED_AHEAD",
 ]
 
 MANIFEST = "session.json"
@@ -117,8 +121,23 @@ class Session:
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
 
 
+ACQUIRED_AHEAD = timedelta(days=1)
+"""How far after now a session's ``acquired`` may be (clocks and time zones); later is a typo
+that would stay the camera's latest calibration until then (docs/reliability_inputs.md)."""
+
+
+def check_acquired_not_ahead(acquired: datetime, now: datetime, where: str) -> None:
+    """InputError when ``acquired`` is more than :data:`ACQUIRED_AHEAD` after ``now``."""
+    if acquired > now + ACQUIRED_AHEAD:
+        raise InputError(f"'acquired' {acquired.isoformat().replace('+00:00', 'Z')} is after now "
+                         f"({now.replace(microsecond=0).isoformat().replace('+00:00', 'Z')}) plus "
+                         f"{ACQUIRED_AHEAD.days} day: a typo? (at /acquired)", where)
+
+
 def parse_acquired(text: str, where: str) -> datetime:
-    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC)."""
+    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC).
+
+    A time more than :data:`ACQUIRED_AHEAD` after now is refused (:func:`check_acquired_not_ahead`)."""
     t = text.strip()
     if t.endswith("Z"):
         t = t[:-1] + "+00:00"
@@ -130,9 +149,11 @@ def parse_acquired(text: str, where: str) -> datetime:
     if value.tzinfo is None:
         value = value.replace(tzinfo=UTC)
     try:
-        return value.astimezone(UTC)
+        value = value.astimezone(UTC)
     except OverflowError:                  # e.g. 9999-12-31T23:59-23:00 is after the year 9999 in UTC
         raise InputError(f"'acquired' is out of range in UTC: {text!r} (at /acquired)", where) from None
+    check_acquired_not_ahead(value, datetime.now(UTC), where)
+    return value
 
 
 def safe_path(folder: Path, relative: str, what: str, *, base: Path | None = None) -> Path:
@@ -201,7 +222,8 @@ def _sample_digest(path: Path, size: int) -> str:
 
 
 def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image") -> None:
-    """Refuse two names of one photograph: one file reached twice (a link) or the same bytes.
+    """Refuse two names of one photograph: one file reached twice (a link), the same bytes, or the
+    same decoded pixels (another encoding).
 
     Parameters
     ----------
@@ -213,7 +235,8 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
         The file that lists them, for the message.
 
     Files that are missing, empty or not regular are skipped here: measuring reports them.
-    Only files of equal size whose middle 64 KiB agree are read whole (module docstring).
+    Only files of equal size whose middle 64 KiB agree are read whole (module docstring);
+    then the same pixels in another encoding (:func:`_check_distinct_pixels`).
     """
     by_file: dict[tuple[int, int], str] = {}
     by_size: dict[int, list[str]] = defaultdict(list)
@@ -250,6 +273,32 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
                     raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
                                      f"(SHA-256 {h[:12]}...): a photograph counts once", where)
                 by_hash[h] = name
+    _check_distinct_pixels(folder, [n for group in by_size.values() for n in group], where, what)
+
+
+def _check_distinct_pixels(folder: Path, names: list[str], where: str, what: str) -> None:
+    """Refuse two files with the same decoded pixels: one photograph in two encodings (another
+    compression, a byte appended, striped or tiled), which would count twice and shrink the
+    sigmas. Every image's middle band of rows is decoded
+    (:func:`fieldcal.measure.imageio.pixel_sample_digest`: only its strips or tiles are read);
+    images whose bands agree are decoded whole and compared by the SHA-256 of their pixels."""
+    from fieldcal.measure.imageio import pixel_digest, pixel_sample_digest
+
+    by_sample: dict[str, list[str]] = defaultdict(list)
+    for name in names:
+        d = pixel_sample_digest(folder / name)
+        if d is not None:
+            by_sample[d].append(name)
+    for same in (g for g in by_sample.values() if len(g) > 1):
+        by_pixels: dict[str, str] = {}
+        for name in same:
+            h = pixel_digest(folder / name)
+            if h is None:
+                continue
+            if h in by_pixels:
+                raise InputError(f"{what} {shown(name)} has the same pixels as {shown(by_pixels[h])} in another "
+                                 f"encoding (pixels' SHA-256 {h[:12]}...): a photograph counts once", where)
+            by_pixels[h] = name
 
 
 def default_session_id(manifest: dict, folder) -> str:
@@ -357,6 +406,9 @@ def load_session(folder) -> Session:
     estimate = manifest.get("estimate")
     allowed = FIELD_PARAMS if method == "field" else GONIOMETER_PARAMS
     if estimate is not None:
+        if not estimate:
+            raise InputError(f"estimate is empty: a calibration must estimate some of {list(allowed)} "
+                             "(leave 'estimate' out for the method's full set) (at /estimate)", where)
         bad = [p for p in estimate if p not in allowed]
         if bad:
             raise InputError(f"estimate names {bad}, not estimable by the {method} method "

@@ -322,9 +322,18 @@ def _numbers(t: CsvTable, column: str, *, default: float | None = None) -> np.nd
     return values
 
 
+PLAUSIBLE = {"sigma_px": (1e-4, 1e3, "px"), "sigma_mm": (1e-3, 1e6, "mm")}
+"""Accuracies a measurement can have ``(lowest, highest, unit)``: beyond them a value is a typo
+(a weight of 1e24 would be diagnosed as bad geometry instead)."""
+
+
 def _positive(t: CsvTable, values: np.ndarray, column: str) -> np.ndarray:
     if (k := _first(values <= 0)) is not None:
         raise InputError(f"{column} must be positive, got {values[k]}", t.where(k))
+    lo, hi, unit = PLAUSIBLE.get(column, (0.0, np.inf, ""))
+    if (k := _first((values < lo) | (values > hi))) is not None:
+        raise InputError(f"{column} {values[k]:g} {unit} is not a plausible accuracy ({lo:g} to {hi:g} {unit})",
+                         t.where(k))
     return values
 
 

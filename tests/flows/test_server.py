@@ -13,6 +13,7 @@ import json
 import os
 import re
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -109,6 +110,11 @@ def test_two_commands_at_once_share_one_server_in_a_temporary_prefect_home(world
     log = (home / "fieldcal-server.log").read_text()
     assert log.count("flows.server: pid") == 1, log
     assert (home / "prefect.db").is_file()
+    # private to its user: the database holds every flow run's parameters and logs (issue 24)
+    assert stat.S_IMODE(home.stat().st_mode) == 0o700 and stat.S_IMODE(home.parent.stat().st_mode) == 0o700
+    for f in home.iterdir():
+        if f.name.startswith("prefect.db") or f.name == "fieldcal-server.log":
+            assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
     assert not (tmp / "file").is_dir()
     status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
     assert status.returncode == 0
