@@ -37,13 +37,17 @@ calibration (:func:`calibrate_from_measurements`):
    to the measurement noise, and targets near the corners, where the nominal camera's missing
    distortion was too large, are found too. Images left out so far are tried again from their
    seeds.
-6. **Final adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+6. **Final adjustment**: the result (unless step 7 follows). The markers' a-priori sigmas are first scaled by how
    much more their normalised residuals scatter than the discs' did in the first adjustment
    (a variance component, at least 1): the corner-based centres of markers measure worse
    than the detector's edge-line sigma says. It starts from the latest adjustment (a warm
    start: its interior orientation, poses and targets, with the suspects a cold start would
    have: the initialisers' outliers that were never readmitted and the gross errors), so it
    reaches the same optimum without the initial values and with fewer rounds.
+
+7. **Automatic referencing** (optional, ``referencing``; :mod:`fieldcal.field.referencing`):
+   the discs no target names are matched across the adjusted images, become unsurveyed
+   targets (``AR0001``, ...) and the adjustment is repeated from step 6's (warm).
 
 The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
 ``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
@@ -77,6 +81,7 @@ from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
+from fieldcal.field.referencing import ReferencingOptions, reference_discs
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session
@@ -246,7 +251,9 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                                 progress: Callable[[str], None] | None = None,
                                 target_normals=None, eccentricity: bool = True,
                                 identify: IdentifyOptions | None = None,
-                                priors: PriorOptions | None = None) -> tuple[FieldData, FieldResult, list[dict]]:
+                                priors: PriorOptions | None = None,
+                                referencing: ReferencingOptions | None = None,
+                                ) -> tuple[FieldData, FieldResult, list[dict]]:
     """Identify the measured targets of every image and calibrate (module docstring).
 
     Parameters
@@ -270,6 +277,10 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
     priors : PriorOptions, optional
         Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
+    referencing : ReferencingOptions, optional
+        Automatic referencing (step 7; off when None): the discs no target names are matched
+        across the adjusted images (:func:`fieldcal.field.referencing.reference_discs`), get
+        ids of their own (``AR0001``, ...) and join the adjustment as unsurveyed targets.
 
     Returns
     -------
@@ -315,6 +326,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                       single_view=not run.options.targets_adjusted)
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
+    if referencing is not None:
+        data, result = _referenced(run, data, result, second, keep2, referencing)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -385,6 +398,52 @@ def _admit(fixed, candidates, attempt):
     return outcome, rejected
 
 
+REFERENCED_PREFIX = "AR"
+"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
+
+
+def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions):
+    """7: automatic referencing (:mod:`fieldcal.field.referencing`). The usable discs of the
+    images ``keep`` (``data``'s images, in order) that the identification ``second`` left
+    unnamed are matched across the adjusted images; each track becomes an unsurveyed target
+    (``AR0001``, ...; ``data.meta["referenced_targets"]``) and the adjustment is repeated from
+    this one (its camera, poses and targets; the tracks at their intersections)."""
+    uv, sig = [], []
+    for i in keep:
+        table = run.measurements[run.names[i]]
+        kind, _, uv_all, usable = measured_points(table)
+        rows = np.flatnonzero((second[i].target < 0) & (kind == "disc") & usable)
+        uv.append(uv_all[rows])
+        sig.append(_sigma(table, rows, run.session.default_sigma_px))
+    tracks = reference_discs(result.camera, result.R_world_to_camera, result.center_m, uv, options)
+    run.say(f"automatic referencing: {len(tracks)} unsurveyed target(s) found in {len(keep)} images "
+            f"({len(tracks.image)} points)")
+    data.meta["referenced_targets"] = len(tracks)
+    if not len(tracks):
+        return data, result
+    taken = set(data.targets.ids.tolist())
+    ids, k = [], 0
+    while len(ids) < len(tracks):
+        k += 1
+        name = f"{REFERENCED_PREFIX}{k:04d}"
+        if name not in taken:
+            ids.append(name)
+    first = len(data.targets)
+    new = FieldObservations(tracks.image, first + tracks.track,
+                            np.stack([uv[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]),
+                            np.array([sig[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]))
+    old = data.obs
+    obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
+                            np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
+    data = replace(data, targets=data.targets.with_unsurveyed(ids), obs=obs)
+    init = InitialValues(np.asarray(result.params, float).copy(), result.R_world_to_camera, result.center_m,
+                         np.concatenate([~result.obs_used, np.zeros(len(new), bool)]), np.full(len(keep), np.nan),
+                         "the adjustment before the automatic referencing (warm start)", lm_tau=result.lsq.mu,
+                         targets_m=np.vstack([result.targets_m, tracks.X_m]))
+    result = adjust_field(data, run.options, progress=run.progress, initial=init)
+    return data, result
+
+
 def _final_adjustment(run, state, build, keep, probation, second):
     """6: the adjustment, the images identified from pose priors and not adjusted yet admitted
     as :func:`_admit` says (an image that spoils it is left out)."""
@@ -446,8 +505,8 @@ class _Run:
 
 def _surveyed_only(targets, say):
     """From photographs, targets are identified by their surveyed coordinates: unsurveyed rows of
-    targets.csv are left out, with a line saying so (they enter with observations.csv;
-    finding unsurveyed discs in the photographs, automatic referencing, is not implemented).
+    targets.csv are left out, with a line saying so (they enter with observations.csv, or
+    their discs through automatic referencing, step 7, under ids of its own).
     Returns ``(surveyed targets, all targets, mask)``."""
     keep = targets.surveyed
     if keep.all():
