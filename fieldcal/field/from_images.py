@@ -27,11 +27,14 @@ calibration (:func:`calibrate_from_measurements`):
    adjustment it does not spoil (:func:`_admit`: when the adjustment fails, or the image's
    points are mostly rejected or scatter three times more than the others', the group is
    halved until the culprits are found; they are left out with the reason).
-4. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
-   or the plane of a planar field, and the session gives ``target_diameter_mm``): the
+4. **Perspective eccentricity** (when the session gives ``target_diameter_mm``): the
    detector measures the centre of the imaged ellipse; with the calibrated camera and the
    poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image
-   of its centre.
+   of its centre. The targets' normals are given (targets.csv's ``nx,ny,nz``, the session's
+   ``field.target_normal``), the plane of a planar field, or estimated from the adjusted
+   targets' local planes (:mod:`fieldcal.field.normals`); a disc whose normal is not
+   determined keeps its point, with the eccentricity it can have added to its sigma.
+   ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``).
 5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
    adjustment's, better than one image's resection) and target coordinates: the gates shrink
    to the measurement noise, and targets near the corners, where the nominal camera's missing
@@ -74,8 +77,8 @@ from fieldcal.field.adjustment import (
 )
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
-from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
+from fieldcal.field.normals import eccentricity_bound_px, normals_summary, resolve_normals
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
@@ -104,21 +107,15 @@ def nominal_camera(session: Session) -> Camera:
 
 def target_normals_of(targets: TargetField, normals=None):
     """Unit normals (n, 3) of the targets' planes: ``normals`` when given, else the
-    ``targets.normals``, else the best-fit plane's normal when the field is planar; None when
-    unknown (a field in 3-D without normals)."""
-    if normals is None:
-        normals = targets.normals
+    ``targets.normals``, else the best-fit plane's normal when the field is planar (NaN rows:
+    unknown); None when none is known (a field in 3-D without normals; :func:`_eccentricity`
+    estimates them)."""
     if normals is not None:
         N = np.asarray(normals, float).reshape(-1, 3)
-        if N.shape[0] == 1:
-            N = np.repeat(N, len(targets), axis=0)
-        if N.shape != (len(targets), 3):
+        if N.shape[0] not in (1, len(targets)):
             raise InputError(f"target normals must be (n, 3) with n = {len(targets)}, got {N.shape}")
-        return N / np.linalg.norm(N, axis=1, keepdims=True)
-    if len(targets) >= 3 and is_coplanar(targets.xyz_m):
-        _, B = plane_frame(targets.xyz_m)
-        return np.repeat(B[:, 2][None], len(targets), axis=0)
-    return None
+    tn = resolve_normals(targets, normals, estimate=False)
+    return tn.normals if tn.known.any() else None
 
 
 def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
@@ -139,9 +136,11 @@ def _identify_all(run, targets, sigma_m, camera, poses, only=None, fixed_pose: b
     return dict(zip(idx, idents, strict=True))
 
 
-def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_view=True):
+def _build(run, keep, idents, *, uv_override=None, sigma_extra=None, marker_factor=1.0, single_view=True):
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
+    ``uv_override`` and ``sigma_extra`` ({image index: per measured row}) replace the measured
+    points and add [px] in quadrature to their sigmas (:func:`_eccentricity`);
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
     ``single_view=False`` leaves out the points of targets that only one of the images sees,
     and then the images left with fewer than :data:`MIN_POINTS` points.
@@ -160,7 +159,7 @@ def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_vie
     dropped: dict[int, str] = {}
     while True:
         data, marker = _assemble(run.session, run.targets, run.images, keep, idents, run.measurements,
-                                 run.names, uv_override, marker_factor, single_view)
+                                 run.names, uv_override, sigma_extra, marker_factor, single_view)
         counts = np.bincount(data.obs.image, minlength=len(keep))
         weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
         if not weak:
@@ -174,8 +173,8 @@ def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_vie
             return data, marker, keep, dropped
 
 
-def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, marker_factor,
-              single_view):
+def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, sigma_extra,
+              marker_factor, single_view):
     img, tgt, uv, sig, mk = [], [], [], [], []
     for n, i in enumerate(keep):
         table = measurements[names[i]]
@@ -185,7 +184,10 @@ def _assemble(session, targets, images, keep, idents, measurements, names, uv_ov
         img.append(np.full(len(rows), n))
         tgt.append(idents[i].target[rows])
         uv.append(uv_override[i][rows] if uv_override is not None and i in uv_override else uv_all[rows])
-        sig.append(_sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0))
+        s = _sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0)
+        if sigma_extra is not None and i in sigma_extra:
+            s = np.hypot(s, sigma_extra[i][rows])
+        sig.append(s)
         mk.append(marker)
     if not img:
         img, tgt, uv, sig, mk = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
@@ -261,8 +263,9 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     progress : callable, optional
         Called with one line per stage.
     target_normals : (n, 3) or (3,) array_like, optional
-        Normals of the targets' planes (synthetic fields know them); without them a planar
-        field's plane is used, and a 3-D field gets no eccentricity correction.
+        Normals of the targets' planes (NaN rows unknown); they replace the session's
+        (targets.csv, ``field.target_normal``). Unknown normals come from a planar field's plane
+        or the local planes of a 3-D field's targets (:mod:`fieldcal.field.normals`).
     eccentricity : bool
         Apply the perspective-eccentricity correction to disc centres when it can be computed
         (normals known and ``field.target_diameter_mm`` in the session).
@@ -302,8 +305,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
-                                         eccentricity)
+    uv_override, sigma_extra, ecc_max, ecc_summary = _eccentricity(run, second, keep2, state.camera, state.targets,
+                                                                   state.sigma_m, target_normals, eccentricity)
     # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
@@ -311,7 +314,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                 "to the discs: their sigmas are scaled by that")
 
     def build(keep):
-        return _build(run, keep, second, uv_override=uv_override, marker_factor=factor,
+        return _build(run, keep, second, uv_override=uv_override, sigma_extra=sigma_extra, marker_factor=factor,
                       single_view=not run.options.targets_adjusted)
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
@@ -319,6 +322,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
         data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
+    data.meta["eccentricity"] = ecc_summary
     report = _report(run, data, first, second, keep2, starts, prior_reasons, ecc_max)
     data.meta["identification"] = summary = identification_summary(report)
     run.say("images used: " + f"{summary['used']} of {summary['images']}" +
@@ -577,32 +581,77 @@ def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
     return reasons
 
 
-def _eccentricity(run: _Run, second, keep2, cam, adjusted, target_normals, eccentricity):
-    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses."""
-    normals = target_normals_of(run.targets, target_normals)
+def _towards(run: _Run, second, keep2, n_targets):
+    """Per target, the mean centre of the images that see it (NaN when none) [m]."""
+    acc, cnt = np.zeros((n_targets, 3)), np.zeros(n_targets)
+    for i in keep2:
+        t = second[i].target[second[i].target >= 0]
+        np.add.at(acc, t, np.asarray(second[i].center_m, float))
+        np.add.at(cnt, t, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return acc / cnt[:, None]
+
+
+ECC_TOL_FACTOR = 3.0
+"""A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets."""
+ECC_TOL_MIN_M = 0.001
+"""... and at least this [m] (the targets' flatness on their support)."""
+
+
+def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_normals, eccentricity):
+    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses.
+
+    The normals are resolved (:func:`fieldcal.field.normals.resolve_normals`: given, planar
+    fit, or estimated from the adjusted targets' local planes). A disc whose normal is not
+    determined keeps its point, and the largest eccentricity it can have in that image
+    (:func:`~fieldcal.field.normals.eccentricity_bound_px`) is added in quadrature to its
+    sigma. Returns ``(uv_override, sigma_extra, ecc_max, summary)``.
+    """
     diameter_mm = run.session.target_diameter_mm
     ecc_max: dict[int, float] = {}
-    if not (eccentricity and normals is not None and diameter_mm):
-        return None, ecc_max
-    uv_override, all_e = {}, []
+    if not (eccentricity and diameter_mm):
+        why = "not asked" if not eccentricity else "no field.target_diameter_mm in the session"
+        return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}
+    tol = max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(np.atleast_1d(sigma_m))))
+    tn = resolve_normals(run.targets, target_normals, xyz_m=adjusted.xyz_m, tol_m=tol,
+                         towards_m=_towards(run, second, keep2, len(run.targets)))
+    radius_m = diameter_mm / 2000.0
+    uv_override, sigma_extra, all_e, bounds, seen = {}, {}, [], [], np.zeros(len(run.targets), bool)
     for i in keep2:
         kind, _, uv_all, _ = measured_points(run.measurements[run.names[i]])
         rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
         t = second[i].target[rows]
-        e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
-                          normals[t], diameter_mm / 2000.0)
+        seen[t] = True
+        R, C = second[i].R_world_to_camera, second[i].center_m
+        known = tn.known[t]
+        e = np.zeros((len(rows), 2))
+        if known.any():
+            e[known] = correction_px(cam, R, C, adjusted.xyz_m[t[known]], tn.normals[t[known]], radius_m)
         e = np.where(np.isfinite(e), e, 0.0)
         uv = uv_all.copy()
         uv[rows] = uv_all[rows] - e
         uv_override[i] = uv
+        extra = np.zeros(len(uv_all))
+        if (~known).any():
+            b = eccentricity_bound_px(cam, R, C, adjusted.xyz_m[t[~known]], radius_m)
+            extra[rows[~known]] = b
+            bounds.append(b)
+        sigma_extra[i] = extra
         norm = np.hypot(e[:, 0], e[:, 1])
         ecc_max[i] = float(norm.max()) if len(norm) else 0.0
         all_e.append(norm)
     all_e = np.concatenate(all_e) if all_e else np.zeros(0)
+    summary = {"max_px": float(all_e.max()) if len(all_e) else 0.0, **normals_summary(tn.source, seen),
+               "applied": bool(len(all_e) and all_e.max() > 0)}
+    if bounds:
+        b = np.concatenate(bounds)
+        summary["uncorrected_bound_max_px"] = float(b.max())
+        run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected, their "
+                f"sigmas include the eccentricity they can have (up to {b.max():.4f} px)")
     if len(all_e):
-        run.say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
-                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-    return uv_override, ecc_max
+        run.say(f"perspective eccentricity removed from {int(np.sum(all_e > 0))} disc centres (normals: "
+                f"{summary['normals']}): median {np.median(all_e):.4f} px, max {all_e.max():.4f} px")
+    return uv_override, sigma_extra, ecc_max, summary
 
 
 def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:

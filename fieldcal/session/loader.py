@@ -28,12 +28,14 @@ import json
 import os
 import stat
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
+
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField, normal_problem
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
@@ -49,7 +51,7 @@ from fieldcal.session.tables import (
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired",
+    "parse_acquired", "with_field_normal",
 ]
 
 MANIFEST = "session.json"
@@ -90,6 +92,7 @@ class Session:
     target_diameter_mm: float | None = None
     target_polarity: str = "dark"
     coded: dict | None = None
+    target_normal: tuple[float, float, float] | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
@@ -99,7 +102,7 @@ class Session:
         if self.targets_path is None:
             raise InputError("not a field-method session (no targets.csv)", str(self.folder / MANIFEST))
         if "targets" not in self._read:
-            self._read["targets"] = read_targets_csv(self.targets_path)
+            self._read["targets"] = with_field_normal(read_targets_csv(self.targets_path), self.target_normal)
         return copy.deepcopy(self._read["targets"])
 
     def image_path(self, name: str) -> Path:
@@ -110,6 +113,17 @@ class Session:
     def parameter_set(self) -> tuple[str, ...]:
         """The method's set of estimable parameters (docs/conventions.md section 2)."""
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
+
+
+def with_field_normal(targets: TargetField, normal) -> TargetField:
+    """``targets`` with the session's ``field.target_normal`` for every target whose normal
+    targets.csv does not give (per-target normals take precedence, docs/conventions.md section 3)."""
+    if normal is None:
+        return targets
+    N = np.full((len(targets), 3), np.nan) if targets.normals is None else targets.normals.copy()
+    unknown = ~np.isfinite(N).all(axis=1)
+    N[unknown] = np.asarray(normal, float)
+    return replace(targets, normals=N)
 
 
 def parse_acquired(text: str, where: str) -> datetime:
@@ -355,6 +369,11 @@ def load_session(folder) -> Session:
         sess.target_diameter_mm = fld.get("target_diameter_mm")
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
+        if fld.get("target_normal") is not None:
+            if (why := normal_problem(fld["target_normal"])) is not None:
+                raise InputError(f"field.target_normal {why} (at /field/target_normal)", where)
+            n = np.asarray(fld["target_normal"], float)
+            sess.target_normal = tuple(float(x) for x in n / np.linalg.norm(n))
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
