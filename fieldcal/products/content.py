@@ -18,6 +18,8 @@ and :mod:`fieldcal.products.certificate` only lay them out.
 - :func:`data_radius_mm`: how far from the principal point the data reach (beyond, the
   model is extrapolated).
 - :func:`previous_version`: the calibration of the same camera acquired before this one.
+- :func:`eccentricity_text`: the perspective eccentricity of the discs (``stats.eccentricity``):
+  the largest correction applied [px] and how the targets' normals were obtained.
 - :data:`MODEL_EQUATIONS`: the camera model ``fieldcal-brown/1`` in text.
 """
 
@@ -34,7 +36,7 @@ from fieldcal.products.uncertainty import Calibration, decentering_curve, radial
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
-           "check_points", "parse_time", "residual_format", "sig"]
+           "check_points", "parse_time", "residual_format", "sig", "eccentricity_text"]
 
 MODEL_EQUATIONS = """\
 xb = x' - xp        yb = y' - yp        r^2 = xb^2 + yb^2
@@ -230,6 +232,26 @@ def check_points(cal: Calibration) -> dict | None:
     if not cp:
         return None
     return dict(cp) if isinstance(cp, dict) else {"check points": cp}
+
+
+def eccentricity_text(cal: Calibration) -> str | None:
+    """One sentence on the perspective eccentricity of the discs (field method; docs/uncertainty.md
+    section 2): the largest correction applied and how the normals were obtained (given,
+    planar fit, estimated, none); None for a document without ``stats.eccentricity``."""
+    ecc = (cal.document.get("stats") or {}).get("eccentricity")
+    if cal.method != "field" or not isinstance(ecc, dict):
+        return None
+    counts = ecc.get("n_targets") or {}
+    how = ", ".join(f"{k} ({v} targets)" for k, v in counts.items()) if counts else str(ecc.get("normals", "none"))
+    if not ecc.get("applied"):
+        why = ecc.get("reason") or "no target normal known"
+        return f"perspective eccentricity of the discs not corrected ({why}); target normals: {how}"
+    text = (f"perspective eccentricity of the discs corrected: largest correction {sig(ecc.get('max_px'))} px; "
+            f"target normals: {how}")
+    if ecc.get("uncorrected_bound_max_px") is not None:
+        text += (f"; discs of undetermined normal left uncorrected, their sigmas including the eccentricity "
+                 f"they can have (up to {sig(ecc['uncorrected_bound_max_px'])} px)")
+    return text
 
 
 def parse_time(value) -> dt.datetime | None:
