@@ -78,8 +78,8 @@ from fieldcal.field.adjustment import (
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
-from fieldcal.field.normals import eccentricity_bound_px, normals_summary, resolve_normals
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
+from fieldcal.field.normals import eccentricity_bound_px, normals_summary, resolve_normals
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session, read_marks_csv
