@@ -35,12 +35,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fieldcal.field.data import TargetField
-from fieldcal.field.eccentricity import correction_px
+from fieldcal.field.eccentricity import correction_px, rim_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.model.camera import Camera
 
-__all__ = ["SOURCES", "TargetNormals", "resolve_normals", "estimate_normals", "eccentricity_bound_px",
-           "normals_summary"]
+__all__ = ["SOURCES", "TargetNormals", "resolve_normals", "estimate_normals", "local_planes", "choose_by_shapes",
+           "shape_vectors", "measured_shape_vectors", "eccentricity_bound_px", "normals_summary"]
 
 SOURCES = ("given", "planar fit", "estimated", "none")
 """How a target's normal was obtained (module docstring)."""
@@ -123,9 +123,64 @@ def _pair_normals(D):
     return C / np.maximum(np.linalg.norm(C, axis=2, keepdims=True), 1e-300), np.linalg.norm(C, axis=2)
 
 
-def estimate_normals(xyz_m, *, k: int = 12, tol_m: float = 0.005, min_points: int = 5,
+CANDIDATES = 3
+"""Distinct local planes kept per target (:func:`local_planes`) for the ellipses to choose from."""
+
+
+def local_planes(xyz_m, *, k: int = 20, tol_m: float = 0.005, min_points: int = 5,
+                 min_spread: float = 0.25, candidates: int = CANDIDATES):
+    """The best-supported distinct local planes of every target (module docstring).
+
+    Returns
+    -------
+    normals : (n, candidates, 3) ndarray
+        Unit normals (either sign), best support first, each tilted by more than
+        :data:`AMBIGUOUS_DEG` from the ones before; NaN rows where fewer planes qualify.
+    support : (n, candidates) int ndarray
+        Inliers of each plane, the target included (0 where none).
+    """
+    X = np.asarray(xyz_m, float)
+    n = len(X)
+    out = np.full((n, candidates, 3), np.nan)
+    sup = np.zeros((n, candidates), np.int64)
+    if n < min_points:
+        return out, sup
+    k = min(k, n - 1)
+    dist, idx = cKDTree(X).query(X, k=k + 1)
+    spacing = float(np.median(dist[:, 1]))
+    valid = dist[:, 1:] <= 3.0 * spacing                                    # (n, k)
+    D = np.where(valid[..., None], X[idx[:, 1:]] - X[:, None, :], 0.0)      # neighbour offsets
+    cand, area = _pair_normals(D)
+    jj, ll = np.triu_indices(k, k=1)
+    # a pair spanning a triangle of too small an area gives no direction
+    ok = valid[:, jj] & valid[:, ll] & (area > (0.3 * spacing) ** 2)
+    inl = (np.abs(np.einsum("npc,nkc->npk", cand, D)) <= tol_m) & valid[:, None, :]   # (n, P, k)
+    support = np.where(ok, inl.sum(axis=2), -1)                             # (n, P)
+    order = np.argsort(-support, axis=1, kind="stable")
+    cos_max = np.cos(np.radians(AMBIGUOUS_DEG))
+    for i in range(n):
+        m = 0
+        for p in order[i]:
+            if support[i, p] + 1 < min_points or m == candidates:
+                break
+            if m and np.any(np.abs(out[i, :m] @ cand[i, p]) > cos_max):
+                continue
+            P = np.vstack([X[i], X[idx[i, 1:]][inl[i, p]]])
+            c = P - P.mean(axis=0)
+            _, sv, Vt = np.linalg.svd(c, full_matrices=False)
+            if sv[1] / np.sqrt(len(P)) < min_spread * spacing or np.max(np.abs(c @ Vt[2])) > 2.0 * tol_m:
+                continue
+            if m and np.any(np.abs(out[i, :m] @ Vt[2]) > cos_max):
+                continue
+            out[i, m], sup[i, m] = Vt[2], len(P)
+            m += 1
+    return out, sup
+
+
+def estimate_normals(xyz_m, *, k: int = 20, tol_m: float = 0.005, min_points: int = 5,
                      min_spread: float = 0.25) -> np.ndarray:
-    """Unit normals (n, 3) of the targets' local planes (module docstring); NaN rows where
+    """Unit normals (n, 3) of the targets' local planes (module docstring): the best-supported
+    plane of :func:`local_planes` when no distinct plane has as much support; NaN rows where
     the local plane is not determined. Either sign.
 
     Parameters
@@ -141,45 +196,98 @@ def estimate_normals(xyz_m, *, k: int = 12, tol_m: float = 0.005, min_points: in
     min_spread : float
         The inliers' smaller in-plane standard deviation, in units of the median spacing.
     """
+    N, sup = local_planes(xyz_m, k=k, tol_m=tol_m, min_points=min_points, min_spread=min_spread)
+    unique = (sup[:, 0] > 0) & (sup[:, 0] > sup[:, 1])
+    return np.where(unique[:, None], N[:, 0], np.nan)
+
+
+def shape_vectors(uv_rim_px) -> np.ndarray:
+    """The shape of figures (..., K, 2) [px] from their points' second moments: ``(s_uu - s_vv,
+    2 s_uv) / (s_uu + s_vv)``, ``(a^2 - b^2) / (a^2 + b^2) (cos 2 phi, sin 2 phi)`` for an ellipse
+    of semi-axes ``a >= b``, major axis at ``phi`` from +u towards +v. Scale-free: 0 for a circle."""
+    c = uv_rim_px - np.nanmean(uv_rim_px, axis=-2, keepdims=True)
+    suu, svv, suv = (np.nanmean(c[..., 0] ** 2, axis=-1), np.nanmean(c[..., 1] ** 2, axis=-1),
+                     np.nanmean(c[..., 0] * c[..., 1], axis=-1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.stack([suu - svv, 2.0 * suv], axis=-1) / (suu + svv)[..., None]
+
+
+def measured_shape_vectors(major_px, minor_px, angle_deg) -> np.ndarray:
+    """:func:`shape_vectors` of the fitted edge ellipses of the measurements table (n, 2)."""
+    a2, b2 = np.asarray(major_px, float) ** 2, np.asarray(minor_px, float) ** 2
+    t = 2.0 * np.radians(np.asarray(angle_deg, float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e = (a2 - b2) / (a2 + b2)
+    return np.stack([e * np.cos(t), e * np.sin(t)], axis=-1)
+
+
+SHAPE_MIN_GAIN = 9.0
+"""The ellipses choose another plane than the best-supported one, or one of two equally supported
+planes, when it fits their shapes better by this many times the shape noise's variance per view
+(chi-square 9: three sigmas)."""
+
+
+def choose_by_shapes(camera: Camera, views, candidates, support, xyz_m, radius_m):
+    """The candidate normal of every target that its imaged ellipses' shapes confirm.
+
+    Parameters
+    ----------
+    camera : Camera
+    views : list of (R_world_to_camera, center_m, targets, shapes)
+        Per image: its pose, the indices of the targets measured as discs in it and their
+        measured :func:`shape_vectors` (k, 2).
+    candidates, support : from :func:`local_planes`
+    xyz_m : (n, 3) array_like
+    radius_m : float
+
+    Returns
+    -------
+    normals : (n, 3) ndarray
+        Per target: the best-supported plane unless another candidate fits the shapes better by
+        :data:`SHAPE_MIN_GAIN` (or a tie of support that the shapes break); NaN when no plane
+        qualifies or a tie the shapes cannot break.
+    noise : float
+        The shape vectors' noise (robust RMS per component of the best candidate's residuals).
+    """
     X = np.asarray(xyz_m, float)
-    n = len(X)
-    out = np.full((n, 3), np.nan)
-    if n < min_points:
-        return out
-    k = min(k, n - 1)
-    tree = cKDTree(X)
-    dist, idx = tree.query(X, k=k + 1)
-    spacing = float(np.median(dist[:, 1]))
-    near = dist[:, 1:] <= 3.0 * spacing                                     # (n, k)
-    D = np.where(near[..., None], X[idx[:, 1:]] - X[:, None, :], np.nan)    # offsets, NaN beyond reach
-    cand, area = _pair_normals(np.nan_to_num(D))
-    valid = np.isfinite(D[:, :, 0])
-    jj, ll = np.triu_indices(k, k=1)
-    # a pair spanning a triangle of too small an area gives no direction
-    ok = valid[:, jj] & valid[:, ll] & (area > (0.3 * spacing) ** 2)
-    dev = np.abs(np.einsum("npc,nkc->npk", cand, np.nan_to_num(D)))           # (n, P, k)
-    inl = (dev <= tol_m) & valid[:, None, :]
-    support = np.where(ok, inl.sum(axis=2), -1)                             # (n, P)
-    best = np.argmax(support, axis=1)
+    n, m = candidates.shape[:2]
+    sse = np.zeros((n, m))
+    count = np.zeros(n)
+    have = np.isfinite(candidates).all(axis=2)
+    for R, C, t, meas in views:
+        t = np.asarray(t, np.int64)
+        good = np.isfinite(meas).all(axis=1)
+        t, meas = t[good], meas[good]
+        for j in range(m):
+            sel = have[t, j]
+            if not sel.any():
+                continue
+            rim = rim_px(camera, R, C, X[t[sel]], candidates[t[sel], j], radius_m)
+            d = shape_vectors(rim) - meas[sel]
+            np.add.at(sse[:, j], t[sel], np.where(np.isfinite(d).all(axis=1), np.sum(d ** 2, axis=1), 0.0))
+        np.add.at(count, t, 1.0)
+    sse = np.where(have, sse, np.inf)
+    best_fit = np.argmin(sse, axis=1)
     rows = np.arange(n)
-    nb = cand[rows, best]
-    # a rival: as much support, tilted by more than AMBIGUOUS_DEG
-    cos_t = np.abs(np.einsum("npc,nc->np", cand, nb))
-    rival = ((support >= support[rows, best][:, None]) & (cos_t < np.cos(np.radians(AMBIGUOUS_DEG)))).any(axis=1)
-    for i in np.flatnonzero(~rival & (support[rows, best] + 1 >= min_points)):
-        P = np.vstack([X[i], X[idx[i, 1:]][inl[i, best[i]]]])
-        c = P - P.mean(axis=0)
-        _, s, Vt = np.linalg.svd(c, full_matrices=False)
-        if s[1] / np.sqrt(len(P)) < min_spread * spacing:
-            continue
-        normal = Vt[2]
-        if np.max(np.abs(c @ normal)) > 2.0 * tol_m:
-            continue
-        out[i] = normal
-    return out
+    seen = count > 0
+    first_ok = have[:, 0] & seen
+    resid = sse[first_ok, best_fit[first_ok]] / (2.0 * count[first_ok])
+    noise = float(np.sqrt(np.median(resid))) if len(resid) else np.nan
+    var = max(noise, 1e-6) ** 2
+    gain = (sse[rows, 0] - sse[rows, best_fit]) / var                         # chi-square units
+    tie = have[:, 1] & (support[:, 1] >= support[:, 0])
+    out = np.where(have[:, :1], candidates[:, 0], np.nan)
+    switch = seen & (best_fit != 0) & (gain > SHAPE_MIN_GAIN)
+    out[switch] = candidates[rows[switch], best_fit[switch]]
+    # a tie of support: the shapes must prefer one of the two clearly
+    other = np.where(best_fit == 0, 1, 0)
+    tie_gain = (sse[rows, other] - sse[rows, best_fit]) / var
+    undecided = tie & ~(seen & (tie_gain > SHAPE_MIN_GAIN))
+    out[undecided] = np.nan
+    return out, noise
 
 
-def _hemisphere(count: int = 24) -> np.ndarray:
+def _hemisphere(count: int = 48) -> np.ndarray:
     """``count`` unit vectors spread over the half sphere z > 0 (a Fibonacci lattice)."""
     k = np.arange(count) + 0.5
     z = 1.0 - k / count
@@ -188,29 +296,56 @@ def _hemisphere(count: int = 24) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+RIM = 64
+"""Rim points of the bound's eccentricities (the centroid converges as 1 / RIM^2)."""
+
+
+def _ecc_norm(camera, R, C, X, N, radius_m):
+    """|correction_px| (n, m) of discs X (n, 3) for m normals each, N (n, m, 3)."""
+    n, m = N.shape[:2]
+    e = correction_px(camera, R, C, np.repeat(X, m, axis=0), N.reshape(-1, 3),
+                      np.repeat(np.broadcast_to(np.asarray(radius_m, float), (n,)), m), rim_points=RIM)
+    mag = np.hypot(e[:, 0], e[:, 1]).reshape(n, m)
+    return np.where(np.isfinite(mag), mag, 0.0)
+
+
 def eccentricity_bound_px(camera: Camera, R_world_to_camera, center_m, centers_m, radius_m, *,
                           max_incidence_deg: float = 75.0) -> np.ndarray:
     """The largest perspective eccentricity (n,) [px] a disc of unknown normal can have in one image.
 
-    The maximum of ``|correction_px|`` over normals within ``max_incidence_deg`` of the view ray
-    (24 directions of a half sphere about the ray); to first order ``f r^2 / (2 Z^2)``, at
-    45 degrees (:mod:`.eccentricity`).
+    The maximum of ``|correction_px|`` (64 rim points) over normals within ``max_incidence_deg``
+    of the view ray: 192 directions of a half sphere about the ray, then three rounds of 8 around
+    the best (at 3, 1 and 0.3 degrees), which finds it to better than 1 %; to first order
+    ``f r^2 / (2 Z^2)``, at 45 degrees (:mod:`.eccentricity`).
     """
     X = np.asarray(centers_m, float).reshape(-1, 3)
     if not len(X):
         return np.zeros(0)
-    ray = _unit(np.asarray(center_m, float)[None, :] - X)                     # towards the camera
+    R, C = np.asarray(R_world_to_camera, float), np.asarray(center_m, float)
+    ray = _unit(C[None, :] - X)                                              # towards the camera
     ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
     a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
     b = np.cross(ray, a)
-    H = _hemisphere()
-    H = H[H[:, 2] >= np.cos(np.radians(max_incidence_deg))]
+    cos_max = np.cos(np.radians(max_incidence_deg))
+    H = _hemisphere(192)
+    H = H[H[:, 2] >= cos_max]
     N = H[None, :, 0:1] * a[:, None] + H[None, :, 1:2] * b[:, None] + H[None, :, 2:3] * ray[:, None]
-    m = H.shape[0]
-    e = correction_px(camera, R_world_to_camera, center_m, np.repeat(X, m, axis=0), N.reshape(-1, 3),
-                      np.repeat(np.broadcast_to(np.asarray(radius_m, float), (len(X),)), m), rim_points=32)
-    mag = np.hypot(e[:, 0], e[:, 1]).reshape(len(X), m)
-    return np.nanmax(np.where(np.isfinite(mag), mag, 0.0), axis=1)
+    mag = _ecc_norm(camera, R, C, X, N, radius_m)
+    best = N[np.arange(len(X)), np.argmax(mag, axis=1)]
+    top = mag.max(axis=1)
+    ring = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    for step_deg in (3.0, 1.0, 0.3):
+        u = _unit(np.cross(best, a))
+        w = np.cross(best, u)
+        d = np.tan(np.radians(step_deg))
+        M = _unit(best[:, None] + d * (np.cos(ring)[None, :, None] * u[:, None]
+                                       + np.sin(ring)[None, :, None] * w[:, None]))
+        inside = np.einsum("nmc,nc->nm", M, ray) >= cos_max
+        m2 = np.where(inside, _ecc_norm(camera, R, C, X, M, radius_m), 0.0)
+        better = m2.max(axis=1) > top
+        best = np.where(better[:, None], M[np.arange(len(X)), np.argmax(m2, axis=1)], best)
+        top = np.maximum(top, m2.max(axis=1))
+    return top
 
 
 def normals_summary(source, observed=None) -> dict:
