@@ -34,7 +34,8 @@ calibration (:func:`calibrate_from_measurements`):
    ``field.target_normal``), the plane of a planar field, or estimated from the adjusted
    targets' local planes (:mod:`fieldcal.field.normals`); a disc whose normal is not
    determined keeps its point, with the eccentricity it can have added to its sigma.
-   ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``).
+   ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``),
+   ``data.meta["target_normals"]`` holds the normals used.
 5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
    adjustment's, better than one image's resection) and target coordinates: the gates shrink
    to the measurement noise, and targets near the corners, where the nominal camera's missing
@@ -79,7 +80,7 @@ from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
-from fieldcal.field.normals import eccentricity_bound_px, normals_summary, resolve_normals
+from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session, read_marks_csv
@@ -305,7 +306,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, sigma_extra, ecc_max, ecc_summary = _eccentricity(run, second, keep2, state.camera, state.targets,
+    uv_override, sigma_extra, ecc_max, ecc_summary, normals = _eccentricity(run, second, keep2, state.camera, state.targets,
                                                                    state.sigma_m, target_normals, eccentricity)
     # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
@@ -323,6 +324,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     if ecc_max:
         data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
     data.meta["eccentricity"] = ecc_summary
+    data.meta["target_normals"] = normals
     report = _report(run, data, first, second, keep2, starts, prior_reasons, ecc_max)
     data.meta["identification"] = summary = identification_summary(report)
     run.say("images used: " + f"{summary['used']} of {summary['images']}" +
@@ -592,6 +594,22 @@ def _towards(run: _Run, second, keep2, n_targets):
         return acc / cnt[:, None]
 
 
+def _shape_views(run: _Run, second, keep2):
+    """Per image: its pose, the targets identified as discs and their ellipses' shape vectors
+    (:func:`fieldcal.field.normals.choose_by_shapes`)."""
+    views = []
+    for i in keep2:
+        table = run.measurements[run.names[i]]
+        kind = np.asarray(table.column("kind").to_numpy(zero_copy_only=False))
+        rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
+        cols = [np.asarray(table.column(c).fill_null(np.nan).to_numpy(zero_copy_only=False), float)[rows]
+                if c in table.column_names else np.full(len(rows), np.nan)
+                for c in ("major_px", "minor_px", "angle_deg")]
+        views.append((second[i].R_world_to_camera, second[i].center_m, second[i].target[rows],
+                      measured_shape_vectors(*cols)))
+    return views
+
+
 ECC_TOL_FACTOR = 3.0
 """A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets."""
 ECC_TOL_MIN_M = 0.001
@@ -605,16 +623,18 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
     fit, or estimated from the adjusted targets' local planes). A disc whose normal is not
     determined keeps its point, and the largest eccentricity it can have in that image
     (:func:`~fieldcal.field.normals.eccentricity_bound_px`) is added in quadrature to its
-    sigma. Returns ``(uv_override, sigma_extra, ecc_max, summary)``.
+    sigma. Returns ``(uv_override, sigma_extra, ecc_max, summary, normals)`` (the
+    :class:`~fieldcal.field.normals.TargetNormals`, None when not applied).
     """
     diameter_mm = run.session.target_diameter_mm
     ecc_max: dict[int, float] = {}
     if not (eccentricity and diameter_mm):
         why = "not asked" if not eccentricity else "no field.target_diameter_mm in the session"
-        return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}
+        return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}, None
     tol = max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(np.atleast_1d(sigma_m))))
     tn = resolve_normals(run.targets, target_normals, xyz_m=adjusted.xyz_m, tol_m=tol,
-                         towards_m=_towards(run, second, keep2, len(run.targets)))
+                         towards_m=_towards(run, second, keep2, len(run.targets)),
+                         shapes=(cam, _shape_views(run, second, keep2), diameter_mm / 2000.0))
     radius_m = diameter_mm / 2000.0
     uv_override, sigma_extra, all_e, bounds, seen = {}, {}, [], [], np.zeros(len(run.targets), bool)
     for i in keep2:
@@ -651,7 +671,7 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
     if len(all_e):
         run.say(f"perspective eccentricity removed from {int(np.sum(all_e > 0))} disc centres (normals: "
                 f"{summary['normals']}): median {np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-    return uv_override, sigma_extra, ecc_max, summary
+    return uv_override, sigma_extra, ecc_max, summary, tn
 
 
 def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:

@@ -67,7 +67,7 @@ def _unit(N):
 
 
 def resolve_normals(targets: TargetField, normals=None, *, xyz_m=None, estimate: bool = True,
-                    tol_m: float = 0.005, towards_m=None) -> TargetNormals:
+                    tol_m: float = 0.005, towards_m=None, shapes=None) -> TargetNormals:
     """The normal of every target and how it was obtained (module docstring).
 
     Parameters
@@ -87,6 +87,9 @@ def resolve_normals(targets: TargetField, normals=None, *, xyz_m=None, estimate:
     towards_m : (n, 3) array_like, optional
         A point on the side each target is seen from (the mean centre of the cameras that see
         it): estimated normals point towards it.
+    shapes : tuple (camera, views, radius_m), optional
+        The imaged ellipses that choose between local planes (:func:`choose_by_shapes`);
+        without them the best-supported plane (:func:`estimate_normals`).
     """
     n = len(targets)
     N = targets.normals if normals is None else normals
@@ -105,7 +108,12 @@ def resolve_normals(targets: TargetField, normals=None, *, xyz_m=None, estimate:
         N[~known] = B[:, 2]
         source[~known] = "planar fit"
     elif estimate:
-        est = estimate_normals(X, tol_m=tol_m)
+        if shapes is None:
+            est = estimate_normals(X, tol_m=tol_m)
+        else:
+            camera, views, radius_m = shapes
+            cand, sup = local_planes(X, tol_m=tol_m)
+            est, _ = choose_by_shapes(camera, views, cand, sup, X, radius_m, towards_m)
         take = ~known & np.isfinite(est).all(axis=1)
         N[take] = est[take]
         source[take] = "estimated"
@@ -223,12 +231,80 @@ def measured_shape_vectors(major_px, minor_px, angle_deg) -> np.ndarray:
 
 SHAPE_MIN_GAIN = 9.0
 """The ellipses choose another plane than the best-supported one, or one of two equally supported
-planes, when it fits their shapes better by this many times the shape noise's variance per view
+planes, when it fits their shapes better by this many times the shape noise's variance
 (chi-square 9: three sigmas)."""
+SHAPE_MAX_MISFIT = 9.0
+"""A normal whose predicted ellipses miss the measured ones by more than this many times the
+shape noise's variance per component and view (on average) is not the disc's."""
 
 
-def choose_by_shapes(camera: Camera, views, candidates, support, xyz_m, radius_m):
-    """The candidate normal of every target that its imaged ellipses' shapes confirm.
+def _shape_sse(camera, views, X, normals_of, radius_m):
+    """Sum over views of |predicted - measured shape vector|^2 (n, m) for the normals
+    ``normals_of`` (n, m, 3) of every target (NaN: not evaluated), and the views per target."""
+    n, m = normals_of.shape[:2]
+    sse = np.zeros((n, m))
+    count = np.zeros(n)
+    have = np.isfinite(normals_of).all(axis=2)
+    for R, C, t, meas in views:
+        t = np.asarray(t, np.int64)
+        good = np.isfinite(meas).all(axis=1)
+        t, meas = t[good], meas[good]
+        k, j = np.nonzero(have[t])                   # (view's disc, normal) pairs to evaluate
+        if len(k):
+            rim = rim_px(camera, R, C, X[t[k]], normals_of[t[k], j], radius_m)
+            d = shape_vectors(rim) - meas[k]
+            np.add.at(sse, (t[k], j), np.where(np.isfinite(d).all(axis=1), np.sum(d ** 2, axis=1), 0.0))
+        np.add.at(count, t, 1.0)
+    return np.where(have, sse, np.inf), count
+
+
+def _fit_shapes(camera, views, X, radius_m, towards, todo):
+    """Normals (len(todo), 3) of the targets ``todo`` that fit their ellipses best: a lattice of
+    192 directions facing ``towards``, then three rounds of 8 around the best (3, 1, 0.3 deg);
+    and their sums of squared shape misfits."""
+    k = len(todo)
+    if not k:
+        return np.zeros((0, 3)), np.zeros(0)
+    n_all = len(X)
+    ray = _unit(np.asarray(towards, float)[todo] - X[todo])
+    ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
+    b = np.cross(ray, a)
+    H = _hemisphere(192)
+    H = H[H[:, 2] >= np.cos(np.radians(80.0))]
+
+    def sse_of(M):                                   # M (k, m, 3) -> (k, m)
+        full = np.full((n_all, M.shape[1], 3), np.nan)
+        full[todo] = M
+        return _shape_sse(camera, views, X, full, radius_m)[0][todo]
+
+    M = H[None, :, 0:1] * a[:, None] + H[None, :, 1:2] * b[:, None] + H[None, :, 2:3] * ray[:, None]
+    e = sse_of(M)
+    best, top = M[np.arange(k), np.argmin(e, axis=1)], e.min(axis=1)
+    ring = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    for step_deg in (3.0, 1.0, 0.3):
+        u = _unit(np.cross(best, a))
+        w = np.cross(best, u)
+        d = np.tan(np.radians(step_deg))
+        M = _unit(best[:, None] + d * (np.cos(ring)[None, :, None] * u[:, None]
+                                       + np.sin(ring)[None, :, None] * w[:, None]))
+        e = sse_of(M)
+        better = e.min(axis=1) < top
+        best = np.where(better[:, None], M[np.arange(k), np.argmin(e, axis=1)], best)
+        top = np.minimum(top, e.min(axis=1))
+    return best, top
+
+
+def choose_by_shapes(camera: Camera, views, candidates, support, xyz_m, radius_m, towards_m=None):
+    """The normal of every target that its imaged ellipses' shapes confirm.
+
+    The shape vectors (:func:`shape_vectors`) of the disc's rim, predicted for a candidate normal
+    in every image that measured the disc, are compared with the measured ones; the shape
+    noise is the median RMS misfit of the best candidates. The best-supported local plane is
+    kept unless another fits the shapes better by :data:`SHAPE_MIN_GAIN` (a tie of support
+    must be broken so); a target whose chosen plane misfits by more than
+    :data:`SHAPE_MAX_MISFIT` (no local plane is its own: a face one target wide, a lone target)
+    gets the normal its ellipses alone fit best (when ``towards_m`` is given), if that one fits.
 
     Parameters
     ----------
@@ -239,51 +315,42 @@ def choose_by_shapes(camera: Camera, views, candidates, support, xyz_m, radius_m
     candidates, support : from :func:`local_planes`
     xyz_m : (n, 3) array_like
     radius_m : float
+    towards_m : (n, 3) array_like, optional
+        A point each target is seen from (NaN rows: not seen).
 
     Returns
     -------
     normals : (n, 3) ndarray
-        Per target: the best-supported plane unless another candidate fits the shapes better by
-        :data:`SHAPE_MIN_GAIN` (or a tie of support that the shapes break); NaN when no plane
-        qualifies or a tie the shapes cannot break.
+        NaN where undetermined (no view, or nothing fits).
     noise : float
-        The shape vectors' noise (robust RMS per component of the best candidate's residuals).
+        The shape vectors' noise per component.
     """
     X = np.asarray(xyz_m, float)
-    n, m = candidates.shape[:2]
-    sse = np.zeros((n, m))
-    count = np.zeros(n)
-    have = np.isfinite(candidates).all(axis=2)
-    for R, C, t, meas in views:
-        t = np.asarray(t, np.int64)
-        good = np.isfinite(meas).all(axis=1)
-        t, meas = t[good], meas[good]
-        for j in range(m):
-            sel = have[t, j]
-            if not sel.any():
-                continue
-            rim = rim_px(camera, R, C, X[t[sel]], candidates[t[sel], j], radius_m)
-            d = shape_vectors(rim) - meas[sel]
-            np.add.at(sse[:, j], t[sel], np.where(np.isfinite(d).all(axis=1), np.sum(d ** 2, axis=1), 0.0))
-        np.add.at(count, t, 1.0)
-    sse = np.where(have, sse, np.inf)
-    best_fit = np.argmin(sse, axis=1)
+    n = len(X)
     rows = np.arange(n)
+    sse, count = _shape_sse(camera, views, X, candidates, radius_m)
+    have = np.isfinite(sse)
     seen = count > 0
-    first_ok = have[:, 0] & seen
-    resid = sse[first_ok, best_fit[first_ok]] / (2.0 * count[first_ok])
-    noise = float(np.sqrt(np.median(resid))) if len(resid) else np.nan
-    var = max(noise, 1e-6) ** 2
-    gain = (sse[rows, 0] - sse[rows, best_fit]) / var                         # chi-square units
+    best_fit = np.argmin(sse, axis=1)
+    top = sse[rows, best_fit]
+    ok = seen & np.isfinite(top)
+    noise = float(np.sqrt(np.median(top[ok] / (2.0 * count[ok])))) if ok.any() else np.nan
+    var = max(noise if np.isfinite(noise) else 0.0, 1e-6) ** 2
+    with np.errstate(invalid="ignore"):
+        gain = np.where(have[:, 0], sse[:, 0] - top, np.inf) / var          # chi-square units
+        other = np.where(best_fit == 0, 1, 0)
+        tie_gain = np.where(have[rows, other], sse[rows, other] - top, np.inf) / var
+    choice = np.where(seen & (gain > SHAPE_MIN_GAIN), best_fit, 0)
+    out = np.where(have[rows, choice][:, None], candidates[rows, choice], np.nan)
     tie = have[:, 1] & (support[:, 1] >= support[:, 0])
-    out = np.where(have[:, :1], candidates[:, 0], np.nan)
-    switch = seen & (best_fit != 0) & (gain > SHAPE_MIN_GAIN)
-    out[switch] = candidates[rows[switch], best_fit[switch]]
-    # a tie of support: the shapes must prefer one of the two clearly
-    other = np.where(best_fit == 0, 1, 0)
-    tie_gain = (sse[rows, other] - sse[rows, best_fit]) / var
-    undecided = tie & ~(seen & (tie_gain > SHAPE_MIN_GAIN))
-    out[undecided] = np.nan
+    out[tie & ~(seen & (tie_gain > SHAPE_MIN_GAIN))] = np.nan
+    misfit = np.where(seen, sse[rows, choice] / (2.0 * np.maximum(count, 1.0) * var), np.inf)
+    out[seen & ~(misfit <= SHAPE_MAX_MISFIT)] = np.nan
+    if towards_m is not None:
+        todo = np.flatnonzero(seen & ~np.isfinite(out).all(axis=1) & np.isfinite(towards_m).all(axis=1))
+        fit, e = _fit_shapes(camera, views, X, radius_m, towards_m, todo)
+        good = e / (2.0 * count[todo] * var) <= SHAPE_MAX_MISFIT
+        out[todo[good]] = fit[good]
     return out, noise
 
 

@@ -147,3 +147,52 @@ def test_session_normals_per_target_take_precedence_over_the_field_normal(tmp_pa
     np.testing.assert_allclose(n[1], [0.0, -np.sqrt(0.5), np.sqrt(0.5)], atol=1e-12)
     with pytest.raises(InputError, match="needs every target to face the same way"):
         write_field_session(tmp_path / "x", faceted_field(seed=0), images=False, normals="session")
+
+
+def _shape_views(sf, noise, rng, radius_m):
+    """Per image of a synthetic field: pose, the targets it sees, their true ellipses' shape
+    vectors plus Gaussian noise ``noise`` per component."""
+    from fieldcal.field.eccentricity import rim_px
+    from fieldcal.field.normals import shape_vectors
+
+    views, obs = [], sf.data.obs
+    for i in range(len(sf.data.images)):
+        t = obs.target[obs.image == i]
+        R, C = sf.R_world_to_camera[i], sf.center_m[i]
+        shape = shape_vectors(rim_px(sf.camera, R, C, sf.targets_true.xyz_m[t], sf.targets_true.normals[t], radius_m))
+        views.append((R, C, t, shape + rng.normal(0.0, noise, shape.shape)))
+    return views
+
+
+@pytest.mark.parametrize("noise, wrong_max", [(0.004, 0), (0.05, None)])
+def test_the_ellipses_choose_between_local_planes_where_the_geometry_cannot(noise, wrong_max):
+    """Pillars two targets wide in front of a wall (wide_field): the geometry alone gives ~15
+    normals tilted by 55 degrees (a plane through a pillar's column and the wall's); the
+    imaged ellipses' shapes (noise 0.004, as measured on rendered 20 px discs) reject them.
+    With shapes 12 times noisier (targets too small for their ellipses to say much) they
+    switch nothing they cannot justify: never worse than the geometry alone."""
+    from fieldcal.field.normals import choose_by_shapes, local_planes
+
+    sf = wide_field(seed=0)
+    t = sf.targets_true
+    radius_m = sf.target_diameter_mm / 2000.0
+    rng = np.random.default_rng(11)
+    X = t.xyz_m + rng.normal(0.0, 1e-3, t.xyz_m.shape)
+    cand, sup = local_planes(X, tol_m=3e-3)
+    geo = estimate_normals(X, tol_m=3e-3)
+    views = _shape_views(sf, noise, rng, radius_m)
+    towards = np.full(X.shape, np.nan)
+    seen = np.unique(sf.data.obs.target)
+    towards[seen] = [sf.center_m[sf.data.obs.image[sf.data.obs.target == k]].mean(axis=0) for k in seen]
+    est, shape_noise = choose_by_shapes(sf.camera, views, cand, sup, X, radius_m, towards)
+    assert shape_noise == pytest.approx(noise, rel=0.5)
+    ok_geo, ok = np.isfinite(geo).all(axis=1), np.isfinite(est).all(axis=1)
+    wrong_geo = np.sum(_angles_deg(geo[ok_geo], t.normals[ok_geo]) > 10.0)
+    wrong = np.sum(_angles_deg(est[ok], t.normals[ok]) > 10.0)
+    assert wrong_geo >= 8
+    assert ok[seen].mean() > 0.95
+    if wrong_max is not None:
+        assert wrong <= wrong_max
+        assert _angles_deg(est[ok], t.normals[ok]).max() < 3.0
+    else:
+        assert wrong <= wrong_geo
