@@ -306,8 +306,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, sigma_extra, ecc_max, ecc_summary, normals = _eccentricity(run, second, keep2, state.camera, state.targets,
-                                                                   state.sigma_m, target_normals, eccentricity)
+    uv_override, sigma_extra, ecc_max, ecc_summary, normals = _eccentricity(
+        run, second, keep2, state.camera, state.targets, state.sigma_m, target_normals, eccentricity)
     # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:

@@ -136,7 +136,9 @@ def test_normals_estimated_from_the_field_remove_the_bias_of_f(scene, request):
     discs = np.unique(data.obs.target[sf.targets_true.codes[data.obs.target] < 0])
     k = discs[tn.known[discs]]
     cos = np.abs(np.sum(tn.normals[k] * sf.targets_true.normals[k], axis=1))
-    assert np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))).max() < 3.0
+    ang = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    # local planes: ~0.1 deg; a normal the ellipses alone fit (a disc no plane explains): a few deg
+    assert np.median(ang) < 0.5 and ang.max() < 5.0
     # their largest correction is the one the true normals give (0.5 %: the normals' own error)
     assert ecc["max_px"] == pytest.approx(s["given"][0].meta["eccentricity"]["max_px"], rel=5e-3)
 
