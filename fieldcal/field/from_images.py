@@ -247,7 +247,7 @@ def _check_enough(keep, names, idents, measurements, stage):
 def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.Table],
                                 options: AdjustmentOptions | None = None, *,
                                 progress: Callable[[str], None] | None = None,
-                                target_normals=None, eccentricity: bool = True,
+                                target_normals=None, eccentricity: bool = True, estimate_normals: bool = True,
                                 identify: IdentifyOptions | None = None,
                                 priors: PriorOptions | None = None) -> tuple[FieldData, FieldResult, list[dict]]:
     """Identify the measured targets of every image and calibrate (module docstring).
@@ -269,7 +269,10 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         or the local planes of a 3-D field's targets (:mod:`fieldcal.field.normals`).
     eccentricity : bool
         Apply the perspective-eccentricity correction to disc centres when it can be computed
-        (normals known and ``field.target_diameter_mm`` in the session).
+        (``field.target_diameter_mm`` in the session).
+    estimate_normals : bool
+        Estimate the unknown normals of a 3-D field (:mod:`fieldcal.field.normals`); False
+        leaves them unknown (their discs uncorrected, with the eccentricity bound in their sigmas).
     identify : IdentifyOptions, optional
         Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
     priors : PriorOptions, optional
@@ -307,7 +310,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
     uv_override, sigma_extra, ecc_max, ecc_summary, normals = _eccentricity(
-        run, second, keep2, state.camera, state.targets, state.sigma_m, target_normals, eccentricity)
+        run, second, keep2, state.camera, state.targets, state.sigma_m, target_normals, eccentricity,
+        estimate_normals)
     # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
@@ -616,7 +620,7 @@ ECC_TOL_MIN_M = 0.001
 """... and at least this [m] (the targets' flatness on their support)."""
 
 
-def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_normals, eccentricity):
+def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_normals, eccentricity, estimate=True):
     """4: perspective eccentricity of the discs, with the calibrated camera and the new poses.
 
     The normals are resolved (:func:`fieldcal.field.normals.resolve_normals`: given, planar
@@ -632,7 +636,7 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
         why = "not asked" if not eccentricity else "no field.target_diameter_mm in the session"
         return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}, None
     tol = max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(np.atleast_1d(sigma_m))))
-    tn = resolve_normals(run.targets, target_normals, xyz_m=adjusted.xyz_m, tol_m=tol,
+    tn = resolve_normals(run.targets, target_normals, xyz_m=adjusted.xyz_m, tol_m=tol, estimate=estimate,
                          towards_m=_towards(run, second, keep2, len(run.targets)),
                          shapes=(cam, _shape_views(run, second, keep2), diameter_mm / 2000.0))
     radius_m = diameter_mm / 2000.0

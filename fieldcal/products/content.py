@@ -244,10 +244,11 @@ def eccentricity_text(cal: Calibration) -> str | None:
     counts = ecc.get("n_targets") or {}
     how = ", ".join(f"{k} ({v} targets)" for k, v in counts.items()) if counts else str(ecc.get("normals", "none"))
     if not ecc.get("applied"):
-        why = ecc.get("reason") or "no target normal known"
-        return f"perspective eccentricity of the discs not corrected ({why}); target normals: {how}"
-    text = (f"perspective eccentricity of the discs corrected: largest correction {sig(ecc.get('max_px'))} px; "
-            f"target normals: {how}")
+        why = ecc.get("reason") or "no target normal determined"
+        text = f"perspective eccentricity of the discs not corrected ({why}); target normals: {how}"
+    else:
+        text = (f"perspective eccentricity of the discs corrected: largest correction {sig(ecc.get('max_px'))} px; "
+                f"target normals: {how}")
     if ecc.get("uncorrected_bound_max_px") is not None:
         text += (f"; discs of undetermined normal left uncorrected, their sigmas including the eccentricity "
                  f"they can have (up to {sig(ecc['uncorrected_bound_max_px'])} px)")

@@ -10,10 +10,11 @@ illumination gradient, then given one draw of the renderer's shot and read noise
 - ``wide_field``: a wall with pillars and a shelf (0.5-1 m of relief), every target facing
   -Y; the normal is written once, as session.json's ``field.target_normal``.
 
-Each scene is calibrated from its images three ways: without the eccentricity correction
+Each scene is calibrated from its images four ways: without the eccentricity correction
 (what a 3-D field got before: f biased by several sigma, docs/uncertainty.md section 2), with
-the session's normals, and with the normals removed from the session (estimated from the
-adjusted targets' local planes). Truth is the renderer's camera; sigma is the adjustment's own.
+the session's normals, with the normals removed from the session (estimated from the adjusted
+targets' local planes and the ellipses' shapes), and with no normal at all (estimation off:
+the eccentricity bound enters the sigmas). Truth is the renderer's camera; sigma is the adjustment's own.
 Measured on this draw (seed 1000), z of f without / given / estimated: faceted -5.9 / -1.3 /
 -1.4, wide -4.6 / -0.7 / -0.7 (over 5 noise draws of the faceted scene: mean -4.5 / +0.2 /
 +0.2, RMS 4.6 / 0.9 / 1.0; 4 of the wide one: mean -4.4 / -0.4 / -0.4).
@@ -82,7 +83,9 @@ def _scene(tmp_path_factory, field, normals):
     _forget_normals(folder)
     out["bare"] = prepare(folder)
     out["estimated"] = calibrate_from_measurements(out["bare"].session, meas, AdjustmentOptions())
-    for how in ("off", "given", "estimated"):
+    out["unknown"] = calibrate_from_measurements(out["bare"].session, meas, AdjustmentOptions(),
+                                                 estimate_normals=False)
+    for how in ("off", "given", "estimated", "unknown"):
         data, res, _ = out[how]
         print(f"{sf.name} {how}: z of f {_z_f(res, sf):+.2f} (error {1e3 * (res.params[0] - sf.camera.f_mm):+.3f} "
               f"um, sigma {1e3 * res.sigma['f_mm']:.3f} um), eccentricity {data.meta.get('eccentricity')}")
@@ -141,6 +144,19 @@ def test_normals_estimated_from_the_field_remove_the_bias_of_f(scene, request):
     assert np.median(ang) < 0.5 and ang.max() < 5.0
     # their largest correction is the one the true normals give (0.5 %: the normals' own error)
     assert ecc["max_px"] == pytest.approx(s["given"][0].meta["eccentricity"]["max_px"], rel=5e-3)
+
+
+@pytest.mark.parametrize("scene", ["faceted", "facade"])
+def test_undetermined_normals_widen_the_sigma_beyond_the_bias(scene, request):
+    """No normal at all (estimation off): no disc is corrected, and each image point's sigma
+    includes the largest eccentricity it can have; f's sigma grows so that the bias it keeps is
+    within it (never a sigma the bias exceeds)."""
+    s = request.getfixturevalue(scene)
+    data, res, _ = s["unknown"]
+    ecc = data.meta["eccentricity"]
+    assert not ecc["applied"] and ecc["normals"] == "none" and ecc["uncorrected_bound_max_px"] > 0.05
+    assert abs(_z_f(res, s["sf"])) < Z_HONEST
+    assert res.sigma["f_mm"] > 1.3 * s["given"][1].sigma["f_mm"]
 
 
 def test_document_report_and_certificate_state_the_correction(faceted, tmp_path):
