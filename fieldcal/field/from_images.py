@@ -33,7 +33,8 @@ calibration (:func:`calibrate_from_measurements`):
    of its centre. The targets' normals are given (targets.csv's ``nx,ny,nz``, the session's
    ``field.target_normal``), the plane of a planar field, or estimated from the adjusted
    targets' local planes (:mod:`fieldcal.field.normals`); a disc whose normal is not
-   determined keeps its point, with the eccentricity it can have added to its sigma.
+   determined keeps its point, and the largest move of the parameters its eccentricity can
+   cause is added to their variances (:mod:`fieldcal.field.sensitivity`).
    ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``),
    ``data.meta["target_normals"]`` holds the normals used.
 5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
@@ -81,6 +82,7 @@ from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
+from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session, read_marks_csv
@@ -137,11 +139,12 @@ def _identify_all(run, targets, sigma_m, camera, poses, only=None, fixed_pose: b
     return dict(zip(idx, idents, strict=True))
 
 
-def _build(run, keep, idents, *, uv_override=None, sigma_extra=None, marker_factor=1.0, single_view=True):
+def _build(run, keep, idents, *, uv_override=None, bound_px=None, marker_factor=1.0, single_view=True):
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
-    ``uv_override`` and ``sigma_extra`` ({image index: per measured row}) replace the measured
-    points and add [px] in quadrature to their sigmas (:func:`_eccentricity`);
+    ``uv_override`` ({image index: per measured row}) replaces the measured points;
+    ``bound_px`` (the same) bounds their remaining systematic error [px] (:func:`_eccentricity`),
+    kept aligned with the observations in ``data.meta["eccentricity_bound_px"]``;
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
     ``single_view=False`` leaves out the points of targets that only one of the images sees,
     and then the images left with fewer than :data:`MIN_POINTS` points.
@@ -160,7 +163,7 @@ def _build(run, keep, idents, *, uv_override=None, sigma_extra=None, marker_fact
     dropped: dict[int, str] = {}
     while True:
         data, marker = _assemble(run.session, run.targets, run.images, keep, idents, run.measurements,
-                                 run.names, uv_override, sigma_extra, marker_factor, single_view)
+                                 run.names, uv_override, bound_px, marker_factor, single_view)
         counts = np.bincount(data.obs.image, minlength=len(keep))
         weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
         if not weak:
@@ -174,9 +177,9 @@ def _build(run, keep, idents, *, uv_override=None, sigma_extra=None, marker_fact
             return data, marker, keep, dropped
 
 
-def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, sigma_extra,
+def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, bound_px,
               marker_factor, single_view):
-    img, tgt, uv, sig, mk = [], [], [], [], []
+    img, tgt, uv, sig, mk, bd = [], [], [], [], [], []
     for n, i in enumerate(keep):
         table = measurements[names[i]]
         rows = np.flatnonzero(idents[i].target >= 0)
@@ -185,24 +188,25 @@ def _assemble(session, targets, images, keep, idents, measurements, names, uv_ov
         img.append(np.full(len(rows), n))
         tgt.append(idents[i].target[rows])
         uv.append(uv_override[i][rows] if uv_override is not None and i in uv_override else uv_all[rows])
-        s = _sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0)
-        if sigma_extra is not None and i in sigma_extra:
-            s = np.hypot(s, sigma_extra[i][rows])
-        sig.append(s)
+        sig.append(_sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0))
+        bd.append(bound_px[i][rows] if bound_px is not None and i in bound_px else np.zeros(len(rows)))
         mk.append(marker)
     if not img:
-        img, tgt, uv, sig, mk = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
-            [np.zeros(0, bool)]
+        img, tgt, uv, sig, mk, bd = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
+            [np.zeros(0, bool)], [np.zeros(0)]
     obs = FieldObservations(np.concatenate(img), np.concatenate(tgt), np.concatenate(uv),
                             np.concatenate(sig))
-    marker = np.concatenate(mk)
+    marker, bound = np.concatenate(mk), np.concatenate(bd)
     if not single_view:
         views = np.bincount(obs.target, minlength=len(targets))
         multi = views[obs.target] >= 2
-        obs, marker = obs.take(multi), marker[multi]
+        obs, marker, bound = obs.take(multi), marker[multi], bound[multi]
+    meta = {"camera_id": session.camera_id, "session_id": session.session_id}
+    if bound_px is not None:
+        meta["eccentricity_bound_px"] = bound
     data = FieldData(sensor=session.sensor, targets=targets, images=[images[i] for i in keep], obs=obs,
                      nominal_focal_mm=session.nominal_focal_mm, default_sigma_px=session.default_sigma_px,
-                     meta={"camera_id": session.camera_id, "session_id": session.session_id})
+                     meta=meta)
     return data, marker
 
 
@@ -309,7 +313,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, sigma_extra, ecc_max, ecc_summary, normals = _eccentricity(
+    uv_override, bound_px, ecc_max, ecc_summary, normals = _eccentricity(
         run, second, keep2, state.camera, state.targets, state.sigma_m, target_normals, eccentricity,
         estimate_normals)
     # 6: the final adjustment
@@ -319,10 +323,18 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                 "to the discs: their sigmas are scaled by that")
 
     def build(keep):
-        return _build(run, keep, second, uv_override=uv_override, sigma_extra=sigma_extra, marker_factor=factor,
+        return _build(run, keep, second, uv_override=uv_override, bound_px=bound_px, marker_factor=factor,
                       single_view=not run.options.targets_adjusted)
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
+    bound = data.meta.get("eccentricity_bound_px")
+    if bound is not None and len(bound) == len(result.data.obs) and np.any(bound > 0):
+        result, moves = with_bias_bounds(result, eccentricity_bias_bounds(
+            result, bound > 0, run.session.target_diameter_mm / 2000.0))
+        ecc_summary["bias_bound"] = moves
+        run.say("the uncorrected discs can move f by up to "
+                f"{1000 * moves.get('f_mm', float('nan')):.3g} um: added in quadrature to its sigma "
+                f"(now {1000 * result.sigma['f_mm']:.3g} um)")
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -625,9 +637,11 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
 
     The normals are resolved (:func:`fieldcal.field.normals.resolve_normals`: given, planar
     fit, or estimated from the adjusted targets' local planes). A disc whose normal is not
-    determined keeps its point, and the largest eccentricity it can have in that image
-    (:func:`~fieldcal.field.normals.eccentricity_bound_px`) is added in quadrature to its
-    sigma. Returns ``(uv_override, sigma_extra, ecc_max, summary, normals)`` (the
+    determined keeps its point; the largest eccentricity it can have in that image
+    (:func:`~fieldcal.field.normals.eccentricity_bound_px`) bounds its error, and after the
+    final adjustment the largest move of every parameter its eccentricity can cause is added
+    in quadrature to its variance (:mod:`fieldcal.field.sensitivity`). Returns
+    ``(uv_override, bound_px, ecc_max, summary, normals)`` (the
     :class:`~fieldcal.field.normals.TargetNormals`, None when not applied).
     """
     diameter_mm = run.session.target_diameter_mm
@@ -640,7 +654,7 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
                          towards_m=_towards(run, second, keep2, len(run.targets)),
                          shapes=(cam, _shape_views(run, second, keep2), diameter_mm / 2000.0))
     radius_m = diameter_mm / 2000.0
-    uv_override, sigma_extra, all_e, bounds, seen = {}, {}, [], [], np.zeros(len(run.targets), bool)
+    uv_override, bound_px, all_e, bounds, seen = {}, {}, [], [], np.zeros(len(run.targets), bool)
     for i in keep2:
         kind, _, uv_all, _ = measured_points(run.measurements[run.names[i]])
         rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
@@ -660,7 +674,7 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
             b = eccentricity_bound_px(cam, R, C, adjusted.xyz_m[t[~known]], radius_m)
             extra[rows[~known]] = b
             bounds.append(b)
-        sigma_extra[i] = extra
+        bound_px[i] = extra
         norm = np.hypot(e[:, 0], e[:, 1])
         ecc_max[i] = float(norm.max()) if len(norm) else 0.0
         all_e.append(norm)
@@ -670,12 +684,12 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
     if bounds:
         b = np.concatenate(bounds)
         summary["uncorrected_bound_max_px"] = float(b.max())
-        run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected, their "
-                f"sigmas include the eccentricity they can have (up to {b.max():.4f} px)")
+        run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected (their "
+                f"eccentricity up to {b.max():.4f} px)")
     if len(all_e):
         run.say(f"perspective eccentricity removed from {int(np.sum(all_e > 0))} disc centres (normals: "
                 f"{summary['normals']}): median {np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-    return uv_override, sigma_extra, ecc_max, summary, tn
+    return uv_override, bound_px, ecc_max, summary, tn
 
 
 def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:

@@ -40,7 +40,7 @@ from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.model.camera import Camera
 
 __all__ = ["SOURCES", "TargetNormals", "resolve_normals", "estimate_normals", "local_planes", "choose_by_shapes",
-           "shape_vectors", "measured_shape_vectors", "eccentricity_bound_px", "normals_summary"]
+           "shape_vectors", "measured_shape_vectors", "eccentricity_bound_px", "normals_summary", "hemisphere"]
 
 SOURCES = ("given", "planar fit", "estimated", "none")
 """How a target's normal was obtained (module docstring)."""
@@ -270,7 +270,7 @@ def _fit_shapes(camera, views, X, radius_m, towards, todo):
     ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
     a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
     b = np.cross(ray, a)
-    H = _hemisphere(192)
+    H = hemisphere(192)
     H = H[H[:, 2] >= np.cos(np.radians(80.0))]
 
     def sse_of(M):                                   # M (k, m, 3) -> (k, m)
@@ -354,7 +354,7 @@ def choose_by_shapes(camera: Camera, views, candidates, support, xyz_m, radius_m
     return out, noise
 
 
-def _hemisphere(count: int = 48) -> np.ndarray:
+def hemisphere(count: int = 48) -> np.ndarray:
     """``count`` unit vectors spread over the half sphere z > 0 (a Fibonacci lattice)."""
     k = np.arange(count) + 0.5
     z = 1.0 - k / count
@@ -394,7 +394,7 @@ def eccentricity_bound_px(camera: Camera, R_world_to_camera, center_m, centers_m
     a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
     b = np.cross(ray, a)
     cos_max = np.cos(np.radians(max_incidence_deg))
-    H = _hemisphere(192)
+    H = hemisphere(192)
     H = H[H[:, 2] >= cos_max]
     N = H[None, :, 0:1] * a[:, None] + H[None, :, 1:2] * b[:, None] + H[None, :, 2:3] * ray[:, None]
     mag = _ecc_norm(camera, R, C, X, N, radius_m)

@@ -196,3 +196,37 @@ def test_the_ellipses_choose_between_local_planes_where_the_geometry_cannot(nois
         assert _angles_deg(est[ok], t.normals[ok]).max() < 3.0
     else:
         assert wrong <= wrong_geo
+
+
+@pytest.mark.parametrize("targets_adjusted", [True, False])
+def test_parameter_sensitivities_predict_the_adjustment_to_a_systematic_error(targets_adjusted):
+    """fieldcal.field.sensitivity: the linear move of f, xp, yp for an error pattern of every image
+    point (the eccentricity of 50 mm discs, smooth and systematic) against adjusting again with
+    the points moved by it; the bound of the move is at least the move."""
+    from dataclasses import replace
+
+    from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
+    from fieldcal.field.sensitivity import eccentricity_bias_bounds, parameter_bounds, sensitivities
+
+    sf = wide_field(seed=2, image_noise_px=0.02)
+    data, obs = sf.data, sf.data.obs
+    o = AdjustmentOptions(targets_adjusted=targets_adjusted)
+    res = adjust_field(data, o)
+    e = np.zeros_like(obs.uv_px)
+    for i in range(len(data.images)):
+        s = obs.image == i
+        t = obs.target[s]
+        e[s] = correction_px(sf.camera, sf.R_world_to_camera[i], sf.center_m[i], sf.targets_true.xyz_m[t],
+                             sf.targets_true.normals[t], 0.025)
+    k, g = sensitivities(res)
+    predicted = np.einsum("kjc,kc->j", g, e[k])[:3]
+    moved = adjust_field(replace(data, obs=replace(obs, uv_px=obs.uv_px + e)), o)
+    actual = moved.params[:3] - res.params[:3]
+    # linear in a 0.05 px pattern: 1 % of f's move (5 % of the much smaller xp, yp moves, or 1e-6 mm)
+    np.testing.assert_allclose(predicted[0], actual[0], rtol=0.01)
+    np.testing.assert_allclose(predicted[1:], actual[1:], rtol=0.05, atol=1e-6)
+    assert np.all(parameter_bounds(res, np.hypot(*e.T))[:3] >= np.abs(actual))
+    # the points of every 15th target: their own pattern's move, against its per-target bound
+    few = np.isin(obs.target, np.arange(0, len(sf.targets_true), 15))
+    own = np.einsum("kjc,kc->j", g[few[k]], e[k[few[k]]])[:3]
+    assert np.all(eccentricity_bias_bounds(res, few, 0.025)[:3] >= np.abs(own))
