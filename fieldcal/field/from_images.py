@@ -33,8 +33,9 @@ calibration (:func:`calibrate_from_measurements`):
    of its centre. The targets' normals are given (targets.csv's ``nx,ny,nz``, the session's
    ``field.target_normal``), the plane of a planar field, or estimated from the adjusted
    targets' local planes (:mod:`fieldcal.field.normals`); a disc whose normal is not
-   determined keeps its point, and the largest move of the parameters its eccentricity can
-   cause is added to their variances (:mod:`fieldcal.field.sensitivity`).
+   determined is left out when such discs are few; else it keeps its point, and the largest
+   move of the parameters its eccentricity can cause is added to their variances
+   (:mod:`fieldcal.field.sensitivity`).
    ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``),
    ``data.meta["target_normals"]`` holds the normals used.
 5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
@@ -143,8 +144,9 @@ def _build(run, keep, idents, *, uv_override=None, bound_px=None, marker_factor=
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
     ``uv_override`` ({image index: per measured row}) replaces the measured points;
-    ``bound_px`` (the same) bounds their remaining systematic error [px] (:func:`_eccentricity`),
-    kept aligned with the observations in ``data.meta["eccentricity_bound_px"]``;
+    ``bound_px`` (the same) bounds their remaining systematic error [px] (:func:`_eccentricity`;
+    inf: the point is left out), kept aligned with the observations in
+    ``data.meta["eccentricity_bound_px"]``;
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
     ``single_view=False`` leaves out the points of targets that only one of the images sees,
     and then the images left with fewer than :data:`MIN_POINTS` points.
@@ -183,6 +185,8 @@ def _assemble(session, targets, images, keep, idents, measurements, names, uv_ov
     for n, i in enumerate(keep):
         table = measurements[names[i]]
         rows = np.flatnonzero(idents[i].target >= 0)
+        if bound_px is not None and i in bound_px:            # inf: left out (:func:`_eccentricity`)
+            rows = rows[np.isfinite(bound_px[i][rows])]
         kind, _, uv_all, _ = measured_points(table)
         marker = kind[rows] == "aruco"
         img.append(np.full(len(rows), n))
@@ -626,6 +630,10 @@ def _shape_views(run: _Run, second, keep2):
     return views
 
 
+LEAVE_OUT_FRACTION = 0.05
+"""Disc centres whose normal is not determined are left out of the final adjustment when they
+are at most this fraction of the disc centres; otherwise they stay, and the largest bias they
+can cause widens the parameters' sigmas (:mod:`fieldcal.field.sensitivity`)."""
 ECC_TOL_FACTOR = 3.0
 """A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets."""
 ECC_TOL_MIN_M = 0.001
@@ -637,10 +645,10 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
 
     The normals are resolved (:func:`fieldcal.field.normals.resolve_normals`: given, planar
     fit, or estimated from the adjusted targets' local planes). A disc whose normal is not
-    determined keeps its point; the largest eccentricity it can have in that image
-    (:func:`~fieldcal.field.normals.eccentricity_bound_px`) bounds its error, and after the
-    final adjustment the largest move of every parameter its eccentricity can cause is added
-    in quadrature to its variance (:mod:`fieldcal.field.sensitivity`). Returns
+    determined is left out when such discs are few (:data:`LEAVE_OUT_FRACTION`), else it keeps
+    its point and after the final adjustment the largest move of every parameter its
+    eccentricity can cause is added in quadrature to its variance
+    (:mod:`fieldcal.field.sensitivity`). Returns
     ``(uv_override, bound_px, ecc_max, summary, normals)`` (the
     :class:`~fieldcal.field.normals.TargetNormals`, None when not applied).
     """
@@ -684,8 +692,15 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
     if bounds:
         b = np.concatenate(bounds)
         summary["uncorrected_bound_max_px"] = float(b.max())
-        run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected (their "
-                f"eccentricity up to {b.max():.4f} px)")
+        if len(b) <= LEAVE_OUT_FRACTION * len(all_e):
+            for i in bound_px:
+                bound_px[i][bound_px[i] > 0] = np.inf
+            summary["n_left_out"] = len(b)
+            run.say(f"{len(b)} disc centres of targets whose normal is not determined (eccentricity up to "
+                    f"{b.max():.4f} px): left out of the final adjustment")
+        else:
+            run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected (their "
+                    f"eccentricity up to {b.max():.4f} px bounds the parameters' bias)")
     if len(all_e):
         run.say(f"perspective eccentricity removed from {int(np.sum(all_e > 0))} disc centres (normals: "
                 f"{summary['normals']}): median {np.median(all_e):.4f} px, max {all_e.max():.4f} px")

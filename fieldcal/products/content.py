@@ -249,9 +249,13 @@ def eccentricity_text(cal: Calibration) -> str | None:
     else:
         text = (f"perspective eccentricity of the discs corrected: largest correction {sig(ecc.get('max_px'))} px; "
                 f"target normals: {how}")
-    if ecc.get("uncorrected_bound_max_px") is not None:
-        text += (f"; discs of undetermined normal left uncorrected, their sigmas including the eccentricity "
-                 f"they can have (up to {sig(ecc['uncorrected_bound_max_px'])} px)")
+    bound = ecc.get("uncorrected_bound_max_px")
+    if ecc.get("n_left_out"):
+        text += (f"; {ecc['n_left_out']} disc centres of undetermined normal (eccentricity up to {sig(bound)} px) "
+                 "left out")
+    elif isinstance(ecc.get("bias_bound"), dict) and ecc["bias_bound"].get("f_mm") is not None:
+        text += (f"; discs of undetermined normal (eccentricity up to {sig(bound)} px) not corrected: the bias "
+                 f"they can cause, up to {sig(1000 * ecc['bias_bound']['f_mm'])} µm in f, is in the sigmas")
     return text
 
 
