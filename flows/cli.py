@@ -41,6 +41,7 @@ say otherwise (:data:`THREAD_DEFAULTS`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -150,6 +151,10 @@ def cmd_run(args) -> int:
     if args.json:
         common.check_output_file(args.json, "--json")
     _check_compute(args)
+    from fieldcal.rig.session import is_rig_session
+
+    if is_rig_session(args.session):
+        return _run_rig(args, lake_url, options)
     prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)))
     lake = Lake(lake_url, options)
     human = common.is_tty(sys.stderr)
@@ -170,6 +175,33 @@ def cmd_run(args) -> int:
         version = result["version"]
     if args.json:
         _write_document(lake, version, args.json)
+    print(version)
+    sys.stdout.flush()
+    return 0
+
+
+def _run_rig(args, lake_url: str, options) -> int:
+    """``fieldcal run`` of a rig session (CONTRACT section 3, "Rig sessions"): validated before
+    anything is written, calibrated in this process (its observations need no image work),
+    committed as one version of the rig; prints the rig's version, ``--json`` writes the rig
+    document."""
+    from fieldcal import pipeline, rig_run
+    from fieldcal.lake.store import Lake
+
+    settings = pipeline.Settings(**_settings(args))
+    prepared = rig_run.prepare_rig(args.session, settings)   # bad input: one line, exit 2, nothing written
+    lake = Lake(lake_url, options)
+    human = common.is_tty(sys.stderr)
+    version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)
+    if human:
+        for line in (outcome.summary if outcome is not None else ["unchanged (same inputs and settings; "
+                                                                 "--force for a new version)"]):
+            print(line, file=sys.stderr)
+        print(f"head versions: {', '.join(heads)}", file=sys.stderr)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump(lake.load_rig_document(version), f, indent=2)
+            f.write("\n")
     print(version)
     sys.stdout.flush()
     return 0
@@ -301,6 +333,7 @@ def _stop_within(grace_s: float) -> None:
     def give_up():
         print(f"fieldcal serve: stopped (Prefect's shutdown did not finish within {grace_s:g} s; "
               "the served schedule may still be active on the server)", file=sys.stderr, flush=True)
+        _end_children()
         os._exit(0)
 
     timer = threading.Timer(grace_s, give_up)
@@ -312,6 +345,22 @@ def _stop_within(grace_s: float) -> None:
         signal.default_int_handler(signum, frame)
 
     signal.signal(signal.SIGINT, on_sigint)
+
+
+def _end_children(wait_s: float = 2.0) -> None:
+    """Kill this process's children (a flow run Prefect's runner started, a helper) before
+    ``os._exit``: they would outlive it, orphaned, holding its standard error open. The
+    local Prefect server is not among them (it runs detached, :func:`flows.server._launch`)."""
+    import psutil
+
+    try:
+        children = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return
+    for child in children:
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    psutil.wait_procs(children, timeout=wait_s)
 
 
 def cmd_server(args) -> int:
@@ -538,8 +587,9 @@ def _add_show_command(sub) -> None:
 def _add_synthetic_commands(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic session (and its truth.json)")
     p.add_argument("out", help="the session folder to write")
-    p.add_argument("--method", choices=("goniometer", "field"), default="goniometer")
-    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide")
+    p.add_argument("--method", choices=("goniometer", "field", "rig"), default="goniometer")
+    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide; "
+                   "rig: two-head (default) or oblique (observation-only rig sessions)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--raster-scale", type=float, default=0.25,
                    help="goniometer: pixel grid scale over the same sensor (default %(default)s)")

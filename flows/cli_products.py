@@ -165,6 +165,8 @@ def _compare(args) -> int:
 
     _check_outputs((args.plot, "--plot"), (args.out, "--out"))
     lake = open_lake(args)
+    if lake.is_rig_version(args.v1) or lake.is_rig_version(args.v2):
+        return _compare_rigs(lake, args)
     va = resolve_version(lake, args.v1, args.camera)
     vb = resolve_version(lake, args.v2, args.camera)
     a, b = Calibration.from_lake(lake, va), Calibration.from_lake(lake, vb)
@@ -178,6 +180,23 @@ def _compare(args) -> int:
         text = json.dumps(c.summary(), indent=2) + "\n"
     else:
         text = _comparison_text(c, a, b)
+    _write_text(text, args.out)
+    return 0
+
+
+def _compare_rigs(lake, args) -> int:
+    """``fieldcal compare RIG_V1 RIG_V2``: the change test of the relative orientations
+    (:mod:`fieldcal.products.rig_compare`)."""
+    from fieldcal.errors import InputError
+    from fieldcal.products.rig_compare import compare_rigs, rig_comparison_text
+
+    for v in (args.v1, args.v2):
+        if not lake.is_rig_version(v):
+            raise InputError(f"{v} is not a rig version of {lake.url}: compare two rig versions, or two "
+                             "calibration versions of one camera", "compare")
+    c = compare_rigs(lake.load_rig_document(args.v1), lake.load_rig_document(args.v2), alpha=args.alpha,
+                     tolerance_arcsec=args.tolerance_arcsec, tolerance_mm=args.tolerance_mm)
+    text = json.dumps(c, indent=2) + "\n" if args.format == "json" else rig_comparison_text(c)
     _write_text(text, args.out)
     return 0
 
@@ -303,6 +322,10 @@ def add_commands(subparsers) -> None:
                    help=f"significance level (default {DEFAULT_ALPHA:g})")
     p.add_argument("--remove-rotation", action="store_true",
                    help="remove the best common rotation of the camera frames first")
+    p.add_argument("--tolerance-arcsec", type=float, default=10.0,
+                   help="rig versions: tolerance of a relative rotation change [arcsec] (default 10)")
+    p.add_argument("--tolerance-mm", type=float, default=1.0,
+                   help="rig versions: tolerance of a lever-arm change [mm] (default 1)")
     p.add_argument("--grid", type=int, nargs=2, default=(41, 31), metavar=("NX", "NY"),
                    help="grid over the sensor (default 41 31)")
     p.add_argument("--plot", metavar="PNG", default=None, help="also draw the maps into PNG")

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField, normal_problem
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
@@ -45,18 +45,20 @@ from fieldcal.session.tables import (
     check_size,
     read_marks_csv,
     read_observations_csv,
+    read_scale_bars_csv,
     read_targets_csv,
 )
 
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired", "with_field_normal",
+    "parse_acquired", "read_manifest", "with_field_normal",
 ]
 
 MANIFEST = "session.json"
 OBSERVATIONS = "observations.csv"
 MARKS = "marks.csv"
+SCALE_BARS = "scale_bars.csv"
 
 
 @dataclass
@@ -95,6 +97,9 @@ class Session:
     target_normal: tuple[float, float, float] | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
+    scale_bars_path: Path | None = None
+    strict_targets: bool = False
+    datum: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -309,13 +314,14 @@ def _check_frame_paths(folder: Path, frames_path: Path) -> None:
     check_distinct_files(folder, list(first), str(frames_path), "frame")
 
 
-def load_session(folder) -> Session:
-    """Read and validate ``folder/session.json`` and resolve the paths it names.
+def read_manifest(folder) -> dict:
+    """``folder/session.json`` parsed as strict JSON (no NaN, no duplicate keys), not yet
+    validated against the schema.
 
     Raises
     ------
     InputError
-        One line naming the file and what is wrong (the JSON pointer for schema errors).
+        The folder or its manifest is missing, too large, or not a JSON object.
     """
     folder = Path(folder)
     where = str(folder / MANIFEST)
@@ -337,7 +343,23 @@ def load_session(folder) -> Session:
         raise InputError(f"invalid JSON: {text[:200]}", where) from None
     if not isinstance(manifest, dict):
         raise InputError("must be a JSON object", where)
+    return manifest
+
+
+def load_session(folder) -> Session:
+    """Read and validate ``folder/session.json`` and resolve the paths it names.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and what is wrong (the JSON pointer for schema errors).
+    """
+    folder = Path(folder)
+    where = str(folder / MANIFEST)
+    manifest = read_manifest(folder)
     validate_json(manifest, "session", where)
+    if "rig" in manifest:
+        raise InputError("a rig session (it has a 'rig'): read it with fieldcal.rig.load_rig_session", where)
 
     s = manifest["sensor"]
     sensor = Sensor(int(s["width_px"]), int(s["height_px"]), float(s["pixel_size_um"]))
@@ -375,6 +397,8 @@ def load_session(folder) -> Session:
             n = np.asarray(fld["target_normal"], float)
             sess.target_normal = tuple(float(x) for x in n / np.linalg.norm(n))
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
+        sess.strict_targets = bool(fld.get("strict_targets", False))
+        sess.datum = str(fld.get("datum", "auto"))
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -383,7 +407,8 @@ def load_session(folder) -> Session:
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         check_distinct_files(folder, [im.file for im in sess.images], where)
-        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
+        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path"),
+                           (SCALE_BARS, "scale_bars_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
                 setattr(sess, attr, p)
@@ -408,11 +433,23 @@ def field_data_from_observations(sess: Session) -> FieldData:
     if "observations" not in sess._read:
         images = list(sess.images)
         allow_new = isinstance(sess.manifest["images"], str) and not images
+        unlisted = None if sess.strict_targets else []
         obs = read_observations_csv(sess.observations_path, targets, images,
                                     default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
-                                    sensor=sess.sensor)
-        sess._read["observations"] = (images, obs)
-    images, obs = copy.deepcopy(sess._read["observations"])
+                                    sensor=sess.sensor, unlisted=unlisted)
+        sess._read["observations"] = (images, obs, unlisted or [])
+    images, obs, unlisted = copy.deepcopy(sess._read["observations"])
+    targets = targets.with_unsurveyed(unlisted)
+    meta = {"camera_id": sess.camera_id, "session_id": sess.session_id}
+    if unlisted:
+        meta["unlisted_targets"] = list(unlisted)
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
-                     meta={"camera_id": sess.camera_id, "session_id": sess.session_id})
+                     meta=meta, scale_bars=scale_bars_of(sess, targets))
+
+
+def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """``scale_bars.csv`` of the session over ``targets`` (None when the session has none)."""
+    if sess.scale_bars_path is None:
+        return None
+    return read_scale_bars_csv(sess.scale_bars_path, targets)
