@@ -311,6 +311,8 @@ def _adjustment(cal: Calibration, residuals) -> list[str]:
                    [[_num(adj["sigma0"], ".4g"), f'<td class="num">{adj["redundancy"]}</td>',
                      f'<td class="num">{adj["n_equations"]}</td>', f'<td class="num">{adj["n_unknowns"]}</td>',
                      f'<td class="num">{E(fig)}</td>']]),
+            *([f'<p id="eccentricity">{E(ecc[0].upper() + ecc[1:])}.</p>']
+              if (ecc := content.eccentricity_text(cal)) else []),
             _coverage(cal, residuals)]
 
 

@@ -182,6 +182,8 @@ def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
                        f"{st.get('n_targets')} targets in the final adjustment")
         went_in.append("surveyed target coordinates entered as weighted observations"
                        if st.get("targets_adjusted") else "surveyed target coordinates held fixed")
+        if (ecc := content.eccentricity_text(cal)) is not None:
+            went_in.append(ecc)
         detailed = st.get("left_out") if isinstance(st.get("left_out"), list) else None
         named = set()
         for item in detailed or []:
