@@ -77,7 +77,7 @@ def test_fleet_takes_its_sessions_from_the_lakes_bucket(s3_lake, tmp_path):
     reason = by_cam["cam-f2"]["reason"]
     assert by_cam["cam-f2"]["status"] == "failed"
     assert reason.startswith(f"{url}/sessions/cam-f2/2026-03-02/session.json: ")
-    assert "required property" in reason
+    assert "required propert" in reason
     assert lake.sessions_with_calibration() == [("cam-f1", "2026-03-01")]
     second = recalibrate_fleet(url, storage_options=options)
     assert (second["n_committed"], second["n_skipped"], second["n_failed"]) == (0, 1, 1)
