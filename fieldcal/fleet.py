@@ -39,7 +39,9 @@ class FoundSession:
 
     ``has_images`` is False for a field session with ``observations.csv`` (nothing to
     measure); ``error`` is the one-line reason it does not load (then the ids are None);
-    ``version`` is its latest committed version once :func:`select_sessions` has looked.
+    ``version`` is its latest committed version once :func:`select_sessions` has looked;
+    ``note`` why a session with a committed version is calibrated again (that version does
+    not read back whole: its folder removed, a partial restore; issue 24).
     """
 
     folder: str                  # local path or URL of the folder
@@ -48,6 +50,7 @@ class FoundSession:
     has_images: bool = True
     error: str | None = None
     version: str | None = None
+    note: str | None = None
 
 
 def root_filesystem(root: str, storage_options: dict | None = None):
@@ -138,10 +141,12 @@ def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundS
 
 
 def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
-    """The sessions without a committed calibration; sets ``version`` of the others (latest).
+    """The sessions without a committed calibration that reads back whole; sets ``version``
+    of the others (latest).
 
     ``lake`` is a :class:`fieldcal.lake.store.Lake`; sessions that did not load are neither
-    selected nor given a version.
+    selected nor given a version. A session whose latest version does not read back whole
+    (:meth:`Lake.whole`) is selected, with the reason in its ``note``.
     """
     calibrated = set(lake.sessions_with_calibration())
     todo = []
@@ -149,9 +154,13 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
         if s.error:
             continue
         if (s.camera_id, s.session_id) in calibrated:
-            s.version = lake.latest(s.camera_id, s.session_id)
-        else:
-            todo.append(s)
+            latest = lake.latest(s.camera_id, s.session_id)
+            why = lake.whole(latest)
+            if why is None:
+                s.version = latest
+                continue
+            s.note = f"version {latest} does not read back whole ({why}): calibrated again"
+        todo.append(s)
     return todo
 
 
@@ -192,7 +201,10 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
     def status(s):
         return "failed" if s.error else "calibrated already" if s.version else "to calibrate"
 
-    entries = [results.get(id(s)) or entry(s, status(s), s.error) for s in found]
+    entries = [results.get(id(s)) or entry(s, status(s), s.error or s.note) for s in found]
+    for s in found:
+        if s.note and id(s) in results and not results[id(s)].get("reason"):
+            results[id(s)]["reason"] = s.note
     return {
         "lake": str(lake), "root": str(root), "sessions": entries, "n_found": len(entries),
         "n_committed": sum(r["status"] == "committed" for r in entries),

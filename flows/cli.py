@@ -113,6 +113,9 @@ def _report_run(result: dict, args, human: bool) -> None:
     err = sys.stderr
     for item in result["left_out"]:
         print(f"fieldcal run: left out {item.get('image')}: {one_line(item.get('reason'))}", file=err)
+    for version, why in (result.get("not_whole") or {}).items():
+        print(f"fieldcal run: version {version} of these inputs does not read back whole ({one_line(why)}): "
+              "calibrated again", file=err)
     if human:
         for line in result["summary"]:
             print(line, file=err)

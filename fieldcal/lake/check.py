@@ -26,7 +26,7 @@ from fieldcal.errors import LakeError
 from fieldcal.lake.parts import array_digest, reason
 from fieldcal.lake.tables import TABLES
 
-__all__ = ["check", "verify_group", "Damage"]
+__all__ = ["check", "verify_group", "read_back", "Damage"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +69,67 @@ def verify_group(lake, rel: str, group, version: str) -> None:
                             + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
         raise LakeError(f"version {version}: array {rel}/{name} does not match the SHA-256 "
                         "recorded at its commit (damaged chunk)")
+
+
+def _open_group(lake, rel: str, version: str):
+    import zarr
+
+    try:
+        return zarr.open_group(store=lake.storage.zarr_store(rel, read_only=True), mode="r")
+    except (OSError, FileNotFoundError, ValueError, KeyError) as e:
+        raise LakeError(f"version {version}: cannot open {lake.uri(rel)}: {reason(e)}") from None
+
+
+def read_back(lake, version: str, document_path: str, zarr_path: str, *, document: bytes | None = None,
+              residuals: tuple[str, int] | None = None) -> str | None:
+    """Why a version's parts do not read back whole, or None when they do (issue 24, goal 1).
+
+    The document must exist, parse and name ``version`` (with ``document``: be exactly those
+    bytes); the Zarr group must open, record a SHA-256 for each of its arrays and every array
+    must match it (:func:`verify_group`); with ``residuals`` (``(camera_id, n_rows)``, at the
+    commit) the residuals table must hold exactly ``n_rows`` readable rows of the version.
+    A commit runs this before its catalog row (the commit point), a rerun before it answers
+    "unchanged" with an existing version.
+    """
+    try:
+        data = lake.storage.read(document_path)
+    except FileNotFoundError:
+        return f"its document {document_path} is missing"
+    except OSError as e:
+        return f"its document {document_path} cannot be read: {reason(e)}"
+    if document is not None and data != document:
+        return f"its document {document_path} does not read back as written"
+    try:
+        doc = json.loads(data)
+    except ValueError as e:
+        return f"its document {document_path} is not JSON: {reason(e)}"
+    if not isinstance(doc, dict) or doc.get("version") != version:
+        return f"{document_path} is not its document"
+    try:
+        group = _open_group(lake, zarr_path, version)
+        digests = group.attrs.get("digests")
+        if document is not None and (not isinstance(digests, dict)
+                                     or set(digests) != set(group.attrs.get("arrays") or [])):
+            return f"its Zarr group {zarr_path} does not record the SHA-256 of each array"
+        verify_group(lake, zarr_path, group, version)
+    except LakeError as e:
+        return str(e).removeprefix(f"version {version}: ")
+    if residuals is not None:
+        return _residuals_back(lake, version, *residuals)
+    return None
+
+
+def _residuals_back(lake, version: str, camera_id: str, n_rows: int) -> str | None:
+    import pyarrow.dataset as ds
+
+    before = len(lake.problems)
+    t = lake.tables.scan("residuals", filter=ds.field("version") == version, columns=["version"],
+                         partition={"camera_id": camera_id}, equal={"version": version})
+    if len(lake.problems) > before:
+        return f"its residual rows cannot be read back: {lake.problems[-1]}"
+    if t.num_rows != n_rows:
+        return f"{t.num_rows} of its {n_rows} residual row(s) read back"
+    return None
 
 
 def _table_damage(lake, name: str) -> list[Damage]:

@@ -64,6 +64,24 @@ def delta_options(storage_options: dict | None) -> dict[str, str]:
     return out
 
 
+def _info_time(info: dict) -> float | None:
+    """A modification time [s] from an fsspec ``info`` (local ``mtime``, S3 ``LastModified``)."""
+    import datetime as dt
+
+    for key in ("LastModified", "last_modified", "mtime", "modified", "updated"):
+        v = info.get(key)
+        if isinstance(v, dt.datetime):
+            return (v if v.tzinfo else v.replace(tzinfo=dt.UTC)).timestamp()
+        if isinstance(v, (int, float)):
+            return float(v)
+        if isinstance(v, str):
+            try:
+                return dt.datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
+            except ValueError:
+                continue
+    return None
+
+
 class Storage:
     """File operations on a local directory or an fsspec URL (see the module docstring)."""
 
@@ -147,13 +165,55 @@ class Storage:
             return []
 
     def mtime(self, rel: str) -> float | None:
-        """Last modification time [s since the epoch] of a local file; None remotely."""
-        if not self.local:
-            return None
+        """Last modification time [s since the epoch] of a file as the store records it (the
+        file system's, or the object store's ``LastModified``); None when it does not exist."""
+        if self.local:
+            try:
+                return os.path.getmtime(self.path(rel))
+            except OSError:
+                return None
         try:
-            return os.path.getmtime(self.path(rel))
-        except OSError:
+            self.fs.invalidate_cache(self.path(rel))
+            return _info_time(self.fs.info(self.path(rel)))
+        except (OSError, ValueError):
             return None
+
+    def newest_mtime(self, rel: str) -> float | None:
+        """The latest modification time [s] of a file, or of a folder and anything in it, by
+        the store's clock; None when nothing is there."""
+        p = self.path(rel)
+        if self.local:
+            times = []
+            for folder, _, names in os.walk(p):
+                times.append(os.path.getmtime(folder))
+                times += [os.path.getmtime(os.path.join(folder, n)) for n in names
+                          if os.path.lexists(os.path.join(folder, n))]
+            return max(times) if times else self.mtime(rel)
+        self.fs.invalidate_cache(p)
+        try:
+            found = self.fs.find(p, detail=True)
+        except (OSError, ValueError):
+            found = {}
+        times = [t for t in (_info_time(i) for i in found.values()) if t is not None]
+        return max(times) if times else self.mtime(rel)
+
+    def now(self) -> float:
+        """The store's own clock [s since the epoch]: the modification time of a probe file
+        written now (so that gc never compares a writer's clock with its own; issue 24). A
+        store that cannot be written (a dry run on a read-only lake) gives this host's clock."""
+        import secrets
+        import time
+
+        rel = f".fieldcal-clock-{secrets.token_hex(4)}.tmp"
+        if self.local and not os.path.isdir(self.root):
+            return time.time()
+        try:
+            self.write(rel, b"")
+            t = self.mtime(rel)
+            self.remove(rel)
+        except OSError:
+            t = None
+        return time.time() if t is None else t
 
     def remove(self, rel: str) -> None:
         p = self.path(rel)

@@ -155,6 +155,8 @@ class Lake:
         self.tables = Tables(self._store, maintain_every)
         self.url = self._store.uri("")
         self._obs_cache: dict[tuple, dict] = {}
+        self.not_whole: dict[str, str] = {}
+        """``{version: reason}`` of committed versions found not to read back whole."""
         _refuse_first_layout(self._store, self.url)
 
     def __repr__(self) -> str:
@@ -257,16 +259,18 @@ class Lake:
                     return Committed(doc["version"], new=False)
                 return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
                                            original)
+            broken: dict[str, str] = {}
             if not force:
-                existing = self.find_committed(fp)
+                existing, broken = self.committed_whole(fp)
                 if existing is not None:
                     return Committed(existing, new=False)
-            return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where)
+            return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
+                                       broken=broken)
         except OSError as e:
             raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
 
     def _write_version(self, doc, explicit, res, zarr_arrays, force, meta, where,
-                       original=None) -> Committed:
+                       original=None, broken: Mapping[str, str] | None = None) -> Committed:
         written: list[str] = []
         residuals_of = None
         done = False
@@ -280,6 +284,7 @@ class Lake:
             if res.num_rows:
                 residuals_of = version
                 self.tables.append("residuals", _with_keys(res, doc), dict(meta, action="residuals"))
+            self._read_back(doc, paths, res.num_rows)
             row = catalog_row(doc, utcnow() if original is None else original["committed"], force,
                               paths, where)
             meta["action"] = "commit" if original is None else "migrate"
@@ -289,8 +294,7 @@ class Lake:
                 self.tables.append("catalog", row, meta)
                 inserted = True
             else:
-                inserted = self.tables.insert_unless(
-                    "catalog", row, "t.fingerprint = s.fingerprint OR t.version = s.version", meta)
+                inserted = self.tables.insert_unless("catalog", row, _unless(broken or {}), meta)
             if inserted:
                 done = True
                 self._write_dictionary()
@@ -306,6 +310,19 @@ class Lake:
         finally:
             if not done:
                 self._discard(written, residuals_of)
+
+    def _read_back(self, doc: dict, paths: dict, n_residuals: int) -> None:
+        """Every part of the version read back and verified before its catalog row (issue 24,
+        goal 1): a part that a concurrent ``gc``, an operator or the storage lost makes the
+        commit fail (its parts removed) instead of committing a row that points to nothing."""
+        from fieldcal.lake.check import read_back
+
+        why = read_back(self, doc["version"], paths["document"], paths["zarr"],
+                        document=json.dumps(doc, indent=2).encode("utf-8"),
+                        residuals=(doc["camera_id"], n_residuals) if n_residuals else None)
+        if why is not None:
+            raise LakeError(f"version {doc['version']} not committed to {self.url}: {why} when "
+                            "read back before the commit")
 
     def _reserve(self, doc: dict, explicit: bool, written: list) -> str:
         """Create the version's document exclusively (the version id's reservation)."""
@@ -442,9 +459,36 @@ class Lake:
         if not is_fingerprint(fingerprint):
             raise InputError(f"fingerprint must be 'sha256:' and 64 hex digits, got "
                              f"{fingerprint!r}", "find_committed")
+        return self.committed_whole(fingerprint)[0]
+
+    def committed_whole(self, fingerprint: str) -> tuple[str | None, dict[str, str]]:
+        """``(version, broken)``: the latest committed version of these inputs whose parts read
+        back whole (:func:`fieldcal.lake.check.read_back`), or None, and ``{version: reason}``
+        of the later ones that do not (a folder removed, a partial restore). A rerun answers
+        "unchanged" only with a whole version; otherwise it calibrates again and says why
+        (the reasons are also kept in :attr:`not_whole`)."""
+        from fieldcal.lake.check import read_back
+
+        if not is_fingerprint(fingerprint):
+            raise InputError(f"fingerprint must be 'sha256:' and 64 hex digits, got "
+                             f"{fingerprint!r}", "find_committed")
         hits = self.catalog(filter=ds.field("fingerprint") == fingerprint,
-                            equal={"fingerprint": fingerprint})["version"].to_pylist()
-        return hits[-1] if hits else None
+                            equal={"fingerprint": fingerprint}).to_pylist()
+        broken: dict[str, str] = {}
+        for row in reversed(hits):
+            why = read_back(self, row["version"], row["document_path"], row["zarr_path"])
+            if why is None:
+                return row["version"], broken
+            broken[row["version"]] = why
+            self.not_whole[row["version"]] = why
+        return None, broken
+
+    def whole(self, version: str) -> str | None:
+        """Why a committed version does not read back whole, or None when it does."""
+        from fieldcal.lake.check import read_back
+
+        row = self.row(version)
+        return read_back(self, version, row["document_path"], row["zarr_path"])
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
         """The most recently committed version of a camera (of one session), or None."""
@@ -696,6 +740,15 @@ def _as_of(value):
     if value is None or isinstance(value, int):
         return value
     return parse_time(value, "as of")
+
+
+def _unless(broken: Mapping[str, str]) -> str:
+    """The MERGE predicate of a non-forced commit: no row of these inputs (except versions
+    that do not read back whole: they are calibrated again) and no row of this version."""
+    if not broken:
+        return "t.fingerprint = s.fingerprint OR t.version = s.version"
+    dead = ", ".join(_sql_str(v) for v in sorted(broken))
+    return f"(t.fingerprint = s.fingerprint AND t.version NOT IN ({dead})) OR t.version = s.version"
 
 
 def _with_keys(res: pa.Table, doc: dict) -> pa.Table:

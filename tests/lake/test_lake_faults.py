@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -235,6 +236,9 @@ def test_gc_command_is_a_dry_run_unless_told(tmp_path):
     stale = tmp_path / "calibrations" / "cam-a" / "s1" / "20200101T000000Z-00000000-0000.zarr"
     stale.mkdir(parents=True)
     (stale / "zarr.json").write_text("{}")
+    two_days_ago = time.time() - 2 * 86400     # gc goes by the files' times (issue 24)
+    for p in (stale / "zarr.json", stale):
+        os.utime(p, (two_days_ago, two_days_ago))
     out = cli("gc", "--lake", tmp_path)
     assert out.returncode == 0 and "would remove calibrations/cam-a/s1/2020" in out.stdout
     assert stale.exists()
