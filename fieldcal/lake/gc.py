@@ -20,7 +20,6 @@ restores the row).
 
 from __future__ import annotations
 
-
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.ids import ID_PATTERN, VERSION_PATTERN
 from fieldcal.lake.parts import reason
