@@ -281,9 +281,12 @@ def commit_version(lake: str, storage_options: dict | None, outcome: pipeline.Ou
     """Commit the outcome as one immutable version; returns ``(version, new)``."""
     from prefect.runtime import flow_run
 
-    v = Lake(lake, storage_options).commit(outcome.document, outcome.arrays, outcome.residuals,
-                                           force=force, array_attrs=outcome.array_attrs,
-                                           info={"flow_run_id": flow_run.id, "flow": flow_run.flow_name})
+    store = Lake(lake, storage_options)
+    v = store.commit(outcome.document, outcome.arrays, outcome.residuals,
+                     force=force, array_attrs=outcome.array_attrs,
+                     info={"flow_run_id": flow_run.id, "flow": flow_run.flow_name})
+    for p in dict.fromkeys(str(p) for p in store.problems):      # damage met and stepped over (issue 24)
+        get_run_logger().warning(f"lake: {p} (see `fieldcal lake check` and `fieldcal lake repair`)")
     return str(v), bool(v.new)
 
 

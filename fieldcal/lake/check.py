@@ -26,7 +26,7 @@ from fieldcal.errors import LakeError
 from fieldcal.lake.parts import array_digest, reason
 from fieldcal.lake.tables import TABLES
 
-__all__ = ["check", "verify_group", "read_back", "Damage"]
+__all__ = ["check", "verify_group", "read_back", "open_group", "unreadable_files", "Damage"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,7 +71,8 @@ def verify_group(lake, rel: str, group, version: str) -> None:
                         "recorded at its commit (damaged chunk)")
 
 
-def _open_group(lake, rel: str, version: str):
+def open_group(lake, rel: str, version: str):
+    """A version's Zarr group, read-only (LakeError in one line when it cannot be opened)."""
     import zarr
 
     try:
@@ -106,7 +107,7 @@ def read_back(lake, version: str, document_path: str, zarr_path: str, *, documen
     if not isinstance(doc, dict) or doc.get("version") != version:
         return f"{document_path} is not its document"
     try:
-        group = _open_group(lake, zarr_path, version)
+        group = open_group(lake, zarr_path, version)
         digests = group.attrs.get("digests")
         if document is not None and (not isinstance(digests, dict)
                                      or set(digests) != set(group.attrs.get("arrays") or [])):
@@ -130,6 +131,20 @@ def _residuals_back(lake, version: str, camera_id: str, n_rows: int) -> str | No
     if t.num_rows != n_rows:
         return f"{t.num_rows} of its {n_rows} residual row(s) read back"
     return None
+
+
+def unreadable_files(lake, name: str) -> list[tuple[str, str]]:
+    """``(lake-relative path, reason)`` of the table's live data files that cannot be read."""
+    if lake.tables.open(name) is None:
+        return []
+    fs = lake.tables.open(name).to_pyarrow_dataset().filesystem
+    out = []
+    for add in lake.tables.files(name):
+        try:
+            lake.tables.read_file(name, add, fs)
+        except (OSError, pa.ArrowException) as e:
+            out.append((f"{name}/{add['path']}", reason(e)))
+    return out
 
 
 def _table_damage(lake, name: str) -> list[Damage]:

@@ -20,6 +20,8 @@ restores the row).
 
 from __future__ import annotations
 
+import re
+
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.ids import ID_PATTERN, VERSION_PATTERN
 from fieldcal.lake.parts import reason
@@ -48,13 +50,35 @@ def version_parts(lake, versions: set[str]) -> list[str]:
 
 def logged_versions(lake) -> set[str]:
     """Versions the catalog's commit log names as committed (``fieldcal.version`` of its
-    commit and migrate commits): their rows may be hidden by a damaged file, never gone."""
+    commit and migrate commits), and those named by catalog commit files moved to the
+    quarantine (even truncated ones): their rows may be hidden by damage, never gone."""
     try:
         entries = lake.tables.log("catalog")
     except Exception:  # noqa: BLE001 - a log that cannot be read: the catalog rows decide
-        return set()
+        entries = []
     return {e["version"] for e in entries if e.get("action") in ("commit", "migrate")
-            and isinstance(e.get("version"), str)}
+            and isinstance(e.get("version"), str)} | _quarantined_versions(lake)
+
+
+_LOGGED_VERSION = re.compile(r'"fieldcal\.version":"(\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4})"')
+
+
+def _quarantined_versions(lake) -> set[str]:
+    """Versions named by quarantined catalog commit files (a regular expression over the
+    text: a truncated file still names them)."""
+    from fieldcal.lake.tables import QUARANTINE
+
+    out = set()
+    store = lake.storage
+    for stamp in store.listdir(QUARANTINE):
+        log = f"{QUARANTINE}/{stamp}/catalog/_delta_log"
+        for name in store.listdir(log):
+            if name.endswith(".json"):
+                try:
+                    out |= set(_LOGGED_VERSION.findall(store.read(f"{log}/{name}").decode("utf-8", "replace")))
+                except OSError:
+                    continue
+    return out
 
 
 def _newest(lake, rels: list[str]) -> float | None:

@@ -215,6 +215,15 @@ class Storage:
             t = None
         return time.time() if t is None else t
 
+    def move(self, rel: str, dest: str) -> None:
+        """Move a file or folder within the lake (``dest``'s folders are made)."""
+        if self.local:
+            os.makedirs(os.path.dirname(self.path(dest)), exist_ok=True)
+            os.replace(self.path(rel), self.path(dest))
+            return
+        self.fs.invalidate_cache(self.path(rel))
+        self.fs.mv(self.path(rel), self.path(dest), recursive=True)
+
     def remove(self, rel: str) -> None:
         p = self.path(rel)
         if self.local:

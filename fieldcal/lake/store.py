@@ -289,12 +289,16 @@ class Lake:
                               paths, where)
             meta["action"] = "commit" if original is None else "migrate"
             if original is not None:
-                inserted = self.tables.insert_unless("catalog", row, "t.version = s.version", meta)
+                inserted = self.tables.insert_unless("catalog", row, "t.version = s.version", meta,
+                                                     exists=lambda: self._is_committed(version))
             elif force:
                 self.tables.append("catalog", row, meta)
                 inserted = True
             else:
-                inserted = self.tables.insert_unless("catalog", row, _unless(broken or {}), meta)
+                inserted = self.tables.insert_unless(
+                    "catalog", row, _unless(broken or {}), meta,
+                    exists=lambda: self._is_committed(version) or self.find_committed(
+                        doc["inputs"]["fingerprint"]) is not None)
             if inserted:
                 done = True
                 self._write_dictionary()

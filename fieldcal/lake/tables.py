@@ -47,6 +47,8 @@ __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT
 TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
               "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
+QUARANTINE = "quarantine"
+"""The lake's folder of damaged files moved out of the way (by a writer or ``lake repair``)."""
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions and checkpoints."""
 ROW_GROUP_ROWS = 4096
@@ -155,6 +157,67 @@ class Tables:
     def exists(self, name: str) -> bool:
         return bool(self.storage.listdir(f"{name}/_delta_log"))
 
+    def quarantine(self, rel: str, why: str) -> str:
+        """Move a damaged file of the lake to ``quarantine/<time>/<rel>`` (never deleted: the
+        user decides); returns where it went, and records it in :attr:`problems`."""
+        import secrets
+
+        stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(2)
+        dest = f"{QUARANTINE}/{stamp}/{rel}"
+        self.storage.move(rel, dest)
+        self.problems.append(Problem(rel.split("/", 1)[0], rel, f"{why}; moved to {dest}"))
+        return dest
+
+    def heal_log(self, name: str, error: Exception) -> bool:
+        """Make a table whose log cannot be loaded writable again (issue 24, goal 3): a
+        ``_last_checkpoint`` hint naming a missing checkpoint, or commit files after the last
+        loadable commit that are not JSON (truncated), are moved to the quarantine. The rows
+        of a quarantined commit are out of the table; ``fieldcal lake repair`` brings back the
+        catalog rows of whole versions. True when something was moved."""
+        log = f"{name}/_delta_log"
+        names = self.storage.listdir(log)
+        if "_last_checkpoint" in names and "checkpoint" in reason(error).lower():
+            self.quarantine(f"{log}/_last_checkpoint", f"names a checkpoint that cannot be read ({reason(error)})")
+            return True
+        commits = sorted(int(n[:20]) for n in names if n.endswith(".json") and n[:20].isdigit())
+        good = next((v for v in reversed(commits[:-1]) if self._loads(name, v)), None)
+        later = [v for v in commits if good is None or v > good]
+        if not later or all(_parses(self.storage, f"{log}/{v:020d}.json") for v in later):
+            return False
+        for v in later:
+            self.quarantine(f"{log}/{v:020d}.json", f"commit {v} of {name} cannot be read"
+                            f" ({reason(error)}); the table continues from commit {good}")
+        return True
+
+    def _loads(self, name: str, version: int) -> bool:
+        try:
+            self._load(name, version=version)
+            return True
+        except Exception:  # noqa: BLE001 - any failure: not loadable
+            return False
+
+    def fsck(self, name: str, info: dict | None = None) -> list[str]:
+        """Take the table's missing data files out of it (a Delta FSCK commit); their names."""
+        target = self.load_for_write(name)
+        metrics = target.repair(dry_run=False, commit_properties=self._commit_properties(info))
+        self._current.pop(name, None)
+        return list(metrics.get("files_removed") or [])
+
+    def load_latest(self, name: str):
+        """The table at its latest commit (delta-rs's error when the log cannot be loaded)."""
+        return self._load(name)
+
+    def load_for_write(self, name: str):
+        """The table at its latest commit for a write; a damaged log is healed first
+        (:meth:`heal_log`), else a :class:`LakeError` in one line."""
+        try:
+            return self._load(name)
+        except Exception as e:  # noqa: BLE001 - delta-rs raises several types for a bad log
+            if self.heal_log(name, e):
+                self._current.pop(name, None)
+                return self._load(name)
+            raise LakeError(f"cannot write {self.uri(name)}: {reason(e)} (see `fieldcal lake check`)") from None
+
     def open(self, name: str, *, as_of=None):
         """The table (a ``deltalake.DeltaTable``), as of a time if given; None if it has none.
 
@@ -249,6 +312,8 @@ class Tables:
         from deltalake.exceptions import CommitFailedError
 
         target = self.create(name)
+        if any(p.table == name and p.path == f"{name}/_delta_log" for p in self.problems):
+            target = self.load_for_write(name)  # opened at an older commit: heal the log first
         schema = table_schema(name)
         for attempt in range(COMMIT_RETRIES):
             # schema evolution only when needed: a metadata change conflicts with concurrent appends
@@ -261,7 +326,7 @@ class Tables:
                 # a concurrent metadata commit (a racing create or schema evolution on an
                 # object store): the data files are in no commit; write again on the new state
                 time.sleep(0.02 * (1 + random.random()) * min(attempt + 1, 10))
-                target = self._load(name)
+                target = self.load_for_write(name)
                 continue
             self._maintain(name, target)
             return
@@ -269,19 +334,26 @@ class Tables:
                         "commits in a row")
 
     def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
-                      *, poll_s: float = 0.02) -> bool:
+                      *, poll_s: float = 0.02, exists=None) -> bool:
         """Insert ``row`` unless a row matching ``match`` exists; True when inserted.
 
         ``match`` is a predicate over ``t`` (the table) and ``s`` (the row), e.g.
         ``t.fingerprint = s.fingerprint``. Two processes inserting rows that match each
         other: the MERGE's conflict check fails the second commit, which then sees the
         first's row and inserts nothing.
+
+        ``exists`` (a callable, True when a matching row is readable): when the MERGE cannot
+        read one of the table's data files (zero bytes, garbage, deleted), the row is
+        appended unless ``exists()``, which reads the table skipping that file, and the file
+        is named in :attr:`problems` (issue 24, goal 3: one damaged file never stops the
+        commits; ``fieldcal lake repair`` quarantines it). Without ``exists`` the error is a
+        :class:`LakeError` in one line.
         """
         from deltalake.exceptions import CommitFailedError
 
         self.create(name)
         for attempt in range(COMMIT_RETRIES):
-            target = self._load(name)
+            target = self.load_for_write(name)
             try:
                 metrics = (target.merge(row.cast(table_schema(name)), match, source_alias="s",
                                         target_alias="t",
@@ -290,6 +362,16 @@ class Tables:
             except CommitFailedError:
                 time.sleep(poll_s * (1 + random.random()) * min(attempt + 1, 10))
                 continue
+            except Exception as e:  # noqa: BLE001 - delta-rs: a data file it cannot read
+                damaged = _damaged_file(name, e)
+                if damaged is None or exists is None:
+                    raise LakeError(f"cannot commit to {self.uri(name)}: {reason(e)}") from None
+                self.problems.append(Problem(name, damaged, f"cannot be read ({reason(e)}); the "
+                                             "row was appended after a read that skips it"))
+                if exists():
+                    return False
+                self.append(name, row, info)
+                return True
             inserted = int(metrics.get("num_target_rows_inserted", 0)) > 0
             if inserted:
                 self._maintain(name, target)
@@ -483,6 +565,31 @@ class Tables:
                         **{k[len("fieldcal."):]: v for k, v in h.items()
                            if isinstance(k, str) and k.startswith("fieldcal.")}})
         return out
+
+
+def _parses(storage, rel: str) -> bool:
+    """Whether a commit file is whole JSON lines."""
+    import json
+
+    try:
+        for line in storage.read(rel).decode("utf-8").splitlines():
+            if line.strip():
+                json.loads(line)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
+def _damaged_file(name: str, error: Exception) -> str | None:
+    """The table's data file a delta-rs error names (``NAME/part-....parquet``), or None
+    when the error is not about reading one of its data files."""
+    import re
+
+    text = str(error)
+    if "parquet" not in text.lower() and "not found" not in text.lower():
+        return None
+    m = re.search(rf"{re.escape(name)}/([^\s:]+\.parquet)", text)
+    return f"{name}/{m.group(1)}" if m else None
 
 
 def _first_commit_after(table, when) -> bool:

@@ -1,0 +1,103 @@
+"""One damaged object never stops the commits; ``fieldcal lake repair`` restores consistency.
+
+Issue 24, classes 1 and 3: for each kind of damage (a zero-byte, garbage or deleted table
+file, a truncated commit, a checkpoint hint naming a missing checkpoint, a lost document,
+a lost Zarr group or version folder), a commit of another camera still succeeds and names
+the damage in one plain line, and ``lake repair --apply`` leaves a lake that ``lake check``
+finds sound, every whole version in the catalog, nothing deleted (damaged files are in the
+quarantine), and commits that work.
+"""
+
+import shutil
+
+import pytest
+
+from fieldcal.lake.check import check
+from fieldcal.lake.repair import repair
+from fieldcal.lake.store import Lake
+from tests.lake.test_lake import field_document, residual_table
+from tests.lake.test_lake_faults import cli, data_file_of, make_lake
+
+KINDS = ["zero-byte catalog file", "garbage catalog file", "deleted catalog file", "zero-byte residual file",
+         "truncated catalog commit", "missing checkpoint", "lost document", "lost zarr group", "lost version folder"]
+
+
+def damage(root, versions, kind) -> str:
+    """Damage the lake; returns the version hit."""
+    v = versions[("cam-b", "s2")]
+    paths = Lake.paths("cam-b", "s2", v)
+    if kind.endswith("catalog file"):
+        f = data_file_of(root, "catalog", v)
+        f.unlink() if kind.startswith("deleted") else f.write_bytes(b"" if kind.startswith("zero") else b"garbage")
+    elif kind == "zero-byte residual file":
+        data_file_of(root, "residuals", v).write_bytes(b"")
+    elif kind == "truncated catalog commit":
+        v = versions[("cam-c", "s2")]                               # the last commit of the catalog
+        log = sorted((root / "catalog" / "_delta_log").glob("*.json"))[-1]
+        log.write_bytes(log.read_bytes()[: len(log.read_bytes()) * 2 // 3])
+    elif kind == "missing checkpoint":
+        Lake(root).tables.optimize("catalog")
+        for p in (root / "catalog" / "_delta_log").glob("*.checkpoint.parquet"):
+            p.unlink()
+    elif kind == "lost document":
+        (root / paths["document"]).unlink()
+    elif kind == "lost zarr group":
+        shutil.rmtree(root / paths["zarr"])
+    else:
+        shutil.rmtree(root / paths["zarr"])
+        (root / paths["document"]).unlink()
+    return v
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_commits_go_on_and_repair_restores_a_consistent_lake(tmp_path, kind):
+    root = tmp_path / "lake"
+    _, versions = make_lake(root)
+    before = {v: (root / Lake.paths(c, s, v)["document"]).read_bytes() for (c, s), v in versions.items()}
+    hit = damage(root, versions, kind)
+    lake = Lake(root)
+    new = lake.commit(field_document("cam-z", "s9", seed=99), {}, residual_table(5))   # goal 3: commits go on
+    assert new.new and lake.whole(new) is None
+    assert all("\x1b" not in str(p) and " 0: " not in str(p) for p in lake.problems)
+    if kind.endswith("file") or kind.endswith("commit") or kind.endswith("checkpoint"):
+        assert check(Lake(root)) != [] or kind in ("missing checkpoint", "truncated catalog commit")
+
+    listed = repair(Lake(root))                                        # a dry run lists, changes nothing
+    assert listed != [] or kind == "missing checkpoint"                # a writer moved the bad hint aside
+    assert repair(Lake(root)) == listed
+    out = cli("lake", "repair", "--lake", root, "--apply")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "\x1b" not in out.stdout + out.stderr
+    lake = Lake(root)
+    assert check(lake) == [] and lake.problems == []
+    catalogued = set(lake.catalog()["version"].to_pylist())
+    if kind in ("lost zarr group", "lost version folder"):
+        assert catalogued == set(versions.values()) - {hit} | {str(new)}
+        (kept,) = (root / "quarantine").glob(f"*-{hit}/catalog-row.json")       # the row is kept, not deleted
+        assert hit in kept.read_text()
+    else:
+        assert catalogued == set(versions.values()) | {str(new)}          # every whole version catalogued
+    if kind == "lost document":
+        assert (root / Lake.paths("cam-b", "s2", hit)["document"]).read_bytes() == before[hit]
+    if (kind.endswith("file") and not kind.startswith("deleted")) or kind == "truncated catalog commit":
+        assert list((root / "quarantine").rglob("*")) != []              # moved, never deleted
+    assert repair(lake, apply=False) == []                                # nothing left to do
+    again = lake.commit(field_document("cam-b", "s2", seed=11, f_mm=50.001, acquired="2026-02-10"), {},
+                        residual_table(11, seed=1))
+    if kind in ("lost zarr group", "lost version folder"):
+        assert again.new                                                  # its session calibrates again
+    else:
+        assert (str(again), again.new) == (versions[("cam-b", "s2")], False)
+
+
+@pytest.mark.parametrize("kind", ["truncated catalog commit", "missing checkpoint", "zero-byte catalog file"])
+def test_repair_before_any_commit_heals_the_log_and_restores_the_rows(tmp_path, kind):
+    root = tmp_path / "lake"
+    _, versions = make_lake(root)
+    damage(root, versions, kind)
+    assert [str(r) for r in repair(Lake(root))] != []
+    done = repair(Lake(root), apply=True)
+    assert all("\x1b" not in str(r) for r in done)
+    lake = Lake(root)
+    assert check(lake) == [] and set(lake.catalog()["version"].to_pylist()) == set(versions.values())
+    assert lake.commit(field_document("cam-z", "s9", seed=99), {}, residual_table(5)).new
