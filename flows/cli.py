@@ -658,7 +658,9 @@ def main(argv=None) -> int:
             if not verbose:
                 warnings.simplefilter("ignore")
             server.prepare_environment()
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        common.report_skipped(f"fieldcal {args.command}")      # what the readers skipped (issue 24)
+        return status
     except KeyboardInterrupt:
         print(f"fieldcal {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -673,6 +675,8 @@ def main(argv=None) -> int:
         line, status = common.error_line(args.command, e, verbose=verbose)
         print(line, file=sys.stderr)
         return status
+    finally:
+        common.forget_opened()
 
 
 def console() -> None:

@@ -55,9 +55,9 @@ def _open(args):
 
 def report_problems(lake, name: str, stream=None) -> None:
     """One line per damaged object a reader skipped (the command still succeeds)."""
-    stream = stream or sys.stderr
-    for p in dict.fromkeys(str(p) for p in getattr(lake, "problems", [])):
-        print(f"{name}: skipped {p} (see `fieldcal lake check`)", file=stream)
+    from flows.cli_common import report_skipped
+
+    report_skipped(name, [lake], stream)
 
 
 def _run(fn):
@@ -141,6 +141,7 @@ def _check(args) -> int:
 
     lake = _open(args)
     damage = check(lake)
+    lake.problems.clear()                       # listed as damage, not as skipped
     for d in damage:
         print(str(d))
     if damage:
@@ -157,6 +158,7 @@ def _repair(args) -> int:
 
     lake = _open(args)
     done = repair(lake, apply=args.apply)
+    lake.problems.clear()                       # listed as repairs, not as skipped
     for r in done:
         print(str(r))
     if not args.apply:

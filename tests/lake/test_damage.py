@@ -101,3 +101,22 @@ def test_repair_before_any_commit_heals_the_log_and_restores_the_rows(tmp_path, 
     lake = Lake(root)
     assert check(lake) == [] and set(lake.catalog()["version"].to_pylist()) == set(versions.values())
     assert lake.commit(field_document("cam-z", "s9", seed=99), {}, residual_table(5)).new
+
+
+def test_every_reader_says_what_it_skipped(tmp_path):
+    """``show``, ``history --fleet``, ``export``, ``compare`` on a lake with a garbage catalog
+    file: each answers (exit 0) and names the skipped file once, in one plain line."""
+    root = tmp_path / "lake"
+    _, versions = make_lake(root)
+    data_file_of(root, "catalog", versions[("cam-b", "s2")]).write_bytes(b"garbage")
+    runs = {"show": ("show", "latest", "--camera", "cam-b", "--lake", root),
+            "history --fleet": ("history", "--fleet", "--lake", root),
+            "history": ("history", "--lake", root),
+            "export": ("export", "latest", "--camera", "cam-b", "--format", "json", "--out",
+                       tmp_path / "cam-b.json", "--lake", root)}
+    for what, args in runs.items():
+        out = cli(*args)
+        assert out.returncode == 0, (what, out.stderr)
+        skipped = [line for line in out.stderr.splitlines() if "skipped catalog: catalog/part-" in line]
+        assert len(skipped) == 1 and "\x1b" not in out.stderr, (what, out.stderr)
+        assert skipped[0].startswith(f"fieldcal {args[0]}: skipped ")
