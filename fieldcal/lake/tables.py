@@ -142,6 +142,7 @@ class Tables:
         self.maintain_every = int(maintain_every)
         self.problems: list[Problem] = []
         self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
+        self._commit_times: dict = {}  # (name, commit) -> commitInfo.timestamp [ms]
 
     # -- opening ------------------------------------------------------------------------
     def uri(self, name: str) -> str:
@@ -165,6 +166,7 @@ class Tables:
         stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(2)
         dest = f"{QUARANTINE}/{stamp}/{rel}"
         self.storage.move(rel, dest)
+        self._commit_times.clear()
         self.problems.append(Problem(rel.split("/", 1)[0], rel, f"{why}; moved to {dest}"))
         return dest
 
@@ -243,15 +245,59 @@ class Tables:
             table = self._load_last_good(name, e)
         if as_of is None:
             self._current[name] = table
-        else:
-            try:
-                table.load_as_version(as_of)
-            except Exception as e:  # noqa: BLE001 - before the table's first commit, or vacuumed
-                if "earliest" in str(e).lower() or "before" in str(e).lower() or \
-                        table.history(1) and _first_commit_after(table, as_of):
-                    return None
-                raise LakeError(f"cannot read {self.uri(name)} as of {as_of}: {reason(e)}") from None
+            return table
+        version = as_of if isinstance(as_of, int) else self.version_at(name, as_of)
+        if version is None:
+            return None                          # before the table's first commit
+        if version > table.version():
+            return table                         # a commit the log holds but could not be loaded
+        try:
+            table.load_as_version(version)
+        except Exception as e:  # noqa: BLE001 - vacuumed, or a damaged log
+            raise LakeError(f"cannot read {self.uri(name)} as of {as_of}: {reason(e)}") from None
         return table
+
+    def version_at(self, name: str, when) -> int | None:
+        """The table's last commit made at or before ``when`` by the commit timestamps its log
+        records (``commitInfo.timestamp``), or None before its first commit (issue 24, goal 5).
+
+        Not the commit files' modification times, which delta-rs's own time travel uses: a
+        copy (``cp -r``), a sync or a restore gives every file the time of the copy. The
+        timestamps are taken to grow with the version (each writer's clock; the Delta spec
+        assumes as much); a binary search reads about log2(n) commit files.
+        """
+        t = when if isinstance(when, dt.datetime) else dt.datetime.fromisoformat(str(when))
+        if t.tzinfo is None:
+            t = t.replace(tzinfo=dt.UTC)
+        t_ms = t.timestamp() * 1000.0
+        log = f"{name}/_delta_log"
+        commits = sorted(int(n[:20]) for n in self.storage.listdir(log) if n.endswith(".json") and n[:20].isdigit())
+        lo, hi = 0, len(commits)
+        while lo < hi:                           # the first commit later than ``when``
+            mid = (lo + hi) // 2
+            ts = self._commit_ms(name, commits[mid])
+            if ts is not None and ts <= t_ms:
+                lo = mid + 1
+            else:
+                hi = mid
+        return commits[lo - 1] if lo else None
+
+    def _commit_ms(self, name: str, version: int) -> float | None:
+        """A commit's ``commitInfo.timestamp`` [ms] (commits are immutable: remembered)."""
+        import json
+
+        key = (name, version)
+        if key not in self._commit_times:
+            ts = None
+            try:
+                for line in self.storage.read(f"{name}/_delta_log/{version:020d}.json").decode("utf-8").splitlines():
+                    if '"commitInfo"' in line:
+                        ts = json.loads(line)["commitInfo"].get("timestamp")
+                        break
+            except (OSError, ValueError, KeyError):
+                ts = None                        # unreadable: treated as later than any time
+            self._commit_times[key] = float(ts) if isinstance(ts, (int, float)) else None
+        return self._commit_times[key]
 
     def _load_last_good(self, name: str, error: Exception):
         versions = sorted((int(n[:20]) for n in self.storage.listdir(f"{name}/_delta_log")
@@ -590,22 +636,6 @@ def _damaged_file(name: str, error: Exception) -> str | None:
         return None
     m = re.search(rf"{re.escape(name)}/([^\s:]+\.parquet)", text)
     return f"{name}/{m.group(1)}" if m else None
-
-
-def _first_commit_after(table, when) -> bool:
-    """True when the table's first commit is later than ``when``."""
-    try:
-        hist = table.history()
-    except Exception:  # noqa: BLE001
-        return False
-    first = min((h.get("timestamp") for h in hist if isinstance(h.get("timestamp"), (int, float))),
-                default=None)
-    if first is None:
-        return False
-    t = when if isinstance(when, dt.datetime) else dt.datetime.fromisoformat(str(when))
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.UTC)
-    return first / 1000.0 > t.timestamp()
 
 
 def _filter_columns(expr, schema: pa.Schema) -> list[str]:

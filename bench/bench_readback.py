@@ -1,0 +1,82 @@
+"""Figures of issue 24 (class 1): what reading a version back costs.
+
+A local lake of ``--versions`` versions over 20 cameras (made by ``Lake.commit``), then:
+
+- one commit (``Lake.commit``, a new session) with the read-back before the catalog row and
+  without it (``Lake._read_back`` replaced by a no-op: the code before issue 24), interleaved,
+  ``--repeat`` times each; the median;
+- a rerun's answer (``Lake.find_committed``: the catalog lookup and, since issue 24, the
+  read-back of the version found) against the catalog lookup alone;
+- ``fieldcal fleet``'s selection (:func:`fieldcal.fleet.select_sessions`) of every session
+  of the lake, each latest version read back, against the lookups alone.
+
+Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_readback.py [--versions 200] [--repeat 15]``;
+results are copied into ``bench/README_lake.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import pyarrow.dataset as ds  # noqa: E402
+
+from fieldcal import fleet  # noqa: E402
+from fieldcal.lake.store import Lake  # noqa: E402
+from tests.lake.test_lake import field_document, residual_table  # noqa: E402
+
+
+def timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--versions", type=int, default=200)
+    ap.add_argument("--repeat", type=int, default=15)
+    a = ap.parse_args()
+    print(f"load: {os.getloadavg()[0]:.1f}")
+    with tempfile.TemporaryDirectory() as tmp:
+        lake = Lake(Path(tmp) / "lake")
+        docs = []
+        for i in range(a.versions):
+            doc = field_document(f"cam-{i % 20:02d}", f"s{i // 20:03d}", seed=i)
+            docs.append(doc)
+            lake.commit(doc, {}, residual_table(200, seed=i))
+        real = Lake._read_back
+        with_rb, without = [], []
+        for k in range(a.repeat):
+            for on, out in ((True, with_rb), (False, without)):
+                Lake._read_back = real if on else (lambda self, *args: None)
+                doc = field_document("cam-00", f"new{k}{int(on)}", seed=10_000 + 2 * k + on)
+                out.append(timed(lambda d=doc, k=k: Lake(lake.url).commit(d, {}, residual_table(200, seed=k))))
+        Lake._read_back = real
+        print(f"commit: {statistics.median(with_rb):.3f} s with the read-back, "
+              f"{statistics.median(without):.3f} s without (median of {a.repeat})")
+        fps = [d["inputs"]["fingerprint"] for d in docs[:a.repeat]]
+        look = [timed(lambda f=f: Lake(lake.url).catalog(filter=ds.field("fingerprint") == f,
+                                                          equal={"fingerprint": f})) for f in fps]
+        find = [timed(lambda f=f: Lake(lake.url).find_committed(f)) for f in fps]
+        print(f"rerun's answer: {statistics.median(find):.3f} s with the read-back, "
+              f"{statistics.median(look):.3f} s the lookup alone")
+        found = [fleet.FoundSession(f"/x/{c}/{s}", c, s)
+                 for c, s in Lake(lake.url).sessions_with_calibration()]
+        sel = timed(lambda: fleet.select_sessions(found, Lake(lake.url)))
+        probe = Lake(lake.url)
+        alone = timed(lambda: [probe.latest(s.camera_id, s.session_id) for s in found])
+        print(f"fleet selection of {len(found)} sessions: {sel:.2f} s with the read-backs, "
+              f"{alone:.2f} s the lookups alone")
+
+
+if __name__ == "__main__":
+    main()
