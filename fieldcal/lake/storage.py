@@ -4,7 +4,9 @@
 (the Zarr groups, the JSON documents, ``README.md``): atomic writes, exclusive creation,
 listing one folder (never a glob pattern: a lake may live at ``x/lake[ab]``), removal.
 Local writes go to a temporary file and are renamed into place; an exclusive write
-hard-links a complete temporary file (it fails if the name exists). fsspec writes are
+hard-links a complete temporary file (it fails if the name exists). Every file gets the
+mode the process's umask gives a new file (``0666 & ~umask``), like the Delta and Zarr
+files beside it, so that whoever may read the lake reads all of it (issue 24). fsspec writes are
 single PUTs, exclusive ones conditional (``If-None-Match: *`` on S3).
 
 :func:`delta_options` turns fsspec's S3 options into those of delta-rs (object_store):
@@ -20,7 +22,7 @@ import posixpath
 import shutil
 import tempfile
 
-__all__ = ["Storage", "delta_options", "check_root", "UNSAFE_PATH_CHARACTERS"]
+__all__ = ["Storage", "delta_options", "check_root", "process_umask", "UNSAFE_PATH_CHARACTERS"]
 
 UNSAFE_PATH_CHARACTERS = "[]^|#?%\\"
 """Characters a lake's path may not contain: delta-rs 1.6 parses a local path as a URL, so
@@ -62,6 +64,21 @@ def delta_options(storage_options: dict | None) -> dict[str, str]:
                    or "us-east-1")
     out.setdefault("conditional_put", "etag")
     return out
+
+
+def process_umask() -> int:
+    """The process's file mode creation mask, read without changing it (Linux
+    ``/proc/self/status``; elsewhere set and restored at once)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def _info_time(info: dict) -> float | None:
@@ -126,6 +143,7 @@ class Storage:
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(final)}.", suffix=".tmp", dir=folder)
         try:
+            os.fchmod(fd, 0o666 & ~process_umask())   # mkstemp makes 0600: the umask decides (issue 24)
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
                 f.flush()
