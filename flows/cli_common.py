@@ -105,8 +105,9 @@ def open_lake(args, *, must_exist: bool = True):
 
 
 def forget_opened() -> None:
-    """Forget the lakes :func:`open_lake` opened (a command ended)."""
+    """Forget the lakes :func:`open_lake` opened and what was reported (a command ended)."""
     _OPENED.clear()
+    _REPORTED.clear()
 
 
 def report_skipped(name: str, lakes=None, stream=None) -> None:

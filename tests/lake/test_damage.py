@@ -16,7 +16,8 @@ from fieldcal.lake.check import check
 from fieldcal.lake.repair import repair
 from fieldcal.lake.store import Lake
 from tests.lake.test_lake import field_document, residual_table
-from tests.lake.test_lake_faults import cli, data_file_of, make_lake
+from flows import cli
+from tests.lake.test_lake_faults import data_file_of, make_lake
 
 KINDS = ["zero-byte catalog file", "garbage catalog file", "deleted catalog file", "zero-byte residual file",
          "truncated catalog commit", "missing checkpoint", "lost document", "lost zarr group", "lost version folder"]
@@ -49,8 +50,16 @@ def damage(root, versions, kind) -> str:
     return v
 
 
+def run(capsys, *args) -> tuple[int, str, str]:
+    """``fieldcal ARGS`` in this process: (exit status, stdout, stderr)."""
+    capsys.readouterr()
+    status = cli.main([str(a) for a in args])
+    out = capsys.readouterr()
+    return status, out.out, out.err
+
+
 @pytest.mark.parametrize("kind", KINDS)
-def test_commits_go_on_and_repair_restores_a_consistent_lake(tmp_path, kind):
+def test_commits_go_on_and_repair_restores_a_consistent_lake(tmp_path, kind, capsys):
     root = tmp_path / "lake"
     _, versions = make_lake(root)
     before = {v: (root / Lake.paths(c, s, v)["document"]).read_bytes() for (c, s), v in versions.items()}
@@ -65,9 +74,9 @@ def test_commits_go_on_and_repair_restores_a_consistent_lake(tmp_path, kind):
     listed = repair(Lake(root))                                        # a dry run lists, changes nothing
     assert listed != [] or kind == "missing checkpoint"                # a writer moved the bad hint aside
     assert repair(Lake(root)) == listed
-    out = cli("lake", "repair", "--lake", root, "--apply")
-    assert out.returncode == 0, out.stdout + out.stderr
-    assert "\x1b" not in out.stdout + out.stderr
+    status, out, err = run(capsys, "lake", "repair", "--lake", root, "--apply")
+    assert status == 0 and out.endswith("no damage left\n"), out + err
+    assert "\x1b" not in out + err
     lake = Lake(root)
     assert check(lake) == [] and lake.problems == []
     catalogued = set(lake.catalog()["version"].to_pylist())
@@ -103,7 +112,7 @@ def test_repair_before_any_commit_heals_the_log_and_restores_the_rows(tmp_path, 
     assert lake.commit(field_document("cam-z", "s9", seed=99), {}, residual_table(5)).new
 
 
-def test_every_reader_says_what_it_skipped(tmp_path):
+def test_every_reader_says_what_it_skipped(tmp_path, capsys):
     """``show``, ``history --fleet``, ``export``, ``compare`` on a lake with a garbage catalog
     file: each answers (exit 0) and names the skipped file once, in one plain line."""
     root = tmp_path / "lake"
@@ -115,8 +124,8 @@ def test_every_reader_says_what_it_skipped(tmp_path):
             "export": ("export", "latest", "--camera", "cam-b", "--format", "json", "--out",
                        tmp_path / "cam-b.json", "--lake", root)}
     for what, args in runs.items():
-        out = cli(*args)
-        assert out.returncode == 0, (what, out.stderr)
-        skipped = [line for line in out.stderr.splitlines() if "skipped catalog: catalog/part-" in line]
-        assert len(skipped) == 1 and "\x1b" not in out.stderr, (what, out.stderr)
+        status, _, err = run(capsys, *args)
+        assert status == 0, (what, err)
+        skipped = [line for line in err.splitlines() if "skipped catalog: catalog/part-" in line]
+        assert len(skipped) == 1 and "\x1b" not in err, (what, err)
         assert skipped[0].startswith(f"fieldcal {args[0]}: skipped ")
