@@ -15,8 +15,8 @@ import pytest
 from fieldcal.lake.check import check
 from fieldcal.lake.repair import repair
 from fieldcal.lake.store import Lake
-from tests.lake.test_lake import field_document, residual_table
 from flows import cli
+from tests.lake.test_lake import field_document, residual_table
 from tests.lake.test_lake_faults import data_file_of, make_lake
 
 KINDS = ["zero-byte catalog file", "garbage catalog file", "deleted catalog file", "zero-byte residual file",
