@@ -53,7 +53,7 @@ def logged_versions(lake) -> set[str]:
     commit and migrate commits), and those named by catalog commit files moved to the
     quarantine (even truncated ones): their rows may be hidden by damage, never gone."""
     try:
-        entries = lake.tables.log("catalog")
+        entries = lake.tables.commits("catalog")
     except Exception:  # noqa: BLE001 - a log that cannot be read: the catalog rows decide
         entries = []
     return {e["version"] for e in entries if e.get("action") in ("commit", "migrate")

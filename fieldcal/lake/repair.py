@@ -225,7 +225,7 @@ def _restore_rows(lake, apply: bool, removed: set[str]) -> list[Repair]:
         return []
     where = {stem: rel.rsplit("/", 1)[0] for rel, _, stem in walk_calibrations(lake)
              if stem in wanted and rel.endswith(".json")}
-    log = {e["version"]: e for e in lake.tables.log("catalog") if e.get("version") in wanted
+    log = {e["version"]: e for e in lake.tables.commits("catalog") if e.get("version") in wanted
            and e.get("action") in ("commit", "migrate")}
     rows, out = [], []
     for v in sorted(wanted):

@@ -162,6 +162,23 @@ class Storage:
                 return f.read()
         return self.fs.cat_file(self.path(rel))
 
+    def read_many(self, rels: list[str]) -> dict[str, bytes]:
+        """``{rel: bytes}`` of several files (concurrent requests on an object store); files
+        that do not exist are left out."""
+        if self.local:
+            out = {}
+            for rel in rels:
+                try:
+                    out[rel] = self.read(rel)
+                except FileNotFoundError:
+                    continue
+            return out
+        if not rels:
+            return {}
+        got = self.fs.cat([self.path(r) for r in rels], on_error="omit")
+        by_path = {self.path(r): r for r in rels}
+        return {by_path[p]: data for p, data in got.items() if p in by_path and isinstance(data, bytes)}
+
     def exists(self, rel: str) -> bool:
         if self.local:
             return os.path.exists(self.path(rel))
