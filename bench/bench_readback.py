@@ -10,7 +10,11 @@ A local lake of ``--versions`` versions over 20 cameras (made by ``Lake.commit``
 - ``fieldcal fleet``'s selection (:func:`fieldcal.fleet.select_sessions`) of every session
   of the lake, each latest version read back, against the lookups alone.
 
-Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_readback.py [--versions 200] [--repeat 15]``;
+``--s3 N``: first, one commit with and without the read-back on a moto S3 server (a lake of
+N versions).
+
+Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_readback.py [--versions 200] [--repeat 15]
+[--s3 20]``;
 results are copied into ``bench/README_lake.md``.
 """
 
@@ -40,12 +44,48 @@ def timed(fn) -> float:
     return time.perf_counter() - t
 
 
+def commits_on_s3(n_versions: int, repeat: int) -> None:
+    """One commit with and without the read-back on a moto S3 server on loopback."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    try:
+        host, port = server.get_host_and_port()
+        endpoint = f"http://{host}:{port}"
+        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="k",
+                     aws_secret_access_key="s").create_bucket(Bucket="bench-readback")
+        opts = {"endpoint_url": endpoint, "key": "k", "secret": "s", "client_kwargs": {"region_name": "us-east-1"}}
+        url = "s3://bench-readback/lake"
+        lake = Lake(url, opts)
+        for i in range(n_versions):
+            lake.commit(field_document(f"cam-{i % 20:02d}", f"s{i // 20:03d}", seed=i), {}, residual_table(200, seed=i))
+        real = Lake._read_back
+        times: dict[bool, list[float]] = {True: [], False: []}
+        for k in range(repeat):
+            for on in (True, False):
+                Lake._read_back = real if on else (lambda self, *args: None)
+                doc = field_document("cam-00", f"new{k}{int(on)}", seed=10_000 + 2 * k + on)
+                times[on].append(timed(lambda d=doc, k=k: Lake(url, opts).commit(d, {}, residual_table(200, seed=k))))
+        Lake._read_back = real
+        print(f"commit on moto S3 ({n_versions} versions): {statistics.median(times[True]):.3f} s with the "
+              f"read-back, {statistics.median(times[False]):.3f} s without (median of {repeat})")
+    finally:
+        server.stop()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--versions", type=int, default=200)
     ap.add_argument("--repeat", type=int, default=15)
+    ap.add_argument("--s3", type=int, default=0, help="also commits on moto S3 with a lake of this many versions")
     a = ap.parse_args()
     print(f"load: {os.getloadavg()[0]:.1f}")
+    if a.s3:
+        commits_on_s3(a.s3, a.repeat)
+    if not a.versions:
+        return
     with tempfile.TemporaryDirectory() as tmp:
         lake = Lake(Path(tmp) / "lake")
         docs = []
