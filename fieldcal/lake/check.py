@@ -198,13 +198,28 @@ def _version_damage(lake, row: dict) -> list[Damage]:
     return out
 
 
+def _hidden_versions(lake, catalogued: set[str]) -> list[Damage]:
+    """Versions the catalog's log names as committed whose document is there but whose row
+    is not (a damaged file or a quarantined commit took it): ``lake repair`` restores them."""
+    from fieldcal.lake.gc import logged_versions, walk_calibrations
+
+    named = logged_versions(lake) - catalogued
+    if not named:
+        return []
+    return [Damage(rel, "committed (the catalog's log names it) but the catalog has no row for it",
+                   f"version {stem} is hidden from every reader (`fieldcal lake repair --apply` restores it)")
+            for rel, _, stem in walk_calibrations(lake) if stem in named and rel.endswith(".json")]
+
+
 def check(lake) -> list[Damage]:
     """Every damaged object of the lake (empty when the lake is sound)."""
     out = []
     for name in TABLES:
         out += _table_damage(lake, name)
-    for row in lake.catalog().to_pylist():
+    rows = lake.catalog().to_pylist()
+    for row in rows:
         out += _version_damage(lake, row)
+    out += _hidden_versions(lake, {r["version"] for r in rows})
     seen, unique = set(), []
     for d in out:
         if (d.path, d.problem) not in seen:

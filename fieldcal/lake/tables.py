@@ -183,12 +183,15 @@ class Tables:
             return True
         commits = sorted(int(n[:20]) for n in names if n.endswith(".json") and n[:20].isdigit())
         good = next((v for v in reversed(commits[:-1]) if self._loads(name, v)), None)
-        later = [v for v in commits if good is None or v > good]
-        if not later or all(_parses(self.storage, f"{log}/{v:020d}.json") for v in later):
-            return False
-        for v in later:
+        if good is None:
+            return False                         # nothing loads: no commit is moved
+        later = [v for v in commits if v > good]
+        bad = next((v for v in later if _parses(self.storage, f"{log}/{v:020d}.json") is False), None)
+        if bad is None:
+            return False                         # every later commit is JSON: not this damage
+        for v in (v for v in later if v >= bad):
             self.quarantine(f"{log}/{v:020d}.json", f"commit {v} of {name} cannot be read"
-                            f" ({reason(error)}); the table continues from commit {good}")
+                            f" ({reason(error)}); the table continues from commit {bad - 1}")
         return True
 
     def _loads(self, name: str, version: int) -> bool:
@@ -643,16 +646,21 @@ class Tables:
         return out
 
 
-def _parses(storage, rel: str) -> bool:
-    """Whether a commit file is whole JSON lines."""
+def _parses(storage, rel: str) -> bool | None:
+    """Whether a commit file is whole JSON lines; None when it cannot be read now (a file
+    that could not be read is never taken for a damaged one)."""
     import json
 
     try:
-        for line in storage.read(rel).decode("utf-8").splitlines():
+        data = storage.read(rel)
+    except OSError:
+        return None
+    try:
+        for line in data.decode("utf-8").splitlines():
             if line.strip():
                 json.loads(line)
         return True
-    except (OSError, ValueError):
+    except ValueError:
         return False
 
 

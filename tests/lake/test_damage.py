@@ -68,8 +68,8 @@ def test_commits_go_on_and_repair_restores_a_consistent_lake(tmp_path, kind, cap
     new = lake.commit(field_document("cam-z", "s9", seed=99), {}, residual_table(5))   # goal 3: commits go on
     assert new.new and lake.whole(new) is None
     assert all("\x1b" not in str(p) and " 0: " not in str(p) for p in lake.problems)
-    if kind.endswith("file") or kind.endswith("commit") or kind.endswith("checkpoint"):
-        assert check(Lake(root)) != [] or kind in ("missing checkpoint", "truncated catalog commit")
+    if kind != "missing checkpoint":                                  # a bad hint moved aside is no damage
+        assert check(Lake(root)) != []                                 # lake check tells what repair is for
 
     listed = repair(Lake(root))                                        # a dry run lists, changes nothing
     assert listed != [] or kind == "missing checkpoint"                # a writer moved the bad hint aside

@@ -110,9 +110,10 @@ def test_lake_check_lists_every_damaged_object_and_what_depends_on_it(damaged):
     root, versions = damaged
     damage = check(Lake(root))
     text = "\n".join(str(d) for d in damage)
-    assert len(damage) == 4, text
+    assert len(damage) == 5, text
     vb, vc, va = versions[("cam-b", "s2")], versions[("cam-c", "s2")], versions[("cam-a", "s1")]
     assert f"versions {vb} .. {vb}, are hidden from every reader" in text
+    assert f"version {vb} is hidden from every reader (`fieldcal lake repair --apply` restores it)" in text
     assert f"residuals of camera cam-c (versions {vc} .. {vc}) cannot be read" in text.replace(
         "row(s) of ", "").replace("11 ", "")
     assert f"calibrations/cam-a/s1/{va}.json: missing -> version {va}" in text
@@ -139,8 +140,8 @@ def test_cli_keeps_working_on_a_damaged_lake(damaged):
     out = cli("show", versions[("cam-a", "s1")], "--lake", root)
     assert out.returncode == 1 and "is missing" in out.stderr and len(out.stderr.splitlines()) == 1
     out = cli("lake", "check", "--lake", root)
-    assert out.returncode == 1 and len(out.stdout.splitlines()) == 4
-    assert "4 damaged object(s)" in out.stderr
+    assert out.returncode == 1 and len(out.stdout.splitlines()) == 5      # the 4, and the version hidden
+    assert "5 damaged object(s)" in out.stderr
 
 
 def test_a_missing_or_damaged_zarr_chunk_is_an_error_naming_it(tmp_path):
