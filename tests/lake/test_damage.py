@@ -129,3 +129,17 @@ def test_every_reader_says_what_it_skipped(tmp_path, capsys):
         skipped = [line for line in err.splitlines() if "skipped catalog: catalog/part-" in line]
         assert len(skipped) == 1 and "\x1b" not in err, (what, err)
         assert skipped[0].startswith(f"fieldcal {args[0]}: skipped ")
+
+
+def test_delta_rs_errors_become_one_plain_line():
+    """Colour codes, delta-rs's ``↳`` between causes and a Rust backtrace, as met above."""
+    from fieldcal.errors import one_line
+
+    raw = ("Generic LocalFileSystem error\n  \x1b[31m↳\x1b[0m Requested range was invalid \x1b[31m↳\x1b[0m "
+           "Wanted range starting at 0, but object was only 0 bytes long")
+    assert one_line(raw) == ("Generic LocalFileSystem error: Requested range was invalid: Wanted range "
+                             "starting at 0, but object was only 0 bytes long")
+    raw = ("Kernel error: Json error: Truncated record whilst reading escape 0: <unknown> 1: <unknown>\n"
+           "  12: start_thread at ./nptl/pthread_create.c:442:8 13: clone3 at ./misc/clone3.S:81:0")
+    assert one_line(raw) == "Kernel error: Json error: Truncated record whilst reading escape"
+    assert one_line("targets.csv:4: 10: not a number") == "targets.csv:4: 10: not a number"
