@@ -123,7 +123,8 @@ def _repair_files(lake, name: str, apply: bool) -> list[Repair]:
         else:
             out.append(Repair(rel, f"{why}: taken out of the table"))
     if apply:
-        lake.tables.fsck(name, {"action": "repair", "files": ", ".join(r for r, _ in bad)})
+        lake.tables.fsck(name, [r.split("/", 1)[1] for r, _ in bad],
+                         {"action": "repair", "files": ", ".join(r for r, _ in bad)})
     return out
 
 

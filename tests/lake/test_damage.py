@@ -9,16 +9,20 @@ quarantine), and commits that work.
 """
 
 import shutil
+import uuid
 
+import pyarrow.parquet as pq
 import pytest
 
 from fieldcal.lake.check import check
 from fieldcal.lake.repair import repair
 from fieldcal.lake.store import Lake
 from flows import cli
+from tests import conftest_s3
 from tests.lake.test_lake import field_document, residual_table
 from tests.lake.test_lake_faults import data_file_of, make_lake
 
+s3_server = conftest_s3.s3_server
 KINDS = ["zero-byte catalog file", "garbage catalog file", "deleted catalog file", "zero-byte residual file",
          "truncated catalog commit", "missing checkpoint", "lost document", "lost zarr group", "lost version folder"]
 
@@ -143,3 +147,28 @@ def test_delta_rs_errors_become_one_plain_line():
            "  12: start_thread at ./nptl/pthread_create.c:442:8 13: clone3 at ./misc/clone3.S:81:0")
     assert one_line(raw) == "Kernel error: Json error: Truncated record whilst reading escape"
     assert one_line("targets.csv:4: 10: not a number") == "targets.csv:4: 10: not a number"
+
+
+def test_commits_go_on_and_repair_works_on_s3(s3_server):
+    """A zero-byte catalog file and a lost document on moto S3: a commit goes on, repair
+    quarantines the file (an object move), restores the document and the hidden row."""
+    import s3fs
+
+    url, options = s3_server.url(f"damage-{uuid.uuid4().hex[:8]}"), s3_server.storage_options
+    lake = Lake(url, options)
+    v1 = lake.commit(field_document("cam-a", "s1"), {}, residual_table())
+    v2 = lake.commit(field_document("cam-b", "s1", seed=1), {}, residual_table())
+    fs = s3fs.S3FileSystem(key="testing", secret="testing", endpoint_url=s3_server.endpoint_url)
+    prefix = url.removeprefix("s3://")
+    (hit,) = [a["path"] for a in lake.tables.files("catalog")
+              if v2 in pq.read_table(fs.open(f"{prefix}/catalog/{a['path']}"), columns=["version"])["version"]
+              .to_pylist()]
+    fs.pipe_file(f"{prefix}/catalog/{hit}", b"")
+    fs.rm_file(f"{prefix}/{Lake.paths('cam-a', 's1', v1)['document']}")
+    v3 = Lake(url, options).commit(field_document("cam-c", "s1", seed=2), {}, residual_table())
+    assert v3.new
+    done = repair(Lake(url, options), apply=True)
+    assert len(done) == 3, done                      # the file, the document, the hidden row
+    lake = Lake(url, options)
+    assert check(lake) == [] and set(lake.catalog()["version"].to_pylist()) == {v1, v2, str(v3)}
+    assert fs.find(f"{prefix}/quarantine") != []
