@@ -21,8 +21,10 @@ import os
 import posixpath
 import tempfile
 from dataclasses import dataclass
+from datetime import datetime
 
 from fieldcal.errors import InputError, one_line
+from fieldcal.lake import order
 from fieldcal.session.loader import load_session
 
 __all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions", "local_copy",
@@ -50,6 +52,7 @@ class FoundSession:
     has_images: bool = True
     error: str | None = None
     version: str | None = None
+    acquired: datetime | None = None      # with session_id, which session it is (fieldcal.lake.order)
     note: str | None = None
 
 
@@ -59,7 +62,9 @@ def root_filesystem(root: str, storage_options: dict | None = None):
     if "://" in text and not text.startswith("file://"):
         import fsspec
 
-        fs, path = fsspec.core.url_to_fs(text, **(storage_options or {}))
+        from fieldcal.lake import secrets
+
+        fs, path = fsspec.core.url_to_fs(text, **(secrets.resolve(storage_options) or {}))
         return fs, path.rstrip("/")
     return None, os.path.abspath(text.removeprefix("file://"))
 
@@ -118,7 +123,7 @@ def _load(fs, folder: str) -> FoundSession:
                 _fetch_small_files(fs, folder, local)
             sess = load_session(local)
         has_images = sess.method == "goniometer" or sess.observations_path is None
-        return FoundSession(url, sess.camera_id, sess.session_id, has_images)
+        return FoundSession(url, sess.camera_id, sess.session_id, has_images, acquired=sess.acquired)
     except (InputError, OSError) as e:
         text = one_line(e)
         if fs is not None and local != folder:
@@ -145,16 +150,22 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
     of the others (latest).
 
     ``lake`` is a :class:`fieldcal.lake.store.Lake`; sessions that did not load are neither
-    selected nor given a version. A session whose latest version does not read back whole
-    (:meth:`Lake.whole`) is selected, with the reason in its ``note``.
+    selected nor given a version. A session is its camera, ``session_id`` and acquisition
+    time (:func:`fieldcal.lake.order.session_key`): ``ROOT/2026-01/wall`` and
+    ``ROOT/2026-02/wall`` (no ``session_id``) are two. A session whose latest version does
+    not read back whole (:meth:`Lake.whole`) is selected, with the reason in its ``note``.
     """
-    calibrated = set(lake.sessions_with_calibration())
+    rows: dict = {}
+    for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS]).to_pylist():
+        rows.setdefault((r["camera_id"], *order.session_key(r)), []).append(r)
     todo = []
     for s in found:
         if s.error:
             continue
-        if (s.camera_id, s.session_id) in calibrated:
-            latest = lake.latest(s.camera_id, s.session_id)
+        # same-named folders: told apart by acquisition (a version without one: by its name)
+        mine = rows.get((s.camera_id, s.session_id, s.acquired)) or rows.get((s.camera_id, s.session_id, None))
+        if mine:
+            latest = order.latest(mine)
             why = lake.whole(latest)
             if why is None:
                 s.version = latest

@@ -118,6 +118,8 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
             raise InputError(f"check_points {unknown[:5]} are not in {sess.targets_path.name} (at /check_points)",
                              str(sess.folder / "session.json"))
         tables[sess.targets_path.name] = sess.targets_path.read_bytes()
+        if sess.scale_bars_path is not None:
+            tables["scale_bars.csv"] = sess.scale_bars_path.read_bytes()
         field_data = None
         if sess.observations_path is not None:
             field_data = field_data_from_observations(sess)     # validates now, kept for solve
@@ -243,7 +245,7 @@ def _field_result(prepared, measurements, progress, left_out):
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver,
                                 check_points=sess.check_points, check_fraction=prepared.settings.check_fraction,
-                                check_seed=prepared.settings.check_seed)
+                                check_seed=prepared.settings.check_seed, datum=sess.datum)
     if sess.observations_path is not None:
         data, left = drop_sparse_images(prepared.field_data or field_data_from_observations(sess))
         if left and len(data.images) < MIN_IMAGES:

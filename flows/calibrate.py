@@ -636,8 +636,10 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
         The lake: a local path or an fsspec URL (``s3://bucket/prefix``).
     storage_options : dict, optional
         fsspec options of the lake (e.g. ``{"endpoint_url": ...}``). They are flow
-        parameters, stored by the Prefect server: give credentials through the
-        environment (``AWS_ACCESS_KEY_ID`` ...) rather than here.
+        parameters, stored by the Prefect server: give each credential as
+        :data:`fieldcal.lake.secrets.REDACTED` (the command line does); its value comes
+        from ``FIELDCAL_STORAGE_OPTIONS`` or the storage's own configuration (``AWS_*``)
+        wherever the lake is opened (:mod:`fieldcal.lake.secrets`).
     force : bool
         Make a new version even when these inputs and settings are committed already.
     settings : dict, optional

@@ -41,12 +41,14 @@ say otherwise (:data:`THREAD_DEFAULTS`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import sys
 import warnings
 
-from fieldcal.errors import one_line
+from fieldcal.errors import FieldcalError, one_line
 from flows import cli_common as common
 from flows.cli_common import UsageError
 
@@ -78,7 +80,7 @@ def _check_compute(args) -> None:
     out = getattr(args, "dashboard", None)
     if out and os.path.exists(out) and not os.path.isdir(out):
         raise UsageError(f"--dashboard {out}: exists and is not a folder")
-    for name in ("workers", "batch_size"):
+    for name in ("workers", "batch_size", "max_sessions"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
@@ -124,10 +126,7 @@ def _report_run(result: dict, args, human: bool) -> None:
 
 
 def _write_document(lake, version: str, path) -> None:
-    doc = lake.load_document(version)
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(doc, f, indent=2)
-        f.write("\n")
+    common.write_output(path, json.dumps(lake.load_document(version), indent=2) + "\n")
 
 
 def _keep_frame_memory(args) -> bool:
@@ -151,10 +150,15 @@ def cmd_run(args) -> int:
 
     lake_url, options = common.lake_arguments(args)
     if args.json:
-        common.check_output_file(args.json, "--json")
+        common.check_output_file(args.json, "--json", overwrite=args.overwrite)
     _check_compute(args)
-    prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)))
     lake = Lake(lake_url, options)
+    common.check_lake_target(lake)
+    from fieldcal.rig.session import is_rig_session
+
+    if is_rig_session(args.session):
+        return _run_rig(args, lake_url, options)
+    prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)))
     human = common.is_tty(sys.stderr)
     version = None
     if not args.force:
@@ -172,7 +176,40 @@ def cmd_run(args) -> int:
         _report_run(result, args, human)
         version = result["version"]
     if args.json:
-        _write_document(lake, version, args.json)
+        try:
+            _write_document(lake, version, args.json)
+        except OSError as e:                 # committed: say which version, then why the copy failed
+            print(version)
+            raise FieldcalError(f"committed {version}, but --json {args.json}: {e.strerror}") from None
+    print(version)
+    sys.stdout.flush()
+    return 0
+
+
+def _run_rig(args, lake_url: str, options) -> int:
+    """``fieldcal run`` of a rig session (CONTRACT section 3, "Rig sessions"): validated before
+    anything is written, calibrated in this process (its observations need no image work),
+    committed as one version of the rig; prints the rig's version, ``--json`` writes the rig
+    document."""
+    from fieldcal import pipeline, rig_run
+    from fieldcal.lake.store import Lake
+
+    settings = pipeline.Settings(**_settings(args))
+    prepared = rig_run.prepare_rig(args.session, settings)   # bad input: one line, exit 2, nothing written
+    lake = Lake(lake_url, options)
+    human = common.is_tty(sys.stderr)
+    version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)
+    if human:
+        for line in (outcome.summary if outcome is not None else ["unchanged (same inputs and settings; "
+                                                                 "--force for a new version)"]):
+            print(line, file=sys.stderr)
+        print(f"head versions: {', '.join(heads)}", file=sys.stderr)
+    if args.json:
+        try:
+            common.write_output(args.json, json.dumps(lake.load_rig_document(version), indent=2) + "\n")
+        except OSError as e:                 # committed: say which version, then why the copy failed
+            print(version)
+            raise FieldcalError(f"committed {version}, but --json {args.json}: {e.strerror}") from None
     print(version)
     sys.stdout.flush()
     return 0
@@ -184,8 +221,8 @@ def _run_flow(args, lake_url: str, options) -> dict:
 
     runner = cluster.task_runner(args.dask, _workers(args), _cluster_kwargs(args))
     return calibrate_session.with_options(task_runner=runner)(
-        str(args.session), str(lake_url), storage_options=options, force=args.force, rehash=args.rehash,
-        settings=_settings(args) or None, batch_size=args.batch_size)
+        str(args.session), str(lake_url), storage_options=common.flow_options(options), force=args.force,
+        rehash=args.rehash, settings=_settings(args) or None, batch_size=args.batch_size)
 
 
 # --------------------------------------------------------------------------------------
@@ -213,6 +250,7 @@ def cmd_fleet(args) -> int:
 
     lake_url, options = common.lake_arguments(args)
     _check_compute(args)
+    common.check_lake_target(Lake(lake_url, options))
     root = args.root or (str(lake_url).rstrip("/") + "/sessions")
     found = fleet.scan_sessions(root, options)
     if not found:
@@ -221,7 +259,8 @@ def cmd_fleet(args) -> int:
         def run():
             from flows.fleet import recalibrate_fleet
 
-            return recalibrate_fleet(str(lake_url), root=root, storage_options=options, dask_address=args.dask,
+            return recalibrate_fleet(str(lake_url), root=root, storage_options=common.flow_options(options),
+                                     dask_address=args.dask,
                                      n_workers=_workers(args), settings=_settings(args) or None,
                                      batch_size=args.batch_size, cluster_kwargs=_cluster_kwargs(args),
                                      max_sessions=args.max_sessions, dashboard=args.dashboard)
@@ -256,11 +295,14 @@ def cmd_serve(args) -> int:
     lake_url, options = common.lake_arguments(args)
     _check_compute(args)
     _check_cron(args.cron)
+    from fieldcal.lake.store import Lake
+
+    common.check_lake_target(Lake(lake_url, options))
     fleet.check_root(args.root or (str(lake_url).rstrip("/") + "/sessions"), options)
     params = {k: v for k, v in {"dask_address": args.dask, "n_workers": args.workers, "batch_size": args.batch_size,
                                 "dashboard": os.path.abspath(args.dashboard) if args.dashboard else None,
                                 "settings": _settings(args) or None, "cluster_kwargs": _cluster_kwargs(args),
-                                "storage_options": options}.items() if v is not None}
+                                "storage_options": common.flow_options(options)}.items() if v is not None}
 
     def serve():
         from flows.fleet import serve_fleet
@@ -304,6 +346,7 @@ def _stop_within(grace_s: float) -> None:
     def give_up():
         print(f"fieldcal serve: stopped (Prefect's shutdown did not finish within {grace_s:g} s; "
               "the served schedule may still be active on the server)", file=sys.stderr, flush=True)
+        _end_children()
         os._exit(0)
 
     timer = threading.Timer(grace_s, give_up)
@@ -317,10 +360,28 @@ def _stop_within(grace_s: float) -> None:
     signal.signal(signal.SIGINT, on_sigint)
 
 
+def _end_children(wait_s: float = 2.0) -> None:
+    """Kill this process's children (a flow run Prefect's runner started, a helper) before
+    ``os._exit``: they would outlive it, orphaned, holding its standard error open. The
+    local Prefect server is not among them (it runs detached, :func:`flows.server._launch`)."""
+    import psutil
+
+    try:
+        children = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return
+    for child in children:
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    psutil.wait_procs(children, timeout=wait_s)
+
+
 def cmd_server(args) -> int:
     from flows import server
 
     server.quiet_prefect(False)
+    if args.linger is not None and not math.isfinite(args.linger):
+        raise UsageError(f"--linger must be a number of seconds (0: until stopped), got {args.linger}")
     if args.action == "start":
         state = server.start_server(args.linger, note=lambda s: print(s, file=sys.stderr), ui=args.ui)
         print(state["url"])
@@ -345,7 +406,7 @@ def cmd_server(args) -> int:
 # --------------------------------------------------------------------------------------
 def cmd_history(args) -> int:
     if getattr(args, "plot", None):
-        common.check_output_file(args.plot, "--plot")
+        common.check_output_file(args.plot, "--plot", overwrite=getattr(args, "overwrite", False))
     lake = common.open_lake(args)
     if args.camera:
         common.require_camera(lake, args.camera)
@@ -412,6 +473,8 @@ def cmd_synth(args) -> int:
     from flows.synth import check_synthetic, write_synthetic
 
     check_synthetic(args.method, args.scenario)
+    if args.seed < 0:
+        raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise UsageError(f"{args.out}: exists and is not a folder")
     with progress.listening(common.progress_sink(sys.stderr)):
@@ -467,6 +530,7 @@ def _add_run_commands(sub) -> None:
     p.add_argument("session", help="the session folder")
     common.add_lake_arguments(p)
     p.add_argument("--json", metavar="OUT.json", help="also write the calibration document here")
+    common.add_overwrite_argument(p)
     p.add_argument("--force", action="store_true", help="a new version even if these inputs are calibrated")
     p.add_argument("--rehash", action="store_true", help="hash every image from its bytes (ignore the "
                    "remembered hashes)")
@@ -541,8 +605,9 @@ def _add_show_command(sub) -> None:
 def _add_synthetic_commands(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic session (and its truth.json)")
     p.add_argument("out", help="the session folder to write")
-    p.add_argument("--method", choices=("goniometer", "field"), default="goniometer")
-    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide")
+    p.add_argument("--method", choices=("goniometer", "field", "rig"), default="goniometer")
+    p.add_argument("--scenario", help="goniometer: canon5d2 (default) or h3d; field: paper (default) or wide; "
+                   "rig: two-head (default) or oblique (observation-only rig sessions)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--raster-scale", type=float, default=0.25,
                    help="goniometer: pixel grid scale over the same sensor (default %(default)s)")

@@ -8,7 +8,9 @@ registers more commands), so that they answer the same way:
   command reads must exist ("no lake at PATH").
 - :func:`require_camera`, :func:`resolve_version`: a camera id or version that the lake
   does not have is an error that says what exists (the closest ids).
-- :func:`check_output_file`: an output path is checked before any work starts.
+- :func:`check_output_file`: an output path is checked before any work starts; an existing
+  file is written over only with ``--overwrite`` (:func:`add_overwrite_argument`), and then
+  replaced atomically (:func:`write_output`).
 - :func:`is_tty`, :func:`progress_sink`: progress on a terminal, nothing on a pipe.
 - :func:`describe`: a calibration document as lines of text (``fieldcal show``).
 - :func:`error_line`: the one line (and exit status) of a failed command: the command
@@ -25,15 +27,16 @@ import os
 import re
 
 from fieldcal.errors import FieldcalError, InputError, one_line
+from fieldcal.lake import secrets
 
 __all__ = ["UsageError", "LAKE_ENV", "OPTIONS_ENV", "EXIT_ERROR", "EXIT_USAGE", "add_lake_arguments",
-           "lake_arguments", "open_lake", "report_skipped", "forget_opened",
-           "require_lake", "known_cameras", "require_camera", "resolve_version",
-           "check_output_file", "check_input_file", "is_tty", "progress_sink", "describe", "error_line",
-           "shown_columns"]
+           "lake_arguments", "flow_options", "open_lake", "report_skipped", "forget_opened", "require_lake",
+           "known_cameras", "require_camera",
+           "resolve_version", "check_output_file", "add_overwrite_argument", "write_output", "check_input_file",
+           "is_tty", "progress_sink", "describe", "error_line", "shown_columns", "check_lake_target"]
 
 LAKE_ENV = "FIELDCAL_LAKE"
-OPTIONS_ENV = "FIELDCAL_STORAGE_OPTIONS"
+OPTIONS_ENV = secrets.OPTIONS_ENV
 EXIT_ERROR = 1
 EXIT_USAGE = 2
 _CONTEXT_WORD = re.compile(r"[a-z_]+")
@@ -70,20 +73,74 @@ def lake_arguments(args) -> tuple[str, dict | None]:
     return lake, options
 
 
-def require_lake(lake) -> None:
-    """Raise :class:`UsageError` ("no lake at PATH") when the lake's root does not exist."""
+def flow_options(options: dict | None) -> dict | None:
+    """The lake's storage options as a Prefect flow may record them: secrets redacted.
+
+    Their values go into this process's ``FIELDCAL_STORAGE_OPTIONS`` (seen by the flow run in
+    this process, its Dask worker threads and the worker processes it starts), where the
+    lake, opened there, finds them (:mod:`fieldcal.lake.secrets`); a worker elsewhere needs
+    them in its own environment or the storage's own configuration (``AWS_*``)."""
+    return secrets.for_flow(options)
+
+
+LAKE_DATA = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments",
+             "rigs", "calibrations")
+"""Entries at a lake's root that only a lake has (its Delta tables, the versions' folders)."""
+LAKE_NAMES = LAKE_DATA + ("README.md", "reports", "sessions")
+"""Every entry a lake's root may hold (``sessions``: the fleet's default root in it)."""
+
+
+def _lake_entries(lake) -> list[str] | None:
+    """The names at the lake's root; None when there is nothing there (a new lake)."""
     root = lake.uri("")
     if lake.is_local:
+        if not os.path.lexists(root):
+            return None
         if not os.path.isdir(root):
-            raise UsageError(f"no lake at {root}" + (" (not a folder)" if os.path.exists(root) else ""))
-        return
+            raise UsageError(f"no lake at {root}: it is a file (a lake is a folder or an fsspec URL)")
+        try:
+            return os.listdir(root)
+        except OSError as e:
+            raise UsageError(f"cannot read the lake at {root}: {e.strerror}") from None
+    import posixpath
+
     try:
         lake.fs.invalidate_cache(root)
-        ok = lake.fs.exists(root)
+        if not lake.fs.exists(root):
+            return None
+        if lake.fs.isfile(root):
+            raise UsageError(f"no lake at {root}: it is a file (a lake is a folder or an fsspec URL)")
+        return [posixpath.basename(x.rstrip("/")) for x in lake.fs.ls(root, detail=False)]
     except OSError as e:
         raise UsageError(f"cannot reach the lake at {root}: {one_line(e)}") from None
-    if not ok:
-        raise UsageError(f"no lake at {root}")
+
+
+def _refuse_other_folder(lake, names: list[str]) -> None:
+    """A folder with entries, none of them a lake's data, and some no lake has, is not a lake (``/``)."""
+    visible = sorted(n for n in names if not n.startswith("."))
+    if any(n in LAKE_DATA for n in visible) or all(n in LAKE_NAMES for n in visible):
+        return
+    shown = ", ".join(n if len(n) <= 32 else n[:29] + "..." for n in visible[:3])
+    shown += ", ..." if len(visible) > 3 else ""
+    raise UsageError(f"{lake.uri('')} is a folder that is not a lake (it holds {shown}; a lake has "
+                     f"{', '.join(LAKE_DATA[:2])}, ...): give a lake, an empty folder or a new path")
+
+
+def check_lake_target(lake) -> None:
+    """Refuse a lake to write into that is a file, or a folder that is not a lake, before any
+    work: a new path, an empty folder and a lake are accepted (``run``, ``fleet``, ``serve``)."""
+    names = _lake_entries(lake)
+    if names is not None:
+        _refuse_other_folder(lake, names)
+
+
+def require_lake(lake) -> None:
+    """Raise :class:`UsageError` when there is no lake: nothing at its path ("no lake at PATH"),
+    a file, or a folder that is not a lake (:func:`check_lake_target`)."""
+    names = _lake_entries(lake)
+    if names is None:
+        raise UsageError(f"no lake at {lake.uri('')}")
+    _refuse_other_folder(lake, names)
 
 
 _OPENED: list = []
@@ -159,9 +216,10 @@ def require_camera(lake, camera: str) -> None:
 def resolve_version(lake, name: str, camera: str | None = None, session: str | None = None) -> str:
     """A committed version id from ``name``: an id, ``latest`` or ``previous`` (with ``camera``).
 
-    ``latest``: the camera's (or the camera's session's) most recent version; ``previous``:
-    the version before the latest among the camera's sessions. Raises :class:`UsageError`
-    saying what exists when there is no such version.
+    ``latest``: the camera's (or the camera's session's) latest version, ``previous``: the
+    calibration before it, both by the one rule of :mod:`fieldcal.lake.order` (acquisition
+    time, ties by commit order; what ``history --fleet`` and the certificate use). Raises
+    :class:`UsageError` saying what exists when there is no such version.
     """
     if name not in ("latest", "previous"):
         versions = lake.catalog()["version"].to_pylist()
@@ -171,31 +229,29 @@ def resolve_version(lake, name: str, camera: str | None = None, session: str | N
     if not camera:
         raise UsageError(f"{name!r} needs --camera ID")
     require_camera(lake, camera)
+    from fieldcal.lake import order
+
     if name == "latest":
         v = lake.latest(camera, session)
         if v is None:
             raise UsageError(f"camera {camera!r} has no calibration of session {session!r} in {lake.url}")
         return v
-    from fieldcal.lake import history
-
-    versions = history.camera_history(lake, camera)["version"].to_pylist()
-    latest = lake.latest(camera)
-    if latest in versions:
-        i = versions.index(latest)
-        if i > 0:
-            return versions[i - 1]
-    elif len(versions) >= 2:
-        return versions[-2]
-    raise UsageError(f"camera {camera!r} has no calibration before its latest in {lake.url}")
+    rows = lake.camera_rows(camera)
+    v = order.previous(rows, order.latest(rows))
+    if v is None:
+        raise UsageError(f"camera {camera!r} has no calibration before its latest in {lake.url}")
+    return v
 
 
 # --------------------------------------------------------------------------------------
 # files
 # --------------------------------------------------------------------------------------
-def check_output_file(path, what: str = "output") -> None:
+def check_output_file(path, what: str = "output", *, overwrite: bool = False) -> None:
     """Refuse an output path that cannot be written, before any work starts.
 
-    Its folder must exist and be writable, and the path must not be a folder.
+    Its folder must exist and be writable, and the path must not be a folder. An existing
+    file (or link) is written over only with ``overwrite`` (``--overwrite``), and then
+    replaced by :func:`write_output`, never written into (its hard links keep their bytes).
     """
     p = os.path.abspath(os.fspath(path))
     folder = os.path.dirname(p)
@@ -203,8 +259,45 @@ def check_output_file(path, what: str = "output") -> None:
         raise UsageError(f"{what} {path}: is a folder")
     if not os.path.isdir(folder):
         raise UsageError(f"{what} {path}: no folder {folder}")
-    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(p) and not os.access(p, os.W_OK)):
+    if os.path.lexists(p) and not overwrite:
+        raise UsageError(f"{what} {path}: exists; fieldcal does not write over a file (--overwrite replaces it)")
+    if not os.access(folder, os.W_OK | os.X_OK):
         raise UsageError(f"{what} {path}: not writable")
+
+
+def add_overwrite_argument(p) -> None:
+    """``--overwrite`` of a command that writes files."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace output files that exist (default: refuse, exit 2)")
+
+
+def write_output(path, data: bytes | str) -> None:
+    """Write ``data`` to ``path`` atomically: a temporary file in its folder renamed over it.
+
+    An existing ``path`` is replaced, not written into: another hard link to it (a
+    photograph's) keeps its bytes, and a failure leaves it as it was."""
+    import tempfile
+
+    p = os.path.abspath(os.fspath(path))
+    raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(p)}.", suffix=".tmp", dir=os.path.dirname(p))
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, p)
+    except OSError as e:                      # a full device, a quota: name the output, not the temporary
+        raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
+    finally:
+        if tmp is not None and os.path.lexists(tmp):
+            os.unlink(tmp)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def check_input_file(path, what: str = "input") -> None:

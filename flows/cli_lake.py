@@ -177,13 +177,14 @@ def _migrate(args) -> int:
     from fieldcal.errors import LakeError
     from fieldcal.lake.migrate import OldLake, migrate
     from fieldcal.lake.store import Lake
-    from flows.cli_common import lake_arguments
+    from flows.cli_common import check_lake_target, lake_arguments
 
     url, options = lake_arguments(args)
     old = OldLake(args.old, options)
     if OldLake(url, options).url.rstrip("/") == old.url.rstrip("/"):
         raise LakeError(f"migrate into a new lake, not into {old.url} itself")
     lake = Lake(url, options)
+    check_lake_target(lake)                  # a file, or a folder that is not a lake: before any work
     report = migrate(old, lake)
     for line in report.lines():
         print(line)

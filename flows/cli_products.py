@@ -50,11 +50,13 @@ from flows.cli_common import (
     OPTIONS_ENV,
     UsageError,
     add_lake_arguments,
+    add_overwrite_argument,
     check_input_file,
     check_output_file,
     open_lake,
     progress_sink,
     resolve_version,
+    write_output,
 )
 
 __all__ = ["add_commands", "history_extras", "history_handler", "resolve_version",
@@ -88,16 +90,17 @@ def _run(fn):
     return fn
 
 
-def _check_outputs(*pairs) -> None:
-    """Check every ``(path, option)`` output before any work (None paths are skipped)."""
+def _check_outputs(args, *pairs) -> None:
+    """Check every ``(path, option)`` output before any work (None paths are skipped); an
+    existing file only with ``--overwrite``."""
     for path, what in pairs:
         if path:
-            check_output_file(path, what)
+            check_output_file(path, what, overwrite=getattr(args, "overwrite", False))
 
 
 def _write_text(text: str, out: str | None) -> None:
     if out:
-        Path(out).write_text(text, encoding="utf-8")
+        write_output(out, text)
     else:
         sys.stdout.write(text)
 
@@ -114,6 +117,8 @@ def _report(args) -> int:
     lake = open_lake(args)
     version = resolve_version(lake, args.version, args.camera)
     out = args.out or f"fieldcal-report-{version}"
+    if os.path.exists(os.path.join(out, "report.html")) and not args.overwrite:
+        raise UsageError(f"--out {out}: has a report.html; fieldcal does not write over it (--overwrite replaces it)")
     with progress.listening(progress_sink(sys.stderr)):
         progress.emit("stage", text=f"report of {version}: reading the version and drawing the plots")
         files = write_report(lake, version, out)
@@ -160,11 +165,15 @@ def _comparison_text(c, a, b) -> str:
 
 @_run
 def _compare(args) -> int:
-    from fieldcal.products.compare import compare_calibrations
+    from fieldcal.products.compare import check_grid, check_level, compare_calibrations
     from fieldcal.products.uncertainty import Calibration
 
-    _check_outputs((args.plot, "--plot"), (args.out, "--out"))
+    check_level(args.tolerance_um, args.alpha)       # bad settings: refused before the lake is read
+    check_grid(args.grid)
+    _check_outputs(args, (args.plot, "--plot"), (args.out, "--out"))
     lake = open_lake(args)
+    if lake.is_rig_version(args.v1) or lake.is_rig_version(args.v2):
+        return _compare_rigs(lake, args)
     va = resolve_version(lake, args.v1, args.camera)
     vb = resolve_version(lake, args.v2, args.camera)
     a, b = Calibration.from_lake(lake, va), Calibration.from_lake(lake, vb)
@@ -173,11 +182,28 @@ def _compare(args) -> int:
     if args.plot:
         from fieldcal.products.plots import compare_figure, to_png
 
-        Path(args.plot).write_bytes(to_png(compare_figure(c, a.sensor)))
+        write_output(args.plot, to_png(compare_figure(c, a.sensor)))
     if args.format == "json":
         text = json.dumps(c.summary(), indent=2) + "\n"
     else:
         text = _comparison_text(c, a, b)
+    _write_text(text, args.out)
+    return 0
+
+
+def _compare_rigs(lake, args) -> int:
+    """``fieldcal compare RIG_V1 RIG_V2``: the change test of the relative orientations
+    (:mod:`fieldcal.products.rig_compare`)."""
+    from fieldcal.errors import InputError
+    from fieldcal.products.rig_compare import compare_rigs, rig_comparison_text
+
+    for v in (args.v1, args.v2):
+        if not lake.is_rig_version(v):
+            raise InputError(f"{v} is not a rig version of {lake.url}: compare two rig versions, or two "
+                             "calibration versions of one camera", "compare")
+    c = compare_rigs(lake.load_rig_document(args.v1), lake.load_rig_document(args.v2), alpha=args.alpha,
+                     tolerance_arcsec=args.tolerance_arcsec, tolerance_mm=args.tolerance_mm)
+    text = json.dumps(c, indent=2) + "\n" if args.format == "json" else rig_comparison_text(c)
     _write_text(text, args.out)
     return 0
 
@@ -208,7 +234,7 @@ def _export(args) -> int:
     from fieldcal.products.export import export_text
     from fieldcal.products.uncertainty import Calibration
 
-    _check_outputs((args.out, "--out"))
+    _check_outputs(args, (args.out, "--out"))
     cal = Calibration.from_lake(*_lake_and_version(args))
     exp = export_text(cal, args.format, model=args.model)
     for line in exp.report_lines():
@@ -227,16 +253,21 @@ def _undistort(args) -> int:
     from fieldcal.products.undistort import undistort_file
 
     check_input_file(args.image, "IMAGE")
-    check_output_file(args.output, "OUT")
     if os.path.exists(args.output) and os.path.samefile(args.image, args.output):
         raise UsageError(f"OUT {args.output} is the input image {args.image} (the same file): "
                          "refusing to overwrite the photograph")
+    check_output_file(args.output, "OUT", overwrite=args.overwrite)
     cal = Calibration.from_lake(*_lake_and_version(args))
     doc = cal.document
-    info = undistort_file(cal.camera, args.image, args.output, f_px=args.f_px,
-                          interpolation=args.interpolation,
-                          provenance={"camera_id": doc.get("camera_id"),
-                                      "session_id": doc.get("session_id"), "version": doc.get("version")})
+    out = Path(os.path.abspath(args.output))
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.tif")     # renamed over OUT: its links keep their bytes
+    try:
+        info = undistort_file(cal.camera, args.image, tmp, f_px=args.f_px, interpolation=args.interpolation,
+                              provenance={"camera_id": doc.get("camera_id"),
+                                          "session_id": doc.get("session_id"), "version": doc.get("version")})
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
     k = info["K"]
     print(f"{args.output}: corrected image {info['width_px']} x {info['height_px']} px, pinhole "
           f"fx = fy = {k[0][0]:.6g} px, cx = {k[0][2]:.6g}, cy = {k[1][2]:.6g} (OpenCV convention), "
@@ -285,6 +316,7 @@ def add_commands(subparsers) -> None:
     _add_lake(p)
     p.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default ./fieldcal-report-VERSION)")
+    add_overwrite_argument(p)
     p.set_defaults(func=_report, command="report")
 
     _add_certificate(subparsers)
@@ -303,11 +335,16 @@ def add_commands(subparsers) -> None:
                    help=f"significance level (default {DEFAULT_ALPHA:g})")
     p.add_argument("--remove-rotation", action="store_true",
                    help="remove the best common rotation of the camera frames first")
+    p.add_argument("--tolerance-arcsec", type=float, default=10.0,
+                   help="rig versions: tolerance of a relative rotation change [arcsec] (default 10)")
+    p.add_argument("--tolerance-mm", type=float, default=1.0,
+                   help="rig versions: tolerance of a lever-arm change [mm] (default 1)")
     p.add_argument("--grid", type=int, nargs=2, default=(41, 31), metavar=("NX", "NY"),
                    help="grid over the sensor (default 41 31)")
     p.add_argument("--plot", metavar="PNG", default=None, help="also draw the maps into PNG")
     p.add_argument("--format", choices=("text", "json"), default="text")
     p.add_argument("--out", metavar="FILE", default=None, help="write here instead of stdout")
+    add_overwrite_argument(p)
     p.set_defaults(func=_compare, command="compare")
 
     p = subparsers.add_parser("dashboard", help="write the fleet dashboard: a static site (open DIR/index.html)",
@@ -339,6 +376,7 @@ def add_commands(subparsers) -> None:
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 3) when the export cannot round-trip within 0.01 px")
     p.add_argument("--out", metavar="FILE", default=None, help="write here instead of stdout")
+    add_overwrite_argument(p)
     p.set_defaults(func=_export, command="export")
 
     p = subparsers.add_parser("undistort", help="write the distortion-free image of a photograph",
@@ -353,6 +391,7 @@ def add_commands(subparsers) -> None:
     p.add_argument("--interpolation", choices=tuple(INTERPOLATION), default="linear")
     p.add_argument("--f-px", type=float, default=None,
                    help="principal distance of the output [px] (default f / pixel pitch)")
+    add_overwrite_argument(p)
     p.set_defaults(func=_undistort, command="undistort")
 
 
@@ -381,6 +420,8 @@ def history_extras(parser: argparse.ArgumentParser):
     if "--alpha" not in have:
         parser.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                             help=f"significance level of the change test (default {DEFAULT_ALPHA:g})")
+    if "--overwrite" not in have:
+        add_overwrite_argument(parser)
     if "--param" not in have:
         parser.add_argument("--param", action="append", default=None, metavar="NAME",
                             help="another parameter to plot (repeatable)")
@@ -412,7 +453,7 @@ def _history(args) -> int:
     from fieldcal.products import plots
     from fieldcal.products.report import fleet_summary, parameter_tolerance
 
-    _check_outputs((args.plot, "--plot"), (getattr(args, "out", None), "--out"))
+    _check_outputs(args, (args.plot, "--plot"), (getattr(args, "out", None), "--out"))
     lake = open_lake(args)
     if args.fleet:
         table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
@@ -425,8 +466,7 @@ def _history(args) -> int:
         text = history.format_table(shown, fmt if fmt in history.FORMATS else "text")
         _write_text(text, getattr(args, "out", None))
         if args.plot:
-            Path(args.plot).write_bytes(plots.to_png(plots.fleet_plot(table,
-                                                                      tolerance_um=args.tolerance_um)))
+            write_output(args.plot, plots.to_png(plots.fleet_plot(table, tolerance_um=args.tolerance_um)))
         return 0
     camera = getattr(args, "camera", None)
     if not camera:
@@ -445,6 +485,6 @@ def _history(args) -> int:
     fig = plots.history_plot(table, names, tolerance=tol,
                              title=f"{camera}: {table.num_rows} calibration(s); band: "
                                    f"±{args.tolerance_um:g} µm around the first")
-    Path(args.plot).write_bytes(plots.to_png(fig))
+    write_output(args.plot, plots.to_png(fig))
     print(args.plot)
     return 0

@@ -41,6 +41,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from fieldcal import fleet as fleet_lib
 from fieldcal import progress
 from fieldcal.errors import FieldcalError, one_line
+from fieldcal.lake import secrets
 from fieldcal.lake.store import Lake
 
 from . import cluster
@@ -124,8 +125,8 @@ def _run_session(folder: str, lake: str, storage_options: dict | None, root_opti
         with fleet_lib.local_copy(folder, root_options) as local, progress.quiet():
             runner = cluster.task_runner(address, n_workers)
             state = calibrate_session.with_options(task_runner=runner)(
-                local, lake, storage_options=storage_options, settings=settings, batch_size=batch_size,
-                return_state=True)
+                local, lake, storage_options=secrets.redact(storage_options), settings=settings,
+                batch_size=batch_size, return_state=True)
             return state.result(raise_on_failure=False)
     except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
         return e
@@ -169,9 +170,12 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
     root : str, optional
         The root of session folders (local path or fsspec URL); default ``<lake>/sessions``.
     storage_options : dict, optional
-        fsspec options of the lake (non-secret: they are stored with the flow run).
+        fsspec options of the lake. They are stored with the flow run: give secrets as
+        :data:`fieldcal.lake.secrets.REDACTED` (the command line does), their values then
+        come from ``FIELDCAL_STORAGE_OPTIONS`` or the storage's own configuration where the
+        lake is opened (:mod:`fieldcal.lake.secrets`).
     root_storage_options : dict, optional
-        fsspec options of the root (default: ``storage_options``).
+        fsspec options of the root (default: ``storage_options``), the same way.
     dask_address, n_workers, cluster_kwargs
         The cluster all sessions share: a scheduler address (else
         ``$FIELDCAL_DASK_ADDRESS``), or a local cluster of ``n_workers`` workers.
@@ -204,7 +208,8 @@ def recalibrate_fleet(lake: str, root: str | None = None, storage_options: dict 
         if s.error:
             logger.error(f"{s.folder}: {s.error}")
     if todo:
-        with _cluster(dask_address, n_workers, cluster_kwargs, logger) as address:
+        # the sessions' subflows get the options redacted; their lakes find the values here
+        with secrets.exported(storage_options), _cluster(dask_address, n_workers, cluster_kwargs, logger) as address:
             threads = n_workers if cluster.dask_address(dask_address) is None else _threads(address)
             at_once = max(1, int(max_sessions or 2 * threads))
             logger.info(f"calibrating {len(todo)} session(s), at most {at_once} at once, on {address}")

@@ -57,7 +57,8 @@ from pathlib import Path
 from fieldcal.errors import FieldcalError, one_line
 
 __all__ = ["prefect_api", "prepare_environment", "quiet_prefect", "prefect_home", "local_server", "env_seconds",
-           "start_server", "stop_server", "server_status", "ServerError", "DEFAULT_LINGER_S", "LINGER_ENV"]
+           "start_server", "stop_server", "server_status", "make_private", "ServerError", "DEFAULT_LINGER_S",
+           "LINGER_ENV"]
 
 STATE_FILE = "fieldcal-server.json"
 CLIENTS_FILE = "fieldcal-server.clients"
@@ -91,6 +92,28 @@ def _private_tmp(name: str) -> Path:
     return Path(tempfile.gettempdir()) / f"fieldcal-{os.getuid()}" / name
 
 
+PRIVATE_FILES = ("prefect.db", "prefect.db-wal", "prefect.db-shm", "prefect.db-journal", LOG_FILE, STATE_FILE)
+"""Files of Prefect's home that hold the flow runs (parameters, logs): 0600 (:func:`make_private`)."""
+
+
+def make_private(home: Path) -> None:
+    """Make Prefect's home readable by its user only: the folder 0700, its database 0600.
+
+    The database holds every flow run's parameters, logs and artifacts; SQLite creates it
+    with the process's umask (0644 under the usual 022). Only a folder this user owns is
+    changed (a home someone else prepared is left as it is). The local server itself runs
+    with the umask 077 (:func:`_launch`), so that what it creates later is private too."""
+    try:
+        if home.stat().st_uid != os.getuid():
+            return
+        os.chmod(home, 0o700)
+        for name in PRIVATE_FILES:
+            with contextlib.suppress(FileNotFoundError):
+                os.chmod(home / name, 0o600)
+    except OSError:
+        pass                                   # not ours to change (a read-only mount): leave it
+
+
 def prepare_environment() -> None:
     """Make the per-user folders usable before Prefect, Matplotlib or the hash cache start.
 
@@ -112,6 +135,7 @@ def prepare_environment() -> None:
         if not _usable_dir(tmp):
             raise ServerError(f"no writable folder for Prefect: {home} and {tmp} cannot be written "
                               "(set PREFECT_HOME)")
+        make_private(tmp.parent)
         os.environ["PREFECT_HOME"] = str(tmp)
     if not os.environ.get("MPLCONFIGDIR"):
         mpl = Path(os.path.expanduser("~")) / ".config" / "matplotlib"
@@ -232,7 +256,7 @@ def env_seconds(name: str, default: float, *, positive: bool = False, error=None
         value = float(text)
     except ValueError:
         value = None
-    if value is None or (positive and not value > 0):
+    if value is None or value != value or abs(value) == float("inf") or (positive and not value > 0):
         kind = "a positive number" if positive else "a number"
         raise (error or ServerError)(f"{name} must be {kind} of seconds, got {text!r}")
     return value
@@ -265,7 +289,8 @@ def _launch(home: Path, port: int, linger_s: float, ui: bool = False) -> int:
     env.pop("PREFECT_API_URL", None)
     cmd = [sys.executable, "-m", "flows.server", "--port", str(port), "--linger", str(linger_s)]
     cmd += ["--ui"] if ui else []
-    launcher = ("import subprocess, sys\n"
+    launcher = ("import os, subprocess, sys\n"
+                "os.umask(0o077)\n"                      # the database, its journal, the log: 0600
                 "log = open(sys.argv[1], 'ab')\n"
                 "p = subprocess.Popen(sys.argv[2:], stdin=subprocess.DEVNULL, stdout=log, stderr=log,"
                 " start_new_session=True, close_fds=True)\n"
@@ -314,6 +339,7 @@ def local_server(home: Path | None = None, *, note=None, linger_s: float | None 
     (:class:`ServerError`: stop it first)."""
     home = home or prefect_home()
     home.mkdir(parents=True, exist_ok=True)
+    make_private(home)
     with _flock(home / START_LOCK, fcntl.LOCK_EX, "another command starting the local Prefect server"):
         state = server_status(home)
         if state is not None:

@@ -14,14 +14,14 @@ from fieldcal.errors import InputError
 
 __all__ = ["write_synthetic", "check_synthetic", "METHODS", "SCENARIOS"]
 
-METHODS = ("goniometer", "field")
-SCENARIOS = {"goniometer": ("canon5d2", "h3d"), "field": ("paper", "wide")}
+METHODS = ("goniometer", "field", "rig")
+SCENARIOS = {"goniometer": ("canon5d2", "h3d"), "field": ("paper", "wide"), "rig": ("two-head", "oblique")}
 
 
 def check_synthetic(method: str, scenario: str | None) -> str:
     """The scenario to use (the method's first by default); :class:`InputError` when unknown."""
     if method not in METHODS:
-        raise InputError(f"method must be 'goniometer' or 'field', got {method!r}")
+        raise InputError(f"method must be 'goniometer', 'field' or 'rig', got {method!r}")
     scenario = scenario or SCENARIOS[method][0]
     if scenario not in SCENARIOS[method]:
         raise InputError(f"{method} scenario must be " + " or ".join(f"'{s}'" for s in SCENARIOS[method])
@@ -62,6 +62,21 @@ def _field(out: Path, scenario: str, seed: int, images: bool, scale: float, n_im
     return sf.camera
 
 
+def _rig(out: Path, scenario: str, seed: int, session_id) -> dict:
+    """A rig session (observation-only, CONTRACT section 3 "Rig sessions") and its truth."""
+    from fieldcal.model.camera import PARAM_NAMES
+    from fieldcal.synthetic.rig import oblique_rig, two_head_rig, write_rig_session
+
+    sr = {"two-head": two_head_rig, "oblique": oblique_rig}[scenario](seed=seed)
+    write_rig_session(out, sr, session_id=session_id)
+    return {"rig_id": sr.data.rig_id, "reference": sr.data.heads[sr.data.reference].camera_id,
+            "heads": [{"camera_id": hd.camera_id, "sensor": cam.sensor.to_dict(),
+                       "parameters": {n: float(v) for n, v in zip(PARAM_NAMES, cam.params, strict=True)},
+                       "R_camera_to_rig": sr.R_camera_to_rig[h].tolist(),
+                       "t_camera_in_rig_m": sr.t_camera_in_rig_m[h].tolist()}
+                      for h, (hd, cam) in enumerate(zip(sr.data.heads, sr.cameras, strict=True))]}
+
+
 def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = None, seed: int = 0,
                     raster_scale: float = 0.25, images: bool = False, scale: float = 0.25,
                     n_images: int | None = None, marks: bool = False, camera_id: str | None = None,
@@ -94,6 +109,10 @@ def write_synthetic(out, method: str = "goniometer", *, scenario: str | None = N
     truth: dict = {"method": method, "seed": int(seed), "scenario": scenario}
     if check_points is not None and method != "field":
         raise InputError("--check-points is for the field method (surveyed targets withheld)")
+    if method == "rig":
+        truth.update(_rig(out, scenario, seed, session_id))
+        (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+        return truth
     if method == "goniometer":
         camera, truth["noise_free"] = _goniometer(out, scenario, seed, raster_scale, camera_id, session_id)
     else:

@@ -61,6 +61,7 @@ from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
+from fieldcal.field.datum import MIN_CONTROL_POINTS, minimal_constraints, to_minimum_trace
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.field.variance_components import (
     MIN_GROUP_REDUNDANCY,
@@ -158,6 +159,7 @@ class AdjustmentOptions:
     check_points: tuple[str, ...] = ()
     check_fraction: float = 0.0
     check_seed: int = 0
+    datum: str = "auto"
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
@@ -169,22 +171,22 @@ class AdjustmentOptions:
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
                 "max_rel_sigma_f": self.max_rel_sigma_f, "variance_components": self.variance_components,
                 "check_points": list(self.check_points), "check_fraction": self.check_fraction,
-                "check_seed": self.check_seed}
+                "check_seed": self.check_seed, **({"datum": self.datum} if self.datum != "auto" else {})}
 
 
 # ---------------------------------------------------------------------------- validation
 def validate_field_data(data: FieldData, *, min_points: int = MIN_POINTS_PER_IMAGE) -> None:
     """Refuse data the adjustment cannot use, naming what and where.
 
-    NaN or infinite coordinates, duplicate target ids, non-positive sigmas, observations
-    of unknown targets or images, images with fewer than ``min_points`` points, and fewer
-    than :data:`MIN_IMAGES` images.
+    Infinite or partly NaN coordinates (all three NaN: an unsurveyed target), duplicate target
+    ids, non-positive sigmas, observations of unknown targets or images, images with fewer
+    than ``min_points`` points, and fewer than :data:`MIN_IMAGES` images.
     """
     t = data.targets
     if len(np.unique(t.ids)) != len(t.ids):
         ids, counts = np.unique(t.ids, return_counts=True)
         raise InputError(f"duplicate target id(s) {list(ids[counts > 1][:5])}", "targets")
-    bad = ~np.isfinite(t.xyz_m).all(axis=1)
+    bad = ~np.isfinite(t.xyz_m).all(axis=1) & ~np.isnan(t.xyz_m).all(axis=1)   # all NaN: unsurveyed
     if bad.any():
         raise InputError(f"target '{t.ids[np.argmax(bad)]}' has non-finite coordinates", "targets")
     if not (np.isfinite(t.sigma_mm) & (t.sigma_mm > 0)).all():
@@ -240,6 +242,7 @@ class FieldProblem:
         if like is not None and like._template is not None and _same_pattern(like.model, m):
             self._template, self._structure = like._template, like._structure
         self._last = None               # (x, r, J) of the last evaluation with the Jacobian
+        self.datum = None               # MinimalConstraints of a free network (fieldcal.field.datum)
 
     def evaluate(self, x, jacobian: bool):
         """``(r, J)`` at ``x``; the last evaluation with the Jacobian is kept, and asked again at
@@ -249,6 +252,8 @@ class FieldProblem:
             return self._last[1], self._last[2]
         m = self.model
         r, jb, sd = m.residuals_and_blocks(x, jacobian)
+        if self.datum is not None:
+            r = np.concatenate([r, self.datum.residuals(x)])
         if not jacobian:
             return r, None
         parts = [(self._cols_int, jb.d_int), (self._cols_ext, jb.d_ext)]
@@ -264,7 +269,11 @@ class FieldProblem:
             blocks = [self._template[0].with_values(*[p[1] for p in parts], combined=jb.combined)]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
-        J = BlockSparseJacobian(m.n_rows, m.n_params, self.n_dense, self.block_size, blocks,
+        n_rows = m.n_rows
+        if self.datum is not None:
+            blocks = [*blocks, self.datum.block(m.n_rows)]
+            n_rows += 7
+        J = BlockSparseJacobian(n_rows, m.n_params, self.n_dense, self.block_size, blocks,
                                 structure=self._structure)
         self._structure = J.structure
         self._last = (np.array(x, float), r, J)
@@ -321,6 +330,7 @@ class FieldResult:
     rounds: list = field(default_factory=list)
     variance_components: VarianceComponents = field(default_factory=VarianceComponents)
     check_points: CheckPoints | None = None
+    datum: dict = field(default_factory=dict)
 
     @property
     def camera(self) -> Camera:
@@ -332,6 +342,8 @@ class FieldResult:
         du = self.residual_px[used]
         norm = np.hypot(du[:, 0], du[:, 1])
         observed = np.unique(self.data.obs.target[used])
+        rejected = ((~self.survey_used[observed] & self.data.targets.surveyed[observed])
+                    if self.options.targets_adjusted else np.zeros(len(observed), bool))
         return {
             "n_images": int(len(np.unique(self.data.obs.image[used]))),
             "n_targets": int(len(observed)),
@@ -346,9 +358,10 @@ class FieldResult:
             "solver": self.options.method,
             "targets_adjusted": bool(self.options.targets_adjusted),
             "fixed_parameters": dict(self.fixed_parameters),
-            "n_surveys_rejected": int((~self.survey_used[observed]).sum()) if self.options.targets_adjusted else 0,
-            "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][~self.survey_used[observed]]]
-            if self.options.targets_adjusted else [],
+            "n_surveys_rejected": int(rejected.sum()),
+            "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][rejected]],
+            **self.unsurveyed_stats(),
+            **({"datum": self.datum} if self.datum else {}),
             "n_left_out": int(((~used) & (self.obs_reason != "blunder") & (self.obs_reason != CHECK_POINT)).sum()),
             "iterations_total": int(self.iterations_total),
             "lsq_status": self.lsq.message,
@@ -356,6 +369,24 @@ class FieldResult:
             "variance_components": self.variance_components.to_dict(),
             **({"check_points": self.check_points.to_stats()} if self.check_points is not None else {}),
         }
+
+    def unsurveyed_stats(self) -> dict:
+        """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
+        adjustment estimated, the ids targets.csv does not list, and each one's adjusted
+        coordinates and sigmas (``{}`` when every target is surveyed)."""
+        t = self.data.targets
+        observed = np.unique(self.data.obs.target[self.obs_used])
+        uns = observed[~t.surveyed[observed]]
+        unlisted = list(self.data.meta.get("unlisted_targets", []))
+        if not len(uns) and not unlisted:
+            return {}
+        sigma = (self.sigma_targets_m[uns] * 1000.0 if self.sigma_targets_m is not None
+                 else np.full((len(uns), 3), np.nan))
+        return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
+                "unlisted_targets": unlisted,
+                "unsurveyed_targets": [{"id": str(t.ids[j]), "xyz_m": [float(v) for v in self.targets_m[j]],
+                                        "sigma_mm": [float(v) for v in sig]}
+                                       for j, sig in zip(uns, sigma, strict=True)]}
 
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
@@ -404,10 +435,13 @@ class _Solver:
         self.R = init.R_world_to_camera.copy()
         self.C = init.center_m.copy()
         self.X = data.targets.xyz_m.copy()
+        if init.targets_m is not None:          # unsurveyed targets: their intersections (NaN: not placed)
+            self.X = np.array(init.targets_m, float)
         self.iterations = 0
         self.rounds: list[dict] = []
         self.model: BundleModel | None = None
         self.problem: FieldProblem | None = None
+        self.free = False                                  # a free network (fieldcal.field.datum)
         self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
         self.sigma_mm0 = data.targets.sigma_mm.copy()
         self.vc = VarianceComponents()
@@ -434,6 +468,8 @@ class _Solver:
         x0 = model.pack(self.params, self.C, self.X)
         self.model = model
         problem = FieldProblem(model, like=self.problem)
+        if self.free:
+            problem.datum = minimal_constraints(model, x0, np.bincount(model.img, minlength=model.n_images))
         self.problem = problem
         if before is not None:
             r0, J0 = problem.evaluate(x0, True)
@@ -911,7 +947,29 @@ def _check_core_determined(model, result, corr, sigma, o):
         rel = sigma[names.index("f_mm")] / max(abs(result.x[names.index("f_mm")]), 1e-12)
         if not (rel <= o.max_rel_sigma_f):
             cov = _reduced_covariance(model, result.jac.normal_equations()) * result.sigma0**2
+            jf = names.index("f_mm")
+            rel_images = np.sqrt(max(cov[jf, jf], 0.0)) / max(abs(result.x[jf]), 1e-12)
+            if not model.targets_adjusted and rel_images <= o.max_rel_sigma_f:
+                raise _survey_dominates(model, rel, rel_images)
             raise _f_undetermined(rel, *_f_determination(model, cov, fixed_extras=False)[1:])
+
+
+def _survey_dominates(model, rel, rel_images) -> GeometryError:
+    """The diagnosis when the fixed targets' survey errors, not the geometry, leave f undetermined
+    (issue 26, goal 4): names the surveys with the largest sigmas and the remedies."""
+    t = model.data.targets
+    seen = np.unique(model.tgt)
+    sig = t.sigma_mm[seen]
+    order = np.argsort(-sig, kind="stable")
+    top = order[sig[order] >= 0.5 * sig[order[0]]]
+    ids = ", ".join(repr(str(x)) for x in t.ids[seen][top[:4]]) + (f" and {len(top) - 4} more" if len(top) > 4 else "")
+    return GeometryError(
+        f"the principal distance is not determined: its sigma is {100 * rel:.3g} % of f, and the survey "
+        f"of the fixed targets makes it so (the image geometry alone gives {100 * rel_images:.2g} %): the "
+        f"targets are held fixed and their survey errors enter the uncertainty; target(s) {ids} have "
+        f"sigma_mm {sig[order[0]]:.4g} (the median is {np.median(sig):.3g}): adjust the targets "
+        "(targets_adjusted, the default), give those points a realistic sigma_mm, or leave them "
+        "unsurveyed (empty X, Y, Z in targets.csv)")
 
 
 def adjust_field(data: FieldData, options: AdjustmentOptions | None = None, *,
@@ -991,8 +1049,13 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     local, origin = centred(data)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
-    init = (replace(initial, center_m=np.asarray(initial.center_m, float) - origin) if initial is not None
-            else initial_values(local, full))
+    _check_unsurveyed(data, o)
+    if initial is not None:
+        init = replace(initial, center_m=np.asarray(initial.center_m, float) - origin)
+        if initial.targets_m is not None:
+            init = replace(init, targets_m=np.asarray(initial.targets_m, float) - origin)
+    else:
+        init = initial_values(local, full)
     if progress:
         progress(f"initial values: {init.how}; f {init.params[0]:.4f} mm; "
                  f"{init.outliers.sum()} points flagged by the robust initialisers")
@@ -1000,6 +1063,9 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     solver = _Solver(local, o, init, progress)
     if initial_targets_m is not None and o.targets_adjusted:
         solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
+    _start_unsurveyed(solver, flags)
+    solver.free = _free_network(local, flags, o, progress, init.free_frame)
+    solver.X_start = solver.X.copy()
     estimate = list(full)
     try:
         model, result = _solve_clean(solver, flags, estimate, o, "adjustment")
@@ -1029,6 +1095,50 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     return res
 
 
+UNPLACED = "unsurveyed target not intersected"
+"""The residual table's ``reason`` of a point of an unsurveyed target the initial values could
+not place (seen in fewer than two oriented images, or at too narrow an angle)."""
+
+
+def _check_unsurveyed(data: FieldData, o: AdjustmentOptions) -> None:
+    """Unsurveyed targets are unknowns: they cannot be held fixed."""
+    observed = np.unique(data.obs.target)
+    n = int((~data.targets.surveyed[observed]).sum())
+    if n and not o.targets_adjusted:
+        raise InputError(f"{n} observed target(s) are unsurveyed (e.g. "
+                         f"{str(data.targets.ids[observed][~data.targets.surveyed[observed]][0])!r}); "
+                         "their coordinates must be adjusted: targets cannot be held fixed", "targets")
+
+
+def _start_unsurveyed(solver: _Solver, flags: _Flags) -> None:
+    """Unsurveyed targets start at their intersections (``InitialValues.targets_m``) with no
+    survey; the points of those that could not be placed are left out (:data:`UNPLACED`)."""
+    flags.survey_active &= solver.data.targets.surveyed
+    placed = np.isfinite(solver.X).all(axis=1)
+    if placed.all():
+        return
+    solver.X[~placed] = 0.0
+    lost = ~placed[solver.data.obs.target]
+    flags.obs_active[lost] = False
+    flags.reason[lost] = UNPLACED
+
+
+def _free_network(data: FieldData, flags: _Flags, o: AdjustmentOptions, progress, free_frame: bool) -> bool:
+    """Whether the datum is a free network (:mod:`fieldcal.field.datum`); then no survey enters."""
+    observed = np.zeros(len(data.targets), bool)
+    observed[data.obs.target[flags.obs_active]] = True
+    n = int((observed & flags.survey_active).sum())
+    free = o.datum == "free" or n < MIN_CONTROL_POINTS or free_frame
+    if free:
+        flags.survey_active[:] = False
+        if progress:
+            why = ("field.datum 'free'" if o.datum == "free" else "the network's start could not be moved onto "
+                   "the survey" if free_frame and n >= MIN_CONTROL_POINTS else f"{n} surveyed target(s)")
+            progress(f"datum: free network, inner constraints ({why}; surveyed coordinates serve as "
+                     "initial values only)")
+    return free
+
+
 def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str:
     """What this adjustment ended with: the parameters estimated and held, and its sigma0 -- the
     document's, of the session's own a-priori sigmas, which after a re-weighting by the variance
@@ -1043,6 +1153,12 @@ def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str
 
 
 def _check_options(o: AdjustmentOptions) -> None:
+    if o.datum not in ("auto", "free"):
+        raise InputError(f"datum must be 'auto' or 'free', got {o.datum!r}", "adjustment options")
+    if o.datum == "free" and (o.check_points or o.check_fraction > 0):
+        raise InputError("check points are compared with their survey in the control's frame: a free "
+                         "network (datum 'free') has none; leave out check_points or the free datum",
+                         "adjustment options")
     if o.method not in ("lmqn", "lm"):
         raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "adjustment options")
     if not (np.isfinite(o.check_fraction) and 0.0 <= o.check_fraction < 1.0):
@@ -1055,7 +1171,7 @@ def _check_options(o: AdjustmentOptions) -> None:
 
 
 def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
-    """The data translated so that the rounded centroid of the observed targets is the origin.
+    """The data translated so that the rounded centroid of the observed surveyed targets is the origin.
 
     Returns the translated :class:`FieldData` (only the target coordinates change) and the
     origin (3,) [m] in the data's frame. Rounding to whole metres keeps the subtraction
@@ -1063,6 +1179,7 @@ def centred(data: FieldData) -> tuple[FieldData, np.ndarray]:
     in local coordinates become the same numbers up to the rounding of their inputs.
     """
     observed = np.unique(data.obs.target)
+    observed = observed[data.targets.surveyed[observed]]          # unsurveyed targets: NaN
     origin = np.round(np.mean(data.targets.xyz_m[observed], axis=0)) if len(observed) else np.zeros(3)
     targets = replace(data.targets, xyz_m=data.targets.xyz_m - origin)
     return replace(data, targets=targets), origin
@@ -1149,15 +1266,30 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
     cov, s, corr = stats
     params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
+    X, var_X = solver.X, None
+    datum = {"type": "weighted control", "n_control": int(len(model.survey_k))}
+    if solver.free:
+        fn = to_minimum_trace(model, result, R, C, solver.X, solver.X_start, solver.data.scale_bars, result.sigma0)
+        R, C, X = fn.R, fn.C, fn.X
+        cov = fn.cov_reduced * result.sigma0**2
+        var_X = np.einsum("kii->ki", fn.cov_targets)
+        datum = {"type": "free network", "constraints": "inner (minimum trace over the adjusted targets)",
+                 "scale": f"{len(fn.info['scale_bars'])} scale bar(s)" if "scale_bars" in fn.info
+                 else "the initial values' (no scale bars)", **fn.info}
     ext_var = np.diag(cov)[model.n_int:].reshape(-1, 6)
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
         sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
-        sigma_X[model.target_index] = np.sqrt(np.einsum("kii->ki", ne.covariance_elim_blocks())) * result.sigma0
+        if var_X is None:
+            var_X = np.einsum("kii->ki", ne.covariance_elim_blocks())
+        sigma_X[model.target_index] = np.sqrt(var_X) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
-    targets_m = solver.X + origin
-    survey_res = (solver.data.targets.xyz_m - solver.X) * 1000.0
+    targets_m = X + origin
+    adjusted = np.zeros(len(data.targets), bool)
+    adjusted[model.target_index] = True
+    targets_m[~solver.data.targets.surveyed & ~adjusted] = np.nan     # unsurveyed, not placed
+    survey_res = (solver.data.targets.xyz_m - X) * 1000.0
     residual_px = solver.residuals_all()
     sigma0 = result.sigma0
     if solver.vc.rounds:           # re-weighted: sigma0 of the session's own a-priori sigmas
@@ -1174,4 +1306,5 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         targets_m=targets_m, sigma_targets_m=sigma_X, residual_px=residual_px,
         obs_used=flags.obs_active.copy(), obs_reason=flags.reason.astype(str), obs_test=flags.test,
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
-        iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc)
+        iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc,
+        datum=datum)

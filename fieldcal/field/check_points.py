@@ -209,8 +209,18 @@ def check_point_mask(targets: TargetField, *, ids=(), fraction: float = 0.0, see
         raise InputError(f"check point(s) {unknown[:5]} are not in targets.csv", "check_points")
     mask = np.zeros(len(targets), bool)
     mask[[index[str(t)] for t in ids]] = True
+    if (mask & ~targets.surveyed).any():
+        raise InputError(f"check point {str(targets.ids[mask & ~targets.surveyed][0])!r} is unsurveyed: "
+                         "a check point needs surveyed coordinates", "check_points")
     if fraction > 0:
-        mask |= stratified_check_points(targets, fraction, seed)
+        surveyed = targets.surveyed
+        if surveyed.all():
+            mask |= stratified_check_points(targets, fraction, seed)
+        else:           # drawn among the surveyed targets only
+            from dataclasses import replace
+            sub = replace(targets, ids=targets.ids[surveyed], xyz_m=targets.xyz_m[surveyed],
+                          sigma_mm=targets.sigma_mm[surveyed], codes=targets.codes[surveyed], normals=None)
+            mask[np.flatnonzero(surveyed)[stratified_check_points(sub, fraction, seed)]] = True
     return mask
 
 

@@ -16,7 +16,7 @@ from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData"]
+__all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData", "ScaleBars"]
 
 DEFAULT_TARGET_SIGMA_MM = 5.0
 DEFAULT_SIGMA_PX = 0.1
@@ -24,14 +24,18 @@ DEFAULT_SIGMA_PX = 0.1
 
 @dataclass
 class TargetField:
-    """Surveyed targets.
+    """The field's targets: surveyed ones and unsurveyed ones (tie points).
+
+    An **unsurveyed** target (CONTRACT section 3: empty ``X, Y, Z`` in targets.csv, or an id
+    that only the image points name) has NaN coordinates: the adjustment estimates them
+    with no survey prior.
 
     Attributes
     ----------
     ids : (n,) ndarray of str
         Unique target ids.
     xyz_m : (n, 3) ndarray
-        Surveyed world coordinates [m].
+        Surveyed world coordinates [m]; NaN rows for unsurveyed targets.
     sigma_mm : (n,) ndarray
         One-sigma accuracy of each surveyed coordinate [mm].
     codes : (n,) ndarray of int
@@ -60,6 +64,23 @@ class TargetField:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    @property
+    def surveyed(self) -> np.ndarray:
+        """(n,) bool: the targets with surveyed coordinates (the others are unsurveyed)."""
+        return np.isfinite(self.xyz_m).all(axis=1)
+
+    def with_unsurveyed(self, ids) -> TargetField:
+        """These targets and the unsurveyed, plain targets ``ids`` appended (NaN coordinates)."""
+        ids = np.asarray(list(ids), dtype=str)
+        if not len(ids):
+            return self
+        n = len(ids)
+        normals = None if self.normals is None else np.vstack([self.normals, np.full((n, 3), np.nan)])
+        return replace(self, ids=np.concatenate([self.ids, ids]),
+                       xyz_m=np.vstack([self.xyz_m, np.full((n, 3), np.nan)]),
+                       sigma_mm=np.concatenate([self.sigma_mm, np.full(n, DEFAULT_TARGET_SIGMA_MM)]),
+                       codes=np.concatenate([self.codes, np.full(n, -1, np.int64)]), normals=normals)
 
     def index(self) -> dict[str, int]:
         """``{id: row}``."""
@@ -111,6 +132,33 @@ class FieldObservations:
 
 
 @dataclass
+class ScaleBars:
+    """Distances between targets measured independently (``scale_bars.csv``, CONTRACT section 3).
+
+    Attributes
+    ----------
+    from_target, to_target : (b,) int ndarray
+        Indices into the :class:`TargetField`.
+    length_mm, sigma_mm : (b,) ndarray
+        The measured distance and its one-sigma accuracy [mm].
+    """
+
+    from_target: np.ndarray
+    to_target: np.ndarray
+    length_mm: np.ndarray
+    sigma_mm: np.ndarray
+
+    def __post_init__(self):
+        self.from_target = np.asarray(self.from_target, dtype=np.int64).reshape(-1)
+        self.to_target = np.asarray(self.to_target, dtype=np.int64).reshape(-1)
+        self.length_mm = np.asarray(self.length_mm, dtype=float).reshape(-1)
+        self.sigma_mm = np.asarray(self.sigma_mm, dtype=float).reshape(-1)
+
+    def __len__(self) -> int:
+        return len(self.from_target)
+
+
+@dataclass
 class FieldData:
     """Everything the field adjustment needs."""
 
@@ -121,6 +169,7 @@ class FieldData:
     nominal_focal_mm: float | None = None
     default_sigma_px: float = DEFAULT_SIGMA_PX
     meta: dict = field(default_factory=dict)
+    scale_bars: ScaleBars | None = None
 
     def with_obs(self, obs: FieldObservations) -> FieldData:
         return replace(self, obs=obs)

@@ -434,15 +434,42 @@ class _Run:
         self.identify = identify
         self.priors = priors
         self.nominal = nominal_camera(session)
-        self.targets = session.targets()
+        self.targets, marks_targets, keep = _surveyed_only(session.targets(), say)
         self.images = list(session.images)
         self.names = [im.file for im in self.images]
         self.stations = [im.station for im in self.images]
-        self.marks = (read_marks_csv(session.marks_path, self.targets, self.images)
+        self.marks = (_marks_of(read_marks_csv(session.marks_path, marks_targets, self.images), keep)
                       if session.marks_path is not None else {})
         self.coded = session.coded is not None
         size = (session.coded or {}).get("marker_size_mm")
         self.marker_size_m = float(size) / 1000.0 if size else None
+
+
+def _surveyed_only(targets, say):
+    """From photographs, targets are identified by their surveyed coordinates: unsurveyed rows of
+    targets.csv are left out, with a line saying so (they enter with observations.csv;
+    finding unsurveyed discs in the photographs, automatic referencing, is not implemented).
+    Returns ``(surveyed targets, all targets, mask)``."""
+    keep = targets.surveyed
+    if keep.all():
+        return targets, targets, keep
+    if say is not None:
+        say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv left out: from photographs only "
+            "surveyed targets are identified (observations.csv may carry unsurveyed ones)")
+    normals = None if targets.normals is None else targets.normals[keep]
+    sub = replace(targets, ids=targets.ids[keep], xyz_m=targets.xyz_m[keep], sigma_mm=targets.sigma_mm[keep],
+                  codes=targets.codes[keep], normals=normals)
+    return sub, targets, keep
+
+
+def _marks_of(marks: dict, keep) -> dict:
+    """marks.csv's ``{image: (target indices, uv)}`` over the surveyed targets ``keep`` only."""
+    new = np.cumsum(keep) - 1
+    out = {}
+    for i, (t, uv) in marks.items():
+        m = keep[t]
+        out[i] = (new[t[m]], uv[m])
+    return out
 
 
 def _first_pass(run: _Run):

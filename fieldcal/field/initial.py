@@ -22,7 +22,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -32,6 +32,8 @@ from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
 from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_coplanar
+from fieldcal.field.intersection import intersect_targets
+from fieldcal.field.relative_orientation import orient_pair
 from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import INDEX, Camera
 
@@ -59,6 +61,8 @@ class InitialValues:
     dlt_f_mm: np.ndarray          # per image (NaN where no DLT)
     how: str
     lm_tau: float | None = None   # a warm start: the LM damping the adjustment it comes from ended with
+    targets_m: np.ndarray | None = None   # (n_targets, 3) start (unsurveyed: intersected; NaN: not placed)
+    free_frame: bool = False      # started by relative orientation and not moved onto the survey
 
 
 def per_image(data: FieldData) -> list[np.ndarray]:
@@ -260,8 +264,123 @@ def _orient(data: FieldData, groups, params, poses, outliers, threshold_px):
     return R, C
 
 
+MIN_RESECTION_POINTS = 4
+"""An image is oriented from this many points of known coordinates at least (a pose's six
+unknowns and a check; :func:`fieldcal.field.resection.resect`)."""
+
+
+def _known(data: FieldData, X) -> FieldData:
+    """``data`` with the target coordinates ``X`` (n, 3) and only the points of targets it places."""
+    ok = np.isfinite(X).all(axis=1)
+    return replace(data, targets=replace(data.targets, xyz_m=np.where(ok[:, None], X, 0.0)),
+                   obs=data.obs.take(ok[data.obs.target]))
+
+
+def _bootstrap(data: FieldData):
+    """Starting coordinates of the unsurveyed targets (step 0; module docstring of
+    :mod:`fieldcal.field.intersection`): images with at least :data:`MIN_RESECTION_POINTS`
+    surveyed points are resected with the nominal camera (or the DLT's, when enough images
+    allow one), the unsurveyed targets seen by two of them intersected, the images that now
+    see enough targets of known coordinates resected, and so on while the network grows.
+
+    No image sees enough surveyed targets: the network starts from the relative orientation of
+    a pair (:mod:`fieldcal.field.relative_orientation`) and is moved onto the survey
+    (:func:`_onto_survey`).
+
+    Returns ``(X (n, 3), how, free_frame)``: surveyed coordinates, intersections, NaN for
+    targets that could not be placed; ``free_frame`` when X is in a pair's frame although
+    some targets are surveyed."""
+    surveyed = data.targets.surveyed
+    n_img = len(data.images)
+    threshold_px = max(8.0, 0.002 * max(data.sensor.width_px, data.sensor.height_px))
+    R, C = np.zeros((n_img, 3, 3)), np.zeros((n_img, 3))
+    oriented = np.zeros(n_img, bool)
+    n_seen = np.bincount(data.obs.image[surveyed[data.obs.target]], minlength=n_img)
+    relative = not (n_seen >= MIN_RESECTION_POINTS).any()     # no image can be resected on the survey
+    # relative orientation: every target is placed in the pair's frame first (surveyed ones too)
+    unknown = np.ones(len(surveyed), bool) if relative else ~surveyed
+    X = np.where(unknown[:, None], np.nan, data.targets.xyz_m)
+    if relative:
+        if data.nominal_focal_mm is None:
+            raise GeometryError("no surveyed target and no nominal focal length: give lens.nominal_focal_mm "
+                                "(the network is started by the relative orientation of two images with it)")
+        params = np.zeros(13)
+        params[INDEX["f_mm"]] = data.nominal_focal_mm
+        i, j, R_pair, C_pair = orient_pair(data, params, threshold_px)
+        R[[i, j]], C[[i, j]], oriented[[i, j]] = R_pair, C_pair, True
+        how = (f"relative orientation of {data.images[i].file} and {data.images[j].file} "
+               "(five-point essential matrix, nominal focal length)")
+    else:
+        known = _known(data, X)
+        groups = per_image(known)
+        dlt_f, dlt_pp, _, _ = _dlts(known, groups)
+        if data.nominal_focal_mm is None and not np.isfinite(dlt_f).any():
+            raise GeometryError("unsurveyed targets and no nominal focal length: give lens.nominal_focal_mm "
+                                "(the images are resected from the few surveyed targets with it)")
+        params, how = _common_interior(known, groups, dlt_f, dlt_pp)
+    camera = Camera(data.sensor, params)
+    while True:
+        known = _known(data, X)
+        counts = np.bincount(known.obs.image, minlength=n_img)
+        todo = np.flatnonzero(~oriented & (counts >= MIN_RESECTION_POINTS))
+        groups = per_image(known)
+        for i in todo:
+            k = groups[i]
+            Xk, uv = known.targets.xyz_m[known.obs.target[k]], known.obs.uv_px[k]
+            try:
+                if is_coplanar(Xk):
+                    R_i, C_i, _ = planar_pose(Xk, uv, camera, where=data.images[i].file)
+                    res = resect(Xk, uv, camera, ransac=len(k) >= 8, where=data.images[i].file,
+                                 init=(R_i, C_i), threshold_px=threshold_px)
+                else:
+                    res = resect(Xk, uv, camera, ransac=len(k) >= 8, where=data.images[i].file,
+                                 threshold_px=threshold_px)
+            except GeometryError:
+                continue
+            R[i], C[i], oriented[i] = res.R_world_to_camera, res.center_m, True
+        use = oriented[data.obs.image] & unknown[data.obs.target]
+        Xi, _ = intersect_targets(data, params, R, C, use, threshold_px=threshold_px)
+        new = unknown & np.isfinite(Xi).all(axis=1) & ~np.isfinite(X).all(axis=1)
+        X[new] = Xi[new]
+        if not new.any() and not len(todo):
+            break
+    free_frame = False
+    if relative:
+        X, how, free_frame = _onto_survey(data, X, how)
+    n_uns = int((~surveyed[np.unique(data.obs.target)]).sum())
+    n_placed = int((~surveyed & np.isfinite(X).all(axis=1)).sum())
+    return X, (f"{n_placed} of {n_uns} unsurveyed targets intersected from {int(oriented.sum())} images "
+               f"oriented on the surveyed ones and the growing network ({how})"), free_frame
+
+
+def _onto_survey(data: FieldData, X, how: str):
+    """A network started by relative orientation, moved onto the survey: the similarity that
+    fits its intersections of the surveyed targets to their surveyed coordinates (Umeyama
+    1991; three or more, not collinear), then the surveyed coordinates themselves. With fewer,
+    the pair's frame stays (a free network) and the surveyed coordinates are not used.
+    Returns ``(X, how, free_frame)``."""
+    s = data.targets.surveyed & np.isfinite(X).all(axis=1)
+    P, Q = X[s], data.targets.xyz_m[s]
+    if len(P) >= 3:
+        mp, mq = P.mean(0), Q.mean(0)
+        U, sv, Vt = np.linalg.svd((Q - mq).T @ (P - mp))
+        d = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        if sv[1] > 1e-6 * sv[0]:                    # not collinear
+            Rm = U @ d @ Vt
+            scale = np.trace(np.diag(sv) @ d) / np.sum((P - mp) ** 2)
+            X = scale * (X - mp) @ Rm.T + mq
+            X[data.targets.surveyed] = data.targets.xyz_m[data.targets.surveyed]
+            return X, f"{how}, moved onto {len(P)} surveyed targets", False
+    return X, how, bool(data.targets.surveyed[np.unique(data.obs.target)].any())
+
+
 def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
     """Initial interior and exterior orientation (module docstring).
+
+    With unsurveyed targets, their coordinates first (:func:`_bootstrap`); then the steps
+    below on every target of known or intersected coordinates, and the intersections
+    repeated with the oriented images (``InitialValues.targets_m``). Points of targets that
+    could not be placed are flagged as initial outliers.
 
     Parameters
     ----------
@@ -274,6 +393,36 @@ def initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
     -------
     InitialValues
     """
+    if not data.targets.surveyed[np.unique(data.obs.target)].all():
+        return _with_unsurveyed(data, estimate)
+    return _initial_values(data, estimate)
+
+
+def _with_unsurveyed(data: FieldData, estimate: Sequence[str]) -> InitialValues:
+    """:func:`initial_values` of a network with unsurveyed targets."""
+    X, how, free_frame = _bootstrap(data)
+    placed = np.isfinite(X).all(axis=1)[data.obs.target]
+    sub = _known(data, X)
+    init = _initial_values(sub, estimate)
+    threshold_px = max(8.0, 0.002 * max(data.sensor.width_px, data.sensor.height_px))
+    use = np.zeros(len(data.obs), bool)
+    use[np.flatnonzero(placed)] = ~init.outliers
+    unsurveyed = ~data.targets.surveyed
+    Xi, inlier = intersect_targets(data, init.params, init.R_world_to_camera, init.center_m,
+                                   use & unsurveyed[data.obs.target], threshold_px=threshold_px)
+    again = unsurveyed & np.isfinite(Xi).all(axis=1)
+    X[again] = Xi[again]
+    X[unsurveyed & ~again] = np.nan
+    outliers = np.ones(len(data.obs), bool)
+    outliers[np.flatnonzero(placed)] = init.outliers
+    outliers |= ~np.isfinite(X).all(axis=1)[data.obs.target]
+    outliers |= unsurveyed[data.obs.target] & ~inlier
+    return InitialValues(init.params, init.R_world_to_camera, init.center_m, outliers, init.dlt_f_mm,
+                         f"{how}; then {init.how}", targets_m=X, free_frame=free_frame)
+
+
+def _initial_values(data: FieldData, estimate: Sequence[str]) -> InitialValues:
+    """:func:`initial_values` of a network whose observed targets are all surveyed."""
     sensor = data.sensor
     groups = per_image(data)
     dlt_f, dlt_pp, poses, outliers = _dlts(data, groups)

@@ -25,6 +25,9 @@ _TABLE_DOCS = {
                           "the pixels. A row with row = -1 marks an image measured with no result.",
     "observations_goniometer": "The spot measured in each goniometer frame: the same cache for "
                                "the goniometer method. row = -1 as above.",
+    "rigs": "One row per committed version of a rig (CONTRACT section 3, Rig sessions): its heads' calibration "
+            "versions (each a row of `catalog`), committed in one transaction of `catalog` before this row; the "
+            "rig document (relative orientations, sigmas, covariance) at `document_path`.",
     "comparisons": "The change test of a version against the previous calibration of its camera "
                    "(fieldcal.lake.order), computed at the commit (and by `fieldcal lake fill`), read by "
                    "history --fleet and the dashboard; keyed by the pair, so a backfill adds the new "
@@ -214,6 +217,8 @@ def data_dictionary() -> str:
            "observations_goniometer/    Delta: the spot of each goniometer frame (cache), by camera_id",
            "comparisons/                Delta: the change test of two versions (derived)",
            "assessments/                Delta: the acceptance of each version (derived)",
+           "rigs/                       Delta: one row per committed rig version (its heads' versions)",
+           "rigs/R/S/V.json             the rig document of rig version V (fieldcal.rig/1)",
            "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
            "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
            "                            exterior/*, correction_field, grid_u_px, grid_v_px",

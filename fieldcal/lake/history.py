@@ -40,7 +40,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from fieldcal.errors import InputError, LakeError
-from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC
+from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC, SESSION_SQL
 from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "pick_columns", "DEFAULT_COLUMNS",
@@ -218,8 +218,9 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
     pyarrow.Table
         ``camera_id, session_id, version, method, acquired, created, forced``, then per
         parameter ``name, sigma_name, delta_name``, then ``rmse_px, sigma0, sigma_fit_px,
-        n_images, n_observations, n_rejected, code_version``; ordered by ``acquired``
-        (versions without it last), then commit time.
+        n_images, n_observations, n_rejected, code_version``; in the order of
+        :mod:`fieldcal.lake.order` (acquisition time, the creation time of a version without
+        one, ties by commit order); a session is a ``session_id`` with its acquisition time.
     """
     names = list(dict.fromkeys(_param_columns(parameters)))
     schema = arrow_schema("catalog")
@@ -232,16 +233,14 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
     tail = [c for c in ("rmse_px", "sigma0", "sigma_fit_px", "n_images", "n_observations",
                         "n_rejected", "code_version") if c not in names]
     latest = "" if all_versions else (
-        "QUALIFY row_number() OVER (PARTITION BY session_id "
-        "ORDER BY committed DESC, version DESC) = 1")
+        f"QUALIFY row_number() OVER (PARTITION BY {SESSION_SQL} ORDER BY {ORDER_SQL_DESC}) = 1")
     query = f"""
         WITH c AS (SELECT * FROM catalog WHERE camera_id = ? {latest})
         SELECT camera_id, session_id, version, method, acquired, created, forced,
                {", ".join(cols + tail)}
         FROM c
-        WINDOW w AS (ORDER BY acquired ASC NULLS LAST, committed, version
-                     ROWS BETWEEN UNBOUNDED PRECEDING AND CURRENT ROW)
-        ORDER BY acquired ASC NULLS LAST, committed, version
+        WINDOW w AS (ORDER BY {ORDER_SQL} ROWS BETWEEN UNBOUNDED PRECEDING AND CURRENT ROW)
+        ORDER BY {ORDER_SQL}
     """
     return sql(lake, query, [camera_id], as_of=as_of, views=("catalog",), only={"camera_id": camera_id})
 
@@ -259,10 +258,18 @@ def _bound(value, *, end: bool):
         value = parsed.date() if is_date else parsed
     if isinstance(value, dt.datetime):
         t = value if value.tzinfo else value.replace(tzinfo=UTC)
-        return t.astimezone(UTC)
+        try:
+            return t.astimezone(UTC)
+        except OverflowError:         # 9999-12-31T23:59-23:00 is after the year 9999 in UTC
+            raise InputError(f"out of range in UTC (years 1 to 9999): {value.isoformat()}", "fleet") from None
     if isinstance(value, dt.date):
         t = dt.datetime(value.year, value.month, value.day, tzinfo=UTC)
-        return t + dt.timedelta(days=1) - dt.timedelta(microseconds=1) if end else t
+        if not end:
+            return t
+        try:
+            return t + dt.timedelta(days=1) - dt.timedelta(microseconds=1)
+        except OverflowError:         # the end of 9999-12-31: the last representable time
+            return dt.datetime.max.replace(tzinfo=UTC)
     raise InputError(f"expected a date or time, got {type(value).__name__}", "fleet")
 
 
@@ -320,7 +327,7 @@ def fleet_pairs(lake, start=None, end=None, *, as_of=None) -> pa.Table:
     query = f"""
         WITH sessions AS (
             SELECT * FROM catalog
-            QUALIFY row_number() OVER (PARTITION BY camera_id, session_id ORDER BY {ORDER_SQL_DESC}) = 1),
+            QUALIFY row_number() OVER (PARTITION BY camera_id, {SESSION_SQL} ORDER BY {ORDER_SQL_DESC}) = 1),
         ordered AS (
             SELECT camera_id, version, method, acquired,
                    lag(version) OVER w AS previous_version, lag(method) OVER w AS previous_method,

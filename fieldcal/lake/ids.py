@@ -142,7 +142,10 @@ def parse_time(value, where: str) -> dt.datetime | None:
         raise InputError(f"expected an ISO 8601 date or time, got {type(value).__name__}", where)
     if t.tzinfo is None:
         t = t.replace(tzinfo=UTC)
-    return t.astimezone(UTC)
+    try:
+        return t.astimezone(UTC)
+    except OverflowError:            # 9999-12-31T23:59-23:00 is after the year 9999 in UTC
+        raise InputError(f"out of range in UTC (years 1 to 9999): {_shown(value)}", where) from None
 
 
 def _json_default(value):

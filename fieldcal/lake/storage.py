@@ -103,8 +103,10 @@ class Storage:
     """File operations on a local directory or an fsspec URL (see the module docstring)."""
 
     def __init__(self, url, storage_options=None):
+        from fieldcal.lake import secrets
+
         text = os.fspath(url)
-        self.storage_options = dict(storage_options or {})
+        self.storage_options = dict(secrets.resolve(storage_options) or {})
         if "://" in text and not text.startswith("file://"):
             import fsspec
 

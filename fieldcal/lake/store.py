@@ -68,6 +68,7 @@ import pyarrow.dataset as ds
 
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake import observations as obs
+from fieldcal.lake import order
 from fieldcal.lake.ids import (
     VERSION_PATTERN,
     check_id,
@@ -85,6 +86,7 @@ from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
 from fieldcal.products.correction import CORRECTION_GRID
 from fieldcal.session.fingerprint import code_version, is_fingerprint
+from fieldcal.session.loader import check_acquired_not_ahead
 from fieldcal.session.schemas import validate_json
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
@@ -243,6 +245,8 @@ class Lake:
         now = utcnow()
         doc, explicit = self._prepare_document(document, now, acquired)
         where = f"calibration {doc['camera_id']}/{doc['session_id']}"
+        if original is None and doc.get("acquired") is not None:   # a typo would stay the latest for years
+            check_acquired_not_ahead(parse_time(doc["acquired"], where), now, where)
         res = conform_residuals(residuals, where)
         zarr_arrays = prepare_arrays(doc, arrays or {}, array_attrs or {}, where)
         fp = doc["inputs"]["fingerprint"]
@@ -431,6 +435,135 @@ class Lake:
         except OSError:
             pass  # the version is committed; the dictionary is written by the next commit
 
+    # -- rigs (CONTRACT section 3, "Rig sessions") ---------------------------------------
+    @staticmethod
+    def rig_path(rig_id: str, session_id: str, version: str) -> str:
+        """Lake-relative name of a rig version's document."""
+        return f"rigs/{rig_id}/{session_id}/{version}.json"
+
+    def commit_rig(self, heads, rig_document: Mapping, *, force: bool = False) -> tuple[Committed, list[str]]:
+        """Store one version of a rig: a calibration version per head and the rig document.
+
+        ``heads``: one ``{"document", "arrays", "array_attrs", "residuals"}`` per head, as for
+        :meth:`commit`; ``rig_document``: the ``fieldcal.rig/1`` document, its heads' versions
+        filled in here. Everything is checked in memory first; then every head's document, Zarr
+        group and residuals, and the rig document, are written; then **one** transaction of
+        ``catalog`` adds every head's row (the heads appear together or not at all), and last
+        the ``rigs`` row. A crash after the catalog's transaction leaves the heads committed
+        and the rig row missing: a rerun of the same inputs finds the heads' versions by their
+        fingerprints and writes the rig row (nothing is solved twice).
+
+        Returns ``(rig version, head versions)``; ``.new`` False when the rig was committed already.
+        """
+        now = utcnow()
+        prepared = []
+        for item in heads:
+            doc, explicit = self._prepare_document(item["document"], now, None)
+            where = f"calibration {doc['camera_id']}/{doc['session_id']}"
+            res = conform_residuals(item.get("residuals"), where)
+            arrays = prepare_arrays(doc, item.get("arrays") or {}, item.get("array_attrs") or {}, where)
+            prepared.append((doc, explicit, res, arrays))
+        rig = plain_json(dict(rig_document), "rig document")
+        fp = rig["inputs"]["fingerprint"]
+        if not force:
+            hit = self.rig_catalog(fingerprint=fp)
+            if hit.num_rows:
+                return Committed(hit["version"][-1].as_py(), new=False), hit["head_versions"][-1].as_py()
+            found = [self.find_committed(p[0]["inputs"]["fingerprint"]) for p in prepared]
+            if all(found):
+                return self._commit_rig_row(rig, list(found), now), list(found)
+        return self._write_rig(prepared, rig, force, now)
+
+    def _write_rig(self, prepared, rig: dict, force: bool, now) -> tuple[Committed, list[str]]:
+        written: list[str] = []
+        residual_versions: list[str] = []
+        done = False
+        meta = dict(_who(), rig_id=rig["rig_id"], session_id=rig["session_id"])
+        try:
+            rows, versions = [], []
+            for doc, explicit, res, arrays in prepared:
+                version = self._reserve(doc, explicit, written)
+                paths = self.paths(doc["camera_id"], doc["session_id"], version)
+                written.append(paths["zarr"])
+                self._write_zarr(paths["zarr"], arrays, doc)
+                if res.num_rows:
+                    residual_versions.append(version)
+                    self.tables.append("residuals", _with_keys(res, doc), dict(meta, action="residuals",
+                                                                               version=version))
+                rows.append(catalog_row(doc, utcnow(), force, paths, f"calibration {doc['camera_id']}"))
+                versions.append(version)
+            self.tables.append("catalog", pa.concat_tables(rows), dict(meta, action="commit rig",
+                                                                       versions=",".join(versions)))
+            done = True
+        except OSError as e:
+            raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
+        finally:
+            if not done:       # the files, then each head's residual rows (invisible without catalog rows)
+                self._discard(written, None)
+                for v in residual_versions:
+                    self._discard([], v)
+        self._write_dictionary()
+        return self._commit_rig_row(rig, versions, now), versions
+
+    def _commit_rig_row(self, rig: dict, versions: list[str], now) -> Committed:
+        """Write the rig document (its heads' versions filled in) and its ``rigs`` row."""
+        from fieldcal.rig.document import validate_rig_document
+
+        for head, v in zip(rig["heads"], versions, strict=True):
+            head["version"] = v
+        for _ in range(32):
+            rig["version"] = new_version(rig["inputs"]["fingerprint"], now)
+            validate_rig_document(rig, f"rig {rig['rig_id']}/{rig['session_id']}")
+            rel = self.rig_path(rig["rig_id"], rig["session_id"], rig["version"])
+            try:
+                self._store.write(rel, json.dumps(rig, indent=2).encode("utf-8"), exclusive=True)
+                break
+            except FileExistsError:
+                continue
+        row = {"rig_id": rig["rig_id"], "session_id": rig["session_id"], "version": rig["version"],
+               "reference": rig["reference"], "created": parse_time(rig["created"], "rig document"),
+               "committed": utcnow(), "acquired": parse_time(rig.get("acquired"), "rig document"),
+               "fingerprint": rig["inputs"]["fingerprint"], "camera_ids": [h["camera_id"] for h in rig["heads"]],
+               "head_versions": list(versions), "n_exposures": rig["stats"].get("n_exposures"),
+               "sigma0": rig["stats"].get("sigma0"), "document_path": rel}
+        from fieldcal.lake.tables import RIGS_SCHEMA
+
+        self.tables.append("rigs", pa.Table.from_pylist([row], schema=RIGS_SCHEMA),
+                           dict(_who(), action="commit", version=rig["version"]))
+        return Committed(rig["version"], new=True)
+
+    def rig_catalog(self, *, rig_id: str | None = None, fingerprint: str | None = None) -> pa.Table:
+        """Committed rig versions (the ``rigs`` table), oldest first; of one rig or fingerprint."""
+        f = None
+        if rig_id is not None:
+            f = ds.field("rig_id") == rig_id
+        if fingerprint is not None:
+            g = ds.field("fingerprint") == fingerprint
+            f = g if f is None else f & g
+        t = self.tables.scan("rigs", filter=f)
+        if t.num_rows < 2:
+            return t
+        return t.take(pa.compute.sort_indices(t.select(["committed", "version"]),
+                                              [("committed", "ascending"), ("version", "ascending")]))
+
+    def is_rig_version(self, version: str) -> bool:
+        """Whether ``version`` is a committed rig version."""
+        if not isinstance(version, str) or not VERSION_PATTERN.fullmatch(version):
+            return False
+        return version in self.rig_catalog()["version"].to_pylist()
+
+    def load_rig_document(self, version: str) -> dict:
+        """The rig document of a committed rig version."""
+        check_version(version)
+        t = self.rig_catalog()
+        hits = [r for r in t.to_pylist() if r["version"] == version]
+        if not hits:
+            raise LakeError(f"rig version {version} is not committed in {self.url}")
+        try:
+            return json.loads(self._store.read(hits[-1]["document_path"]))
+        except (OSError, ValueError) as e:
+            raise LakeError(f"rig version {version}: cannot read its document: {reason(e)}") from None
+
     # -- reading --------------------------------------------------------------------------
     def catalog(self, *, as_of=None, filter=None, equal: Mapping | None = None,
                 sort: bool = True) -> pa.Table:
@@ -495,13 +628,20 @@ class Lake:
         return read_back(self, version, row["document_path"], row["zarr_path"])
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
-        """The most recently committed version of a camera (of one session), or None."""
+        """A camera's latest version (of its sessions named ``session_id``), or None.
+
+        "Latest" by :mod:`fieldcal.lake.order`: acquisition time, ties by commit order (not
+        the last commit: a backfill or a forced rerun of an old session is not the latest)."""
+        return order.latest(self.camera_rows(camera_id, session_id))
+
+    def camera_rows(self, camera_id: str, session_id: str | None = None) -> list[dict]:
+        """The catalog rows of a camera (of its sessions named ``session_id``) with the
+        columns :mod:`fieldcal.lake.order` reads (:data:`fieldcal.lake.order.ROW_COLUMNS`)."""
         check_id(camera_id, "camera_id")
         f = ds.field("camera_id") == camera_id
         if session_id is not None:
             f = f & (ds.field("session_id") == check_id(session_id, "session_id"))
-        hits = self.catalog(filter=f, equal={"camera_id": camera_id})["version"].to_pylist()
-        return hits[-1] if hits else None
+        return self.catalog(filter=f, equal={"camera_id": camera_id}).select(list(order.ROW_COLUMNS)).to_pylist()
 
     def sessions_with_calibration(self) -> list[tuple[str, str]]:
         """(camera_id, session_id) of every session with at least one committed version."""

@@ -44,9 +44,10 @@ from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
 
-TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments")
+TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer", "comparisons", "assessments",
+          "rigs")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
-              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": []}
+              "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": [], "rigs": []}
 QUARANTINE = "quarantine"
 """The lake's folder of damaged files moved out of the way (by a writer or ``lake repair``)."""
 DEFAULT_MAINTAIN_EVERY = 100
@@ -118,7 +119,23 @@ def table_schema(name: str) -> pa.Schema:
                           pa.field("verdict", pa.string(), nullable=False),
                           pa.field("radial", pa.string()),
                           pa.field("result", pa.string(), nullable=False)])
+    if name == "rigs":
+        return RIGS_SCHEMA
     raise InputError(f"unknown table {name!r}; the lake's tables are {', '.join(TABLES)}", "lake")
+
+
+RIGS_SCHEMA = pa.schema([
+    pa.field("rig_id", pa.string(), nullable=False), pa.field("session_id", pa.string(), nullable=False),
+    pa.field("version", pa.string(), nullable=False), pa.field("reference", pa.string(), nullable=False),
+    pa.field("created", pa.timestamp("us", "UTC"), nullable=False),
+    pa.field("committed", pa.timestamp("us", "UTC"), nullable=False),
+    pa.field("acquired", pa.timestamp("us", "UTC")),
+    pa.field("fingerprint", pa.string(), nullable=False),
+    pa.field("camera_ids", pa.list_(pa.string()), nullable=False),
+    pa.field("head_versions", pa.list_(pa.string()), nullable=False),
+    pa.field("n_exposures", pa.int32()), pa.field("sigma0", pa.float64()),
+    pa.field("document_path", pa.string(), nullable=False)])
+"""The ``rigs`` table: one row per committed rig version (CONTRACT section 3, "Rig sessions")."""
 
 
 def _quote(text: str) -> str:

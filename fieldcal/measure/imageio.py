@@ -34,7 +34,8 @@ import tifffile
 from fieldcal.errors import ImageError, InputError
 
 __all__ = ["ImageInfo", "ImageFile", "probe_image", "read_file", "read_image", "check_image",
-           "stat_stamp", "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES"]
+           "stat_stamp", "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES",
+           "pixel_sample_digest", "pixel_digest", "SAMPLE_ROWS"]
 
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 MAX_PIXELS = 400_000_000
@@ -297,18 +298,22 @@ def _decode(tif: tifffile.TiffFile, info: ImageInfo, source, maxworkers: int) ->
     except Exception as err:  # noqa: BLE001 - any decoder failure is a bad file, reported in one line
         raise ImageError(f"cannot decode pixels ({_short(err)}); truncated or corrupt file?", where) from None
     if arr.ndim == 3:
-        # samples last (contig) or first (separate planes)
-        if arr.shape[-1] in (3, 4) and arr.shape[:2] == (info.height_px, info.width_px):
-            rgb = arr[..., :3]
-        elif arr.shape[0] in (3, 4):
-            rgb = np.moveaxis(arr[:3], 0, -1)
-        else:
-            raise ImageError(f"unexpected pixel array shape {arr.shape}", where)
-        luma = rgb @ LUMA_WEIGHTS.astype(np.float32)
-        arr = np.clip(np.rint(luma), 0, np.iinfo(info.dtype).max).astype(info.dtype)
+        arr = _luminance(arr, info, (info.height_px, info.width_px), where)
     if arr.shape != (info.height_px, info.width_px):
         raise ImageError(f"decoded shape {arr.shape} does not match the header", where)
     return arr
+
+
+def _luminance(arr: np.ndarray, info: ImageInfo, shape: tuple[int, int], where: str) -> np.ndarray:
+    """Luminance of a colour array (``shape`` rows x columns, samples last or first), in its dtype."""
+    if arr.shape[-1] in (3, 4) and arr.shape[:2] == shape:
+        rgb = arr[..., :3]                       # samples last (contig)
+    elif arr.shape[0] in (3, 4) and arr.shape[1:] == shape:
+        rgb = np.moveaxis(arr[:3], 0, -1)        # separate planes
+    else:
+        raise ImageError(f"unexpected pixel array shape {arr.shape}", where)
+    luma = rgb @ LUMA_WEIGHTS.astype(np.float32)
+    return np.clip(np.rint(luma), 0, np.iinfo(info.dtype).max).astype(info.dtype)
 
 
 def read_image(source, *, expect_size: tuple[int, int] | None = None,
@@ -354,3 +359,65 @@ def read_image(source, *, expect_size: tuple[int, int] | None = None,
                 f"image is {info.width_px} x {info.height_px} px, the session's sensor is "
                 f"{expect_size[0]} x {expect_size[1]} px", where)
         return _decode(tif, info, source, decode_threads() if maxworkers is None else int(maxworkers))
+
+
+# --------------------------------------------------------------------------------------
+# the same photograph in another encoding
+# --------------------------------------------------------------------------------------
+SAMPLE_ROWS = 8
+"""Rows of the band in the middle of an image that :func:`pixel_sample_digest` decodes."""
+
+
+def _pixels_digest(info: ImageInfo, pixels: np.ndarray) -> str:
+    a = np.ascontiguousarray(pixels)
+    a = a.astype(a.dtype.newbyteorder("="), copy=False)
+    h = hashlib.sha256(f"{info.width_px}x{info.height_px}:{a.shape}:{a.dtype.str}:".encode())
+    h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def _middle_band(tif: tifffile.TiffFile, info: ImageInfo, where: str) -> np.ndarray:
+    """Rows ``[H/2 - 4, H/2 + 4)`` of the first page, decoding only the strips or tiles they lie in."""
+    r0 = max(0, info.height_px // 2 - SAMPLE_ROWS // 2)
+    r1 = min(info.height_px, r0 + SAMPLE_ROWS)
+    page = tif.pages.first
+    if info.samples == 1 and page.is_final:            # uncompressed, contiguous: read the rows only
+        row_bytes = info.width_px * info.dtype.itemsize
+        fh = tif.filehandle
+        fh.seek(int(page.dataoffsets[0]) + r0 * row_bytes)
+        raw = fh.read((r1 - r0) * row_bytes)
+        return np.frombuffer(raw, info.dtype.newbyteorder(tif.byteorder)).reshape(r1 - r0, info.width_px)
+    import zarr
+
+    with page.aszarr() as store:
+        z = zarr.open_array(store=store, mode="r")
+        planar = z.ndim == 3 and z.shape[1:] == (info.height_px, info.width_px)
+        band = np.asarray(z[:, r0:r1] if planar else z[r0:r1])
+    return _luminance(band, info, (r1 - r0, info.width_px), where) if band.ndim == 3 else band
+
+
+def pixel_sample_digest(path) -> str | None:
+    """SHA-256 of the image's size and a band of :data:`SAMPLE_ROWS` decoded rows in its middle.
+
+    The same photograph in any encoding (another compression, striped or tiled, byte order,
+    trailing bytes) has the same digest; photographs of a scene with noise differ there. Only
+    the strips or tiles of the band are read and decoded. None for a file that is not a
+    readable TIFF (measuring reports it). Equal digests are confirmed by :func:`pixel_digest`.
+    """
+    where = os.fspath(path)
+    try:
+        with tifffile.TiffFile(where) as tif:
+            info = _header(tif, where)
+            return _pixels_digest(info, _middle_band(tif, info, where))
+    except Exception:  # noqa: BLE001 - any unreadable file: not compared here, measuring reports it
+        return None
+
+
+def pixel_digest(path) -> str | None:
+    """SHA-256 of the image's decoded pixels as measured (:func:`read_image`: 2-D, luminance of
+    a colour image) and its size; None for a file that does not read (measuring reports it)."""
+    try:
+        pixels = read_image(path)
+        return _pixels_digest(probe_image(path), pixels)
+    except (ImageError, OSError):
+        return None

@@ -68,6 +68,7 @@ kept for display.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -84,6 +85,7 @@ from fieldcal.products.uncertainty import (
 )
 
 __all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations", "judge", "check_level",
+           "check_grid", "MAX_GRID",
            "combined_covariance", "DEFAULT_TOLERANCE_UM", "DEFAULT_ALPHA", "DEFAULT_MIN_SIGMA_PX"]
 
 DEFAULT_TOLERANCE_UM = 2.0
@@ -432,9 +434,24 @@ def _map_test(m: _MapTest, rcond: float, min_sigma_px: float):
             float(np.sqrt(np.mean(size**2))) if size.size else 0.0)
 
 
+MAX_GRID = 1000
+"""Points of the comparison grid along each axis, at most (more is no better map, only memory)."""
+
+
+def check_grid(grid) -> tuple[int, int]:
+    """``(nx, ny)`` checked: two integers in 2..:data:`MAX_GRID` (:class:`InputError` otherwise)."""
+    try:
+        nx, ny = (int(g) for g in grid)
+    except (TypeError, ValueError):
+        raise InputError(f"grid must be two integers (nx, ny), got {grid!r}", "compare") from None
+    if not (2 <= nx <= MAX_GRID and 2 <= ny <= MAX_GRID):
+        raise InputError(f"grid must have 2 to {MAX_GRID} points along each axis, got {nx} x {ny}", "compare")
+    return nx, ny
+
+
 def _check(tolerance_um, alpha, region, min_sigma_px) -> None:
-    if not (tolerance_um > 0):
-        raise InputError(f"tolerance_um must be positive, got {tolerance_um}", "compare")
+    if not (0 < tolerance_um < math.inf):
+        raise InputError(f"tolerance_um must be positive and finite, got {tolerance_um}", "compare")
     if not (0 < alpha < 1):
         raise InputError(f"alpha must be in (0, 1), got {alpha}", "compare")
     if region not in ("auto", "sensor", "axes"):
@@ -478,6 +495,7 @@ def compare_calibrations(a: Calibration, b: Calibration, *, grid: tuple[int, int
     Comparison
     """
     _check(tolerance_um, alpha, region, min_sigma_px)
+    grid = check_grid(grid)
     if region == "auto":
         region = "axes" if "goniometer" in (a.method, b.method) else "sensor"
     remove_rotation = remove_rotation or region == "axes"

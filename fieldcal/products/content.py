@@ -245,16 +245,11 @@ def parse_time(value) -> dt.datetime | None:
 
 
 def previous_version(lake, cal: Calibration) -> str | None:
-    """The latest version of the same camera from a session acquired before this one.
+    """The calibration of the same camera before this one, None for a camera's first.
 
-    Uses :func:`fieldcal.lake.history.camera_history` (the latest version of each session,
-    ordered by acquisition time); None for a camera's first calibration.
-    """
-    from fieldcal.lake import history
+    By :func:`fieldcal.lake.order.previous`: the latest version of the session just before
+    this one's, by acquisition time, ties by commit order (two sessions acquired the same day
+    are each other's neighbours)."""
+    from fieldcal.lake import order
 
-    doc = cal.document
-    hist = history.camera_history(lake, str(doc.get("camera_id"))).to_pylist()
-    when = parse_time(doc.get("acquired")) or parse_time(doc.get("created"))
-    before = [h for h in hist if h["version"] != cal.version and h.get("session_id") != doc.get("session_id")
-              and (when is None or ((parse_time(h.get("acquired")) or parse_time(h.get("created"))) or when) < when)]
-    return before[-1]["version"] if before else None
+    return order.previous(lake.camera_rows(str(cal.document.get("camera_id"))), cal.version)

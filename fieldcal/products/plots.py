@@ -256,6 +256,7 @@ def stations_3d(center_m, R_world_to_camera, *, stations=None, targets_xyz_m=Non
     pts = C
     if targets_xyz_m is not None and len(targets_xyz_m):
         T = np.asarray(targets_xyz_m, float)
+        T = T[np.isfinite(T).all(axis=1)]            # unsurveyed targets no image placed: NaN
         ax.scatter(T[:, 0], T[:, 1], T[:, 2], s=2, c="0.35", depthshade=False,
                    label=f"targets ({len(T)})")
         pts = np.concatenate([C, T])

@@ -13,7 +13,11 @@ columns, unique ids and finite numbers (errors name file and row).
   are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
   file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
   Copies are found by size, then a 64 KiB sample from the middle of the file, then the
-  SHA-256 of the whole file; only files that agree on the first two are read whole.
+  SHA-256 of the whole file; only files that agree on the first two are read whole. The
+  same photograph in another encoding (other compression, a byte appended, tiles instead
+  of strips) has other bytes but the same pixels: a band of rows in the middle of every
+  image is decoded, and images whose bands agree are decoded whole and compared by the
+  SHA-256 of their pixels (issue 24).
 - The ``images`` glob is matched inside the session folder (the folder's own name is
   never a pattern: ``runs/g[1]`` is a folder, not a choice of ``g1``).
 """
@@ -29,11 +33,11 @@ import os
 import stat
 from collections import defaultdict
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, TargetField
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
@@ -43,18 +47,20 @@ from fieldcal.session.tables import (
     check_size,
     read_marks_csv,
     read_observations_csv,
+    read_scale_bars_csv,
     read_targets_csv,
 )
 
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired",
+    "parse_acquired", "read_manifest", "check_acquired_not_ahead", "ACQUIRED_AHEAD",
 ]
 
 MANIFEST = "session.json"
 OBSERVATIONS = "observations.csv"
 MARKS = "marks.csv"
+SCALE_BARS = "scale_bars.csv"
 
 
 @dataclass
@@ -92,6 +98,9 @@ class Session:
     coded: dict | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
+    scale_bars_path: Path | None = None
+    strict_targets: bool = False
+    datum: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -112,8 +121,23 @@ class Session:
         return FIELD_PARAMS if self.method == "field" else GONIOMETER_PARAMS
 
 
+ACQUIRED_AHEAD = timedelta(days=1)
+"""How far after now a session's ``acquired`` may be (clocks and time zones); later is a typo
+that would stay the camera's latest calibration until then (docs/reliability_inputs.md)."""
+
+
+def check_acquired_not_ahead(acquired: datetime, now: datetime, where: str) -> None:
+    """InputError when ``acquired`` is more than :data:`ACQUIRED_AHEAD` after ``now``."""
+    if acquired > now + ACQUIRED_AHEAD:
+        raise InputError(f"'acquired' {acquired.isoformat().replace('+00:00', 'Z')} is after now "
+                         f"({now.replace(microsecond=0).isoformat().replace('+00:00', 'Z')}) plus "
+                         f"{ACQUIRED_AHEAD.days} day: a typo? (at /acquired)", where)
+
+
 def parse_acquired(text: str, where: str) -> datetime:
-    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC)."""
+    """An ISO 8601 date or date-time -> aware UTC datetime (a date means 00:00 UTC).
+
+    A time more than :data:`ACQUIRED_AHEAD` after now is refused (:func:`check_acquired_not_ahead`)."""
     t = text.strip()
     if t.endswith("Z"):
         t = t[:-1] + "+00:00"
@@ -125,9 +149,11 @@ def parse_acquired(text: str, where: str) -> datetime:
     if value.tzinfo is None:
         value = value.replace(tzinfo=UTC)
     try:
-        return value.astimezone(UTC)
+        value = value.astimezone(UTC)
     except OverflowError:                  # e.g. 9999-12-31T23:59-23:00 is after the year 9999 in UTC
         raise InputError(f"'acquired' is out of range in UTC: {text!r} (at /acquired)", where) from None
+    check_acquired_not_ahead(value, datetime.now(UTC), where)
+    return value
 
 
 def safe_path(folder: Path, relative: str, what: str, *, base: Path | None = None) -> Path:
@@ -196,7 +222,8 @@ def _sample_digest(path: Path, size: int) -> str:
 
 
 def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image") -> None:
-    """Refuse two names of one photograph: one file reached twice (a link) or the same bytes.
+    """Refuse two names of one photograph: one file reached twice (a link), the same bytes, or the
+    same decoded pixels (another encoding).
 
     Parameters
     ----------
@@ -208,7 +235,8 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
         The file that lists them, for the message.
 
     Files that are missing, empty or not regular are skipped here: measuring reports them.
-    Only files of equal size whose middle 64 KiB agree are read whole (module docstring).
+    Only files of equal size whose middle 64 KiB agree are read whole (module docstring);
+    then the same pixels in another encoding (:func:`_check_distinct_pixels`).
     """
     by_file: dict[tuple[int, int], str] = {}
     by_size: dict[int, list[str]] = defaultdict(list)
@@ -245,6 +273,32 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
                     raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
                                      f"(SHA-256 {h[:12]}...): a photograph counts once", where)
                 by_hash[h] = name
+    _check_distinct_pixels(folder, [n for group in by_size.values() for n in group], where, what)
+
+
+def _check_distinct_pixels(folder: Path, names: list[str], where: str, what: str) -> None:
+    """Refuse two files with the same decoded pixels: one photograph in two encodings (another
+    compression, a byte appended, striped or tiled), which would count twice and shrink the
+    sigmas. Every image's middle band of rows is decoded
+    (:func:`fieldcal.measure.imageio.pixel_sample_digest`: only its strips or tiles are read);
+    images whose bands agree are decoded whole and compared by the SHA-256 of their pixels."""
+    from fieldcal.measure.imageio import pixel_digest, pixel_sample_digest
+
+    by_sample: dict[str, list[str]] = defaultdict(list)
+    for name in names:
+        d = pixel_sample_digest(folder / name)
+        if d is not None:
+            by_sample[d].append(name)
+    for same in (g for g in by_sample.values() if len(g) > 1):
+        by_pixels: dict[str, str] = {}
+        for name in same:
+            h = pixel_digest(folder / name)
+            if h is None:
+                continue
+            if h in by_pixels:
+                raise InputError(f"{what} {shown(name)} has the same pixels as {shown(by_pixels[h])} in another "
+                                 f"encoding (pixels' SHA-256 {h[:12]}...): a photograph counts once", where)
+            by_pixels[h] = name
 
 
 def default_session_id(manifest: dict, folder) -> str:
@@ -295,13 +349,14 @@ def _check_frame_paths(folder: Path, frames_path: Path) -> None:
     check_distinct_files(folder, list(first), str(frames_path), "frame")
 
 
-def load_session(folder) -> Session:
-    """Read and validate ``folder/session.json`` and resolve the paths it names.
+def read_manifest(folder) -> dict:
+    """``folder/session.json`` parsed as strict JSON (no NaN, no duplicate keys), not yet
+    validated against the schema.
 
     Raises
     ------
     InputError
-        One line naming the file and what is wrong (the JSON pointer for schema errors).
+        The folder or its manifest is missing, too large, or not a JSON object.
     """
     folder = Path(folder)
     where = str(folder / MANIFEST)
@@ -323,7 +378,23 @@ def load_session(folder) -> Session:
         raise InputError(f"invalid JSON: {text[:200]}", where) from None
     if not isinstance(manifest, dict):
         raise InputError("must be a JSON object", where)
+    return manifest
+
+
+def load_session(folder) -> Session:
+    """Read and validate ``folder/session.json`` and resolve the paths it names.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and what is wrong (the JSON pointer for schema errors).
+    """
+    folder = Path(folder)
+    where = str(folder / MANIFEST)
+    manifest = read_manifest(folder)
     validate_json(manifest, "session", where)
+    if "rig" in manifest:
+        raise InputError("a rig session (it has a 'rig'): read it with fieldcal.rig.load_rig_session", where)
 
     s = manifest["sensor"]
     sensor = Sensor(int(s["width_px"]), int(s["height_px"]), float(s["pixel_size_um"]))
@@ -335,6 +406,9 @@ def load_session(folder) -> Session:
     estimate = manifest.get("estimate")
     allowed = FIELD_PARAMS if method == "field" else GONIOMETER_PARAMS
     if estimate is not None:
+        if not estimate:
+            raise InputError(f"estimate is empty: a calibration must estimate some of {list(allowed)} "
+                             "(leave 'estimate' out for the method's full set) (at /estimate)", where)
         bad = [p for p in estimate if p not in allowed]
         if bad:
             raise InputError(f"estimate names {bad}, not estimable by the {method} method "
@@ -356,6 +430,8 @@ def load_session(folder) -> Session:
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
+        sess.strict_targets = bool(fld.get("strict_targets", False))
+        sess.datum = str(fld.get("datum", "auto"))
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -364,7 +440,8 @@ def load_session(folder) -> Session:
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
         check_distinct_files(folder, [im.file for im in sess.images], where)
-        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path")):
+        for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path"),
+                           (SCALE_BARS, "scale_bars_path")):
             p = safe_path(folder, name, name)
             if p.is_file():
                 setattr(sess, attr, p)
@@ -389,11 +466,23 @@ def field_data_from_observations(sess: Session) -> FieldData:
     if "observations" not in sess._read:
         images = list(sess.images)
         allow_new = isinstance(sess.manifest["images"], str) and not images
+        unlisted = None if sess.strict_targets else []
         obs = read_observations_csv(sess.observations_path, targets, images,
                                     default_sigma_px=sess.default_sigma_px, allow_new_images=allow_new,
-                                    sensor=sess.sensor)
-        sess._read["observations"] = (images, obs)
-    images, obs = copy.deepcopy(sess._read["observations"])
+                                    sensor=sess.sensor, unlisted=unlisted)
+        sess._read["observations"] = (images, obs, unlisted or [])
+    images, obs, unlisted = copy.deepcopy(sess._read["observations"])
+    targets = targets.with_unsurveyed(unlisted)
+    meta = {"camera_id": sess.camera_id, "session_id": sess.session_id}
+    if unlisted:
+        meta["unlisted_targets"] = list(unlisted)
     return FieldData(sensor=sess.sensor, targets=targets, images=images, obs=obs,
                      nominal_focal_mm=sess.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
-                     meta={"camera_id": sess.camera_id, "session_id": sess.session_id})
+                     meta=meta, scale_bars=scale_bars_of(sess, targets))
+
+
+def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """``scale_bars.csv`` of the session over ``targets`` (None when the session has none)."""
+    if sess.scale_bars_path is None:
+        return None
+    return read_scale_bars_csv(sess.scale_bars_path, targets)

@@ -53,19 +53,19 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_TARGET_SIGMA_MM, FieldImage, FieldObservations, TargetField
+from fieldcal.field.data import DEFAULT_TARGET_SIGMA_MM, FieldImage, FieldObservations, ScaleBars, TargetField
 from fieldcal.model.camera import Sensor
 from fieldcal.session.names import check_name, first_invalid, normal_file_name
 from fieldcal.session.schemas import shown
 
 __all__ = ["MAX_BYTES", "MAX_ROWS", "MAX_IMAGES", "CsvTable", "check_size", "read_csv_table",
-           "read_targets_csv", "read_observations_csv", "read_marks_csv"]
+           "read_targets_csv", "read_observations_csv", "read_marks_csv", "read_scale_bars_csv"]
 
 MiB = 1 << 20
 MAX_BYTES = {"session.json": 16 * MiB, "targets.csv": 16 * MiB, "observations.csv": 128 * MiB,
-             "marks.csv": 16 * MiB, "frames.csv": 16 * MiB}
+             "marks.csv": 16 * MiB, "frames.csv": 16 * MiB, "scale_bars.csv": 1 * MiB}
 """Largest file accepted, per kind of file [bytes]."""
-MAX_ROWS = {"targets.csv": 100_000, "observations.csv": 2_000_000, "marks.csv": 100_000}
+MAX_ROWS = {"scale_bars.csv": 10_000, "targets.csv": 100_000, "observations.csv": 2_000_000, "marks.csv": 100_000}
 """Most data rows accepted, per table."""
 MAX_IMAGES = 10_000
 """Most images (or goniometer frames) in one session."""
@@ -322,9 +322,18 @@ def _numbers(t: CsvTable, column: str, *, default: float | None = None) -> np.nd
     return values
 
 
+PLAUSIBLE = {"sigma_px": (1e-4, 1e3, "px"), "sigma_mm": (1e-3, 1e6, "mm")}
+"""Accuracies a measurement can have ``(lowest, highest, unit)``: beyond them a value is a typo
+(a weight of 1e24 would be diagnosed as bad geometry instead)."""
+
+
 def _positive(t: CsvTable, values: np.ndarray, column: str) -> np.ndarray:
     if (k := _first(values <= 0)) is not None:
         raise InputError(f"{column} must be positive, got {values[k]}", t.where(k))
+    lo, hi, unit = PLAUSIBLE.get(column, (0.0, np.inf, ""))
+    if (k := _first((values < lo) | (values > hi))) is not None:
+        raise InputError(f"{column} {values[k]:g} {unit} is not a plausible accuracy ({lo:g} to {hi:g} {unit})",
+                         t.where(k))
     return values
 
 
@@ -359,7 +368,8 @@ def _codes(t: CsvTable) -> np.ndarray:
 def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
     """``targets.csv``: ``id,X,Y,Z,sigma_mm,code`` -> :class:`TargetField`.
 
-    ``X, Y, Z`` [m]; an empty ``sigma_mm`` is 5 mm; an empty ``code`` a plain target. Ids are
+    ``X, Y, Z`` [m], all three empty for an unsurveyed target (NaN); an empty ``sigma_mm`` is
+    5 mm; an empty ``code`` a plain target. Ids are
     names of the kind ``label`` (:mod:`fieldcal.session.names`), unique; codes unique.
     ``tokeniser``: see :func:`read_csv_table`.
     """
@@ -373,7 +383,11 @@ def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
     if len(pc.unique(t.columns["id"])) < len(ids) and (hit := _first_repeat(np.array(ids, dtype=object))):
         k, first = hit
         raise InputError(f"duplicate target id {ids[k]!r} (first on line {t.lines[first]})", t.where(k))
-    xyz = np.column_stack([_numbers(t, c) for c in ("X", "Y", "Z")])
+    xyz = np.column_stack([_numbers(t, c, default=np.nan) for c in ("X", "Y", "Z")])
+    partial = np.isnan(xyz).any(axis=1) & ~np.isnan(xyz).all(axis=1)
+    if (k := _first(partial)) is not None:
+        raise InputError("X, Y, Z must all be given (a surveyed target) or all be empty (an "
+                         "unsurveyed one)", t.where(k))
     sigma = _positive(t, _numbers(t, "sigma_mm", default=DEFAULT_TARGET_SIGMA_MM), "sigma_mm")
     return TargetField(np.array(ids, dtype=str), xyz, sigma, _codes(t))
 
@@ -402,21 +416,41 @@ def _image_index(t: CsvTable, images: list[FieldImage], allow_new: bool, what: s
     return mapping[rows]
 
 
-def _target_index(t: CsvTable, targets: TargetField) -> np.ndarray:
-    found = pc.index_in(t.columns["target_id"], value_set=pa.array(targets.ids.tolist(), pa.string()))
-    out = np.asarray(found.fill_null(-1).to_numpy(zero_copy_only=False), np.int64)
-    if (k := _first(out < 0)) is not None:
-        raise InputError(f"target_id {shown(t.columns['target_id'][k].as_py())} is not in targets.csv",
-                         t.where(k))
-    return out
+def _target_index(t: CsvTable, targets: TargetField, column: str = "target_id") -> np.ndarray:
+    """Row -> index into ``targets`` of ``column``; -1 for an id targets.csv does not list."""
+    found = pc.index_in(t.columns[column], value_set=pa.array(targets.ids.tolist(), pa.string()))
+    return np.asarray(found.fill_null(-1).to_numpy(zero_copy_only=False), np.int64)
+
+
+def _unlisted(t: CsvTable, tgt: np.ndarray, column: str = "target_id") -> InputError | None:
+    """The refusal of the first row whose target id targets.csv does not list (None: all listed)."""
+    if (k := _first(tgt < 0)) is None:
+        return None
+    return InputError(f"{column} {shown(t.columns[column][k].as_py())} is not in targets.csv", t.where(k))
 
 
 def _image_targets(t: CsvTable, targets: TargetField, images: list[FieldImage], allow_new: bool,
                    verb: str) -> tuple[np.ndarray, np.ndarray]:
-    """(image index, target index) per row; an (image, target) pair at most once."""
+    """(image index, target index) per row; an (image, target) pair at most once; every
+    target listed in ``targets``."""
     img = _image_index(t, images, allow_new, verb)
     tgt = _target_index(t, targets)
-    if (hit := _first_repeat(img * max(len(targets), 1) + tgt)) is not None:
+    if (err := _unlisted(t, tgt)) is not None:
+        raise err
+    _check_pairs(t, targets, images, img, tgt, verb)
+    return img, tgt
+
+
+class _Named:
+    """Target ids by index: the listed ones, then the unlisted ones (for messages)."""
+
+    def __init__(self, targets: TargetField, unlisted: list[str]):
+        self.ids = np.concatenate([targets.ids, np.asarray(unlisted, dtype=str)]) if unlisted else targets.ids
+
+
+def _check_pairs(t, targets, images, img, tgt, verb, n_targets=None):
+    n = len(targets.ids) if n_targets is None else n_targets
+    if (hit := _first_repeat(img * max(n, 1) + tgt)) is not None:
         k, first = hit
         raise InputError(f"target {str(targets.ids[tgt[k]])!r} {verb} twice in {images[img[k]].file!r} "
                          f"(first on line {t.lines[first]})", t.where(k))
@@ -425,17 +459,39 @@ def _image_targets(t: CsvTable, targets: TargetField, images: list[FieldImage], 
 
 def read_observations_csv(path, targets: TargetField, images: list[FieldImage], *,
                           default_sigma_px: float, allow_new_images: bool, sensor: Sensor | None = None,
-                          tokeniser: str = "auto"):
+                          tokeniser: str = "auto", unlisted: list[str] | None = None):
     """``observations.csv``: ``image,target_id,u,v,sigma_px`` -> :class:`FieldObservations`.
 
     ``images`` is extended in place with images the file names (when ``allow_new_images``,
     i.e. the manifest's glob matched no file). A (image, target) pair may appear once; two
     spellings of one image's path (``images/./a.tif``) are the same image. With ``sensor``,
     a point must lie on the image (``[-0.5, W-0.5] x [-0.5, H-0.5]`` px, docs/conventions.md section 1).
+
+    ``unlisted``: None refuses a target id that ``targets`` does not list (the strict
+    session); a list receives those ids in order of first appearance, and their points get
+    the indices ``len(targets) + position in the list`` (unsurveyed targets, CONTRACT section 3:
+    the caller extends the targets with :meth:`TargetField.with_unsurveyed`).
     """
     t = read_csv_table(path, ("image", "target_id", "u", "v"), ("sigma_px",), kind="observations.csv",
                        tokeniser=tokeniser)
-    img, tgt = _image_targets(t, targets, images, allow_new_images, "observed")
+    img = _image_index(t, images, allow_new_images, "observed")
+    tgt = _target_index(t, targets)
+    if unlisted is None:
+        if (err := _unlisted(t, tgt)) is not None:
+            raise err
+    elif (tgt < 0).any():
+        rows = np.flatnonzero(tgt < 0)
+        names = np.asarray(t.columns["target_id"].take(pa.array(rows)).to_pylist(), dtype=object)
+        new, first, inverse = np.unique(names, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")           # ids in order of first appearance
+        rank = np.empty(len(new), np.int64)
+        rank[order] = np.arange(len(new))
+        if (k := first_invalid([str(x) for x in new[order]], "label")) is not None:
+            check_name(str(new[order][k]), "label", "target id", t.where(int(rows[first[order][k]])))
+        unlisted.extend(str(x) for x in new[order])
+        tgt[rows] = len(targets) + rank[inverse.reshape(-1)]
+    n_targets = len(targets) + (len(unlisted) if unlisted else 0)
+    _check_pairs(t, _Named(targets, unlisted or []), images, img, tgt, "observed", n_targets)
     sigma = _positive(t, _numbers(t, "sigma_px", default=default_sigma_px), "sigma_px")
     u, v = _numbers(t, "u"), _numbers(t, "v")
     if sensor is not None:
@@ -452,3 +508,22 @@ def read_marks_csv(path, targets: TargetField, images: list[FieldImage]) -> dict
     img, tgt = _image_targets(t, targets, images, False, "marked")
     uv = np.column_stack([_numbers(t, "u"), _numbers(t, "v")])
     return {int(i): (tgt[img == i], uv[img == i]) for i in dict.fromkeys(img.tolist())}
+
+
+def read_scale_bars_csv(path, targets: TargetField) -> ScaleBars:
+    """``scale_bars.csv``: ``from_id,to_id,length_mm,sigma_mm`` -> :class:`ScaleBars`.
+
+    Both ids must be targets of the session (surveyed or not; CONTRACT section 3), distinct;
+    ``length_mm`` and ``sigma_mm`` positive.
+    """
+    t = read_csv_table(path, ("from_id", "to_id", "length_mm", "sigma_mm"), kind="scale_bars.csv")
+    a, b = _target_index(t, targets, "from_id"), _target_index(t, targets, "to_id")
+    for idx, column in ((a, "from_id"), (b, "to_id")):
+        if (k := _first(idx < 0)) is not None:
+            raise InputError(f"{column} {shown(t.columns[column][k].as_py())} is not a target of the "
+                             "session (targets.csv or observations.csv)", t.where(k))
+    if (k := _first(a == b)) is not None:
+        raise InputError(f"a scale bar from target {str(targets.ids[a[k]])!r} to itself", t.where(k))
+    length = _positive(t, _numbers(t, "length_mm"), "length_mm")
+    sigma = _positive(t, _numbers(t, "sigma_mm"), "sigma_mm")
+    return ScaleBars(a, b, length, sigma)

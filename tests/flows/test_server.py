@@ -8,10 +8,12 @@ the first command that needs one and stops by itself ``FIELDCAL_SERVER_LINGER_S`
 after its last command ended, also when that command was killed with SIGKILL.
 """
 
+import contextlib
 import json
 import os
 import re
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -65,6 +67,17 @@ def server_pids(home: Path) -> list[int]:
     return out
 
 
+def _in_session(sid: int) -> list[int]:
+    """Pids of the live processes in session ``sid``."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            with contextlib.suppress(OSError):
+                if os.getsid(int(d.name)) == sid:
+                    out.append(int(d.name))
+    return out
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     """Sessions, a lake, and the environment of a user whose HOME cannot be written."""
@@ -97,6 +110,11 @@ def test_two_commands_at_once_share_one_server_in_a_temporary_prefect_home(world
     log = (home / "fieldcal-server.log").read_text()
     assert log.count("flows.server: pid") == 1, log
     assert (home / "prefect.db").is_file()
+    # private to its user: the database holds every flow run's parameters and logs (issue 24)
+    assert stat.S_IMODE(home.stat().st_mode) == 0o700 and stat.S_IMODE(home.parent.stat().st_mode) == 0o700
+    for f in home.iterdir():
+        if f.name.startswith("prefect.db") or f.name == "fieldcal-server.log":
+            assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
     assert not (tmp / "file").is_dir()
     status = subprocess.run([FIELDCAL, "server", "status"], env=env, capture_output=True, text=True, timeout=120)
     assert status.returncode == 0
@@ -178,9 +196,11 @@ def test_ctrl_c_stops_serve_even_when_the_server_no_longer_answers(world):
     import httpx
 
     tmp, env, home = world
-    serve = subprocess.Popen([FIELDCAL, "serve", "--lake", tmp / "lake-serve", "--root", tmp, "--name", "stuck"],
-                             env=dict(env, FIELDCAL_SERVE_STOP_S="3"), cwd=tmp, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True, start_new_session=True)
+    err_file = tmp / "serve-stuck.err"
+    with open(err_file, "wb") as err_out:     # a file, not a pipe: an orphan holding it cannot hang the test
+        serve = subprocess.Popen([FIELDCAL, "serve", "--lake", tmp / "lake-serve", "--root", tmp, "--name", "stuck"],
+                                 env=dict(env, FIELDCAL_SERVE_STOP_S="3"), cwd=tmp, stdout=subprocess.DEVNULL,
+                                 stderr=err_out, start_new_session=True)
     server_pid = None
     try:
         def registered() -> bool:
@@ -196,19 +216,52 @@ def test_ctrl_c_stops_serve_even_when_the_server_no_longer_answers(world):
         os.kill(server_pid, signal.SIGSTOP)                 # the API stops answering
         t = time.monotonic()
         os.killpg(serve.pid, signal.SIGINT)
-        _, err = serve.communicate(timeout=60)
+        serve.wait(timeout=60)
         waited_s = time.monotonic() - t
+        left = _in_session(serve.pid)                       # what serve left behind (its own session)
     finally:
         if server_pid is not None:
             os.kill(server_pid, signal.SIGCONT)
-        if serve.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(serve.pid, signal.SIGKILL)
-            serve.wait()
+        serve.wait()
+    err = err_file.read_text()
     # Ctrl-C before Prefect's runner has started needs no answer from the API and ends at
-    # once; after it, the shutdown waits for the API and gives up after 3 s (both end)
+    # once; after it, the shutdown waits for the API and gives up after 3 s (both end, and
+    # leave no process of theirs behind)
     assert serve.returncode == 0 and waited_s < 30.0, (waited_s, err)
+    assert left == [], (left, err)
     if "did not finish" in err:
         assert waited_s >= 3.0 and "fieldcal serve: stopped (Prefect's shutdown did not finish within 3 s" in err
+
+
+def test_the_ctrl_c_deadline_ends_the_children_that_hold_standard_error(tmp_path):
+    # CI saw `fieldcal serve` exit on its deadline while a child kept its standard error
+    # open (the test reading it hung, and the child outlived serve)
+    script = ("import subprocess, sys, time\n"
+              "from flows.cli import _stop_within\n"
+              "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(300)'])\n"
+              "_stop_within(1.0)\n"
+              "try:\n"
+              "    print(child.pid, flush=True)\n"
+              "    time.sleep(300)\n"
+              "except KeyboardInterrupt:\n"
+              "    pass\n"
+              "while True:\n"               # a shutdown that never finishes
+              "    time.sleep(300)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env, start_new_session=True)
+    try:
+        child = int(proc.stdout.readline())
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)          # EOF: no process holds the pipes any more
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == 0 and "did not finish within 1 s" in err, err
+    assert not Path(f"/proc/{child}").exists() or _in_session(proc.pid) == []
 
 
 def test_server_start_ui_serves_prefects_ui_pointed_at_its_own_api(tmp_path):

@@ -323,8 +323,8 @@ TABLES = [
      r"point \(3000\.2, [\d.]+\) px is outside the 3000 x 2000 px image"),
     ("obs_sigma_zero", "obs", "observations.csv", _edit_line(5, _field(4, "0")), "observations.csv:6",
      r"sigma_px must be positive, got 0\.0"),
-    ("obs_unknown_target", "obs", "observations.csv", _edit_line(5, _field(1, "NOPE")), "observations.csv:6",
-     r"target_id 'NOPE' is not in targets\.csv"),
+    ("obs_unknown_target", "obs", "observations.csv", _edit_line(5, _field(1, "NO/PE")), "observations.csv:6",
+     r"target id 'NO/PE'"),           # an unlisted id is an unsurveyed target, but it must be a valid id
     ("marks_zero_bytes", "marks", "marks.csv", lambda t: "", "marks.csv", r"empty file"),
     ("marks_no_v", "marks", "marks.csv", lambda t: "image,target_id,u\n", "marks.csv", r"missing column\(s\) \['v'\]"),
     ("marks_duplicate", "marks", "marks.csv", _append_copy(1), "marks.csv:",

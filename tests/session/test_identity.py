@@ -224,3 +224,79 @@ def test_a_goniometer_frame_listed_twice_under_two_spellings_is_refused(tmp_path
     (folder / "frames.csv").write_text(text)
     shutil.copyfile(folder / "images" / "x0.tif", folder / "images" / "x10.tif")
     refused(folder, r"frame 'images/x10\.tif' has the same bytes as 'images/x0\.tif'", "frames.csv")
+
+
+# --------------------------------------------------------------------------------------
+# the same pixels in another encoding (issue 24, class 7)
+# --------------------------------------------------------------------------------------
+def tiff_session(root: Path) -> Path:
+    """:func:`image_session` with real 80 x 100 16-bit TIFFs of noise (distinct photographs)."""
+    import numpy as np
+    import tifffile
+
+    folder = image_session(root)
+    rng = np.random.default_rng(24)
+    for name in ("a", "b", "c"):
+        tifffile.imwrite(folder / "images" / f"{name}.tif", rng.integers(0, 4096, (80, 100), dtype=np.uint16))
+    return folder
+
+
+def _resave(src: Path, dst: Path, how: str) -> None:
+    import numpy as np
+    import tifffile
+
+    pixels = tifffile.imread(src)
+    if how == "byte appended":
+        dst.write_bytes(src.read_bytes() + b"\0")
+    elif how == "big-endian":
+        tifffile.imwrite(dst, pixels, byteorder=">")
+    elif how == "tiled zstd":
+        tifffile.imwrite(dst, pixels, compression="zstd", tile=(16, 16))
+    elif how == "rgb":
+        tifffile.imwrite(dst, np.stack([pixels] * 3, axis=-1), photometric="rgb", compression="zlib")
+    else:
+        tifffile.imwrite(dst, pixels, compression=how, rowsperstrip=7)
+
+
+@pytest.mark.parametrize("how", ["zlib", "lzw", "byte appended", "big-endian", "tiled zstd", "rgb"])
+def test_the_same_pixels_in_another_encoding_are_refused(tmp_path, how):
+    folder = tiff_session(tmp_path)
+    twin = folder / "images" / "d.tif"
+    _resave(folder / "images" / "b.tif", twin, how)
+    assert twin.read_bytes() != (folder / "images" / "b.tif").read_bytes()
+    refused(folder, r"image 'images/d\.tif' has the same pixels as 'images/b\.tif' in another encoding "
+                    r"\(pixels' SHA-256 [0-9a-f]{12}\.\.\.\): a photograph counts once")
+
+
+def test_images_that_agree_in_the_middle_band_only_are_distinct(tmp_path):
+    import tifffile
+
+    folder = tiff_session(tmp_path)
+    pixels = tifffile.imread(folder / "images" / "a.tif")
+    pixels[0, 0] += 1                                   # outside the sampled band: another photograph
+    tifffile.imwrite(folder / "images" / "d.tif", pixels, compression="zlib")
+    assert pipeline.prepare(folder).to_measure == [f"images/{n}.tif" for n in "abcd"]
+    from fieldcal.measure.imageio import pixel_digest, pixel_sample_digest
+
+    a, d = folder / "images" / "a.tif", folder / "images" / "d.tif"
+    assert pixel_sample_digest(a) == pixel_sample_digest(d) and pixel_digest(a) != pixel_digest(d)
+
+
+def test_a_goniometer_frame_in_another_encoding_is_refused(tmp_path):
+    import numpy as np
+    import tifffile
+
+    folder = tmp_path / "g"
+    (folder / "images").mkdir(parents=True)
+    rows = [(f"images/{a}{w}.tif", a, w) for a in "xy" for w in (-10, 0, 10)]
+    rng = np.random.default_rng(5)
+    for f, _, _ in rows:
+        tifffile.imwrite(folder / f, rng.integers(0, 255, (46, 70), dtype=np.uint8))
+    (folder / "session.json").write_text(json.dumps({
+        "schema": "fieldcal.session/1", "method": "goniometer", "camera_id": "cam-lab", "acquired": "2026-11-20",
+        "sensor": {"width_px": 70, "height_px": 46, "pixel_size_um": 50.0}, "frames": "frames.csv",
+        "images": "images/*.tif"}))
+    (folder / "frames.csv").write_text("file,axis,angle_deg\n" + "".join(f"{f},{a},{w}\n" for f, a, w in rows))
+    assert len(pipeline.prepare(folder).to_measure) == 6
+    _resave(folder / "images" / "x0.tif", folder / "images" / "x10.tif", "zlib")
+    refused(folder, r"frame 'images/x10\.tif' has the same pixels as 'images/x0\.tif'", "frames.csv")

@@ -103,7 +103,6 @@ def test_targets_csv_errors_name_file_and_row(tmp_path, text, match):
 
 
 @pytest.mark.parametrize("obs, match", [
-    ("image,target_id,u,v\nimages/a.tif,Z,1,2\n", r"observations.csv:2: target_id 'Z' is not in targets.csv"),
     ("image,target_id,u,v\nimages/a.tif,A,1,2\nimages/a.tif,A,3,4\n", "observed twice"),
     ("image,target_id,u\nimages/a.tif,A,1\n", r"missing column\(s\) \['v'\]"),
     ("image,target_id,u,v,sigma_px\nimages/a.tif,A,1,2,-1\n", "sigma_px must be positive"),
@@ -112,3 +111,18 @@ def test_observation_csv_errors(tmp_path, obs, match):
     sess = load_session(make(tmp_path, obs=obs))
     with pytest.raises(InputError, match=match):
         field_data_from_observations(sess)
+
+
+def test_unlisted_target_id_is_unsurveyed_unless_the_session_is_strict(tmp_path):
+    """CONTRACT section 3: an id targets.csv does not list is an unsurveyed target (reported);
+    ``field.strict_targets`` refuses it, naming the file and line."""
+    folder = make(tmp_path, obs="image,target_id,u,v\nimages/a.tif,A,1,2\nimages/a.tif,Z,1,2\n")
+    data = field_data_from_observations(load_session(folder))
+    assert data.meta["unlisted_targets"] == ["Z"]
+    j = data.targets.index()["Z"]
+    assert not data.targets.surveyed[j] and data.obs.target[1] == j
+    manifest = json.loads((folder / "session.json").read_text())
+    manifest["field"]["strict_targets"] = True
+    (folder / "session.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match=r"observations.csv:3: target_id 'Z' is not in targets.csv"):
+        field_data_from_observations(load_session(folder))

@@ -1,0 +1,59 @@
+"""A rig version in the lake (fieldcal.lake.store.Lake.commit_rig): every head's catalog row in
+one transaction, then the rig's row; a crash between the two is finished by a rerun, which
+solves nothing twice and adds no catalog row."""
+
+from __future__ import annotations
+
+import pytest
+
+from fieldcal.errors import LakeError
+from fieldcal.lake.store import Lake
+from fieldcal.rig_run import prepare_rig, run_rig, solve_rig
+from fieldcal.synthetic.rig import two_head_rig, write_rig_session
+
+
+@pytest.fixture(scope="module")
+def outcome(tmp_path_factory):
+    folder = write_rig_session(tmp_path_factory.mktemp("rig") / "bar2-s1", two_head_rig(seed=21))
+    prepared = prepare_rig(folder)
+    return folder, prepared, solve_rig(prepared)
+
+
+def test_a_crash_before_the_rig_row_is_finished_by_a_rerun(tmp_path, outcome, monkeypatch):
+    folder, prepared, out = outcome
+    lake = Lake(tmp_path / "lake")
+    real = lake.tables.append
+
+    def failing(name, table, info=None):
+        if name == "rigs":
+            raise LakeError("simulated crash before the rig row")
+        return real(name, table, info)
+
+    monkeypatch.setattr(lake.tables, "append", failing)
+    with pytest.raises(LakeError, match="simulated crash"):
+        lake.commit_rig(out.heads, out.rig_document)
+    heads = lake.catalog()["version"].to_pylist()
+    assert len(heads) == 2 and lake.rig_catalog().num_rows == 0       # the heads together, no rig yet
+    monkeypatch.setattr(lake.tables, "append", real)
+    version, head_versions, _ = run_rig(folder, lake, prepared=prepared)
+    assert sorted(head_versions) == sorted(heads) and lake.catalog().num_rows == 2
+    assert lake.rig_catalog()["version"].to_pylist() == [version]
+    assert [h["version"] for h in lake.load_rig_document(version)["heads"]] == head_versions
+
+
+def test_a_failed_head_leaves_no_catalog_row(tmp_path, outcome, monkeypatch):
+    _, _, out = outcome
+    lake = Lake(tmp_path / "lake")
+    real = lake.tables.append
+
+    def failing(name, table, info=None):
+        if name == "catalog":
+            raise OSError(28, "No space left on device")
+        return real(name, table, info)
+
+    monkeypatch.setattr(lake.tables, "append", failing)
+    with pytest.raises(LakeError, match="No space left"):
+        lake.commit_rig(out.heads, out.rig_document)
+    monkeypatch.setattr(lake.tables, "append", real)
+    assert lake.catalog().num_rows == 0 and lake.rig_catalog().num_rows == 0
+    assert not list((tmp_path / "lake" / "calibrations").rglob("*.json"))    # the parts were removed
