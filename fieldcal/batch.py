@@ -29,14 +29,12 @@ The lake is used through its public methods only (``find_committed``, ``cached_k
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from fieldcal import pipeline
 from fieldcal.errors import ImageError, InputError, LakeError, one_line
-from fieldcal.measure.imageio import read_file
 from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 
 __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
@@ -149,9 +147,9 @@ def missing_images(prepared: pipeline.Prepared, known: dict[str, str] | None = N
     for name in prepared.to_measure:
         if known and name in known:
             continue
-        path = prepared.session.image_path(name)
-        if not os.path.isfile(path):
-            out[name] = "file not found" if not os.path.lexists(path) else "not a regular file"
+        reason = prepared.session.missing_image(name)
+        if reason is not None:
+            out[name] = reason
     return out
 
 
@@ -294,8 +292,8 @@ def _measure_one(prepared: pipeline.Prepared, name: str, lake, sha256: str | Non
     t = time.perf_counter()
     source = None
     if sha256 is None:
-        try:     # one read: the bytes hashed here are the ones decoded below
-            source = read_file(sess.image_path(name))
+        try:     # one read, from wherever the session is: the bytes hashed here are the ones decoded below
+            source = sess.read_image(name)
         except (InputError, OSError) as e:
             row.update(status="bad", reason=getattr(e, "reason", None) or one_line(e))
             return row, None

@@ -11,7 +11,9 @@ level deeper (``ROOT/<camera>/<session>/``); it is a local path or an fsspec URL
   On an object store only the small files (``*.json``, ``*.csv``) are fetched for this.
 - :func:`select_sessions` pairs them with the lake's calibrations: which have one
   already (with the latest version) and which are to be calibrated.
-- :func:`local_copy`: a session folder on local disk (a temporary copy of a remote one).
+
+A session on an object store is never copied: a run reads its images on the workers
+(:mod:`fieldcal.session.store`).
 """
 
 from __future__ import annotations
@@ -26,12 +28,11 @@ from datetime import datetime
 from fieldcal.errors import InputError, one_line
 from fieldcal.lake import order
 from fieldcal.session.loader import load_session
+from fieldcal.session.store import SMALL_FILES
 
-__all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions", "local_copy",
+__all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions",
            "entry", "status_text", "summarize", "SMALL_FILES"]
 
-SMALL_FILES = (".json", ".csv")
-"""Files fetched from an object store to load a session without its images."""
 PATTERNS = ("*/session.json", "*/*/session.json")
 
 
@@ -223,16 +224,3 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
         "n_failed": sum(r["status"] == "failed" for r in entries),
         "n_skipped": sum(r["status"] in ("calibrated already", "unchanged") for r in entries),
     }
-
-
-@contextlib.contextmanager
-def local_copy(folder: str, storage_options: dict | None = None):
-    """The session folder itself when local, else a temporary local copy (removed afterwards)."""
-    fs, path = root_filesystem(folder, storage_options)
-    if fs is None:
-        yield path
-        return
-    with tempfile.TemporaryDirectory(prefix="fieldcal-session-") as tmp:
-        local = os.path.join(tmp, path.rstrip("/").rsplit("/", 1)[-1])
-        fs.get(_escape_fs(path.rstrip("/")) + "/", local + "/", recursive=True)
-        yield local

@@ -5,6 +5,8 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
 
 - :func:`prepare` validates the session (manifest, tables, paths) and lists the images
   to measure. Nothing is written; bad input raises :class:`InputError` naming the file.
+  The session is a local folder or an fsspec URL (:mod:`fieldcal.session.store`): then
+  only its small files are fetched, and its images are read where they are measured.
 - :func:`measure` turns one image into a measurement table: target centroids and coded
   targets (field method) or the collimator spot (goniometer). A bad image raises
   :class:`ImageError`; the flow reports it and goes on without that image.
@@ -16,6 +18,7 @@ The Prefect flows (``flows/``) fan :func:`measure` out over the images and run
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -28,6 +31,7 @@ from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
 from fieldcal.session.fingerprint import fingerprint, sha256_file
 from fieldcal.session.loader import Session, field_data_from_observations, load_session
+from fieldcal.session.store import is_url, open_store
 
 if TYPE_CHECKING:
     from fieldcal.field.adjustment import FieldResult
@@ -99,17 +103,41 @@ class Outcome:
 
 def image_hash(prepared: Prepared, name: str) -> str:
     """SHA-256 of an image's bytes (the key of its cached measurements)."""
+    if prepared.session.store is not None:
+        return prepared.session.read_image(name).sha256
     return sha256_file(prepared.session.image_path(name))
 
 
-def prepare(folder, settings: Settings | None = None) -> Prepared:
-    """Validate a session folder; nothing is written (see the module docstring)."""
+def prepare(folder, settings: Settings | None = None, storage_options: dict | None = None) -> Prepared:
+    """Validate a session folder; nothing is written (see the module docstring).
+
+    ``folder``: a local path or an fsspec URL; ``storage_options``: the fsspec options of
+    that URL's store. A session on a store is listed once and its small files fetched into
+    a temporary folder for the loader, removed before this returns (the returned session
+    needs no local file: :mod:`fieldcal.session.loader`).
+    """
     settings = settings or Settings()
     if settings.solver not in ("lmqn", "lm"):
         raise InputError(f"solver must be 'lmqn' or 'lm', got {settings.solver!r}", "settings")
     if not (0.0 <= settings.check_fraction < 1.0):
         raise InputError(f"check_fraction must lie in [0, 1), got {settings.check_fraction}", "settings")
-    sess = load_session(folder)
+    if not is_url(folder):
+        return _prepare(load_session(folder), settings)
+    from fieldcal.lake import secrets
+
+    store = open_store(str(folder), storage_options, resolve=secrets.resolve)   # redacted credentials: env
+    with tempfile.TemporaryDirectory(prefix="fieldcal-session-") as tmp:
+        local = os.path.join(tmp, store.name)
+        store.fetch_small_files(local)
+        try:
+            return _prepare(load_session(local, store=store), settings)
+        except InputError as e:           # named by the URL, not by the temporary copy
+            where = e.where.replace(local, store.url) if e.where else e.where
+            raise type(e)(e.reason.replace(local, store.url), where) from None
+
+
+def _prepare(sess: Session, settings: Settings) -> Prepared:
+    """:func:`prepare` of a loaded session: the tables read into memory, once."""
     tables = {"session.json": (sess.folder / "session.json").read_bytes()}
     if sess.method == "field":
         targets = sess.targets()                                # validates now (read once)
@@ -131,8 +159,7 @@ def prepare(folder, settings: Settings | None = None) -> Prepared:
                                  "observations.csv", str(sess.folder / "session.json"))
             to_measure = [im.file for im in sess.images]
             if sess.marks_path is not None:
-                from fieldcal.session.loader import read_marks_csv
-                read_marks_csv(sess.marks_path, targets, list(sess.images))
+                sess.marks()                                    # validates now (read once)
                 tables["marks.csv"] = sess.marks_path.read_bytes()
             elif sess.coded is None:
                 raise InputError("images without coded targets need marks.csv (a few hand-identified "
@@ -153,11 +180,13 @@ def _check_image_folders(sess, names) -> None:
     missing is that image's problem, reported and left out; a missing ``images/`` is the session's)."""
     folders: dict = {}
     for name in names:
-        folders.setdefault(sess.image_path(name).parent, []).append(name)
+        folders.setdefault(os.path.dirname(os.path.normpath(name)), []).append(name)
     for folder, listed in folders.items():
-        if not folder.is_dir():
+        if not sess.has_image_folder(listed[0]):
+            where = (sess.store.url_of(folder) + "/" if sess.store is not None
+                     else os.fspath(sess.image_path(listed[0]).parent) + os.sep)
             raise InputError(f"no such folder; the session lists {len(listed)} image(s) in it "
-                             f"({listed[0]}{', ...' if len(listed) > 1 else ''})", os.fspath(folder) + os.sep)
+                             f"({listed[0]}{', ...' if len(listed) > 1 else ''})", where)
 
 
 def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
@@ -168,7 +197,7 @@ def measure(prepared: Prepared, name: str, source=None) -> pa.Table:
     default: read the image from the session folder.
     """
     sess = prepared.session
-    path = sess.image_path(name) if source is None else source
+    path = source if source is not None else sess.read_image(name) if sess.store is not None else sess.image_path(name)
     if prepared.method == "goniometer":
         from fieldcal.goniometer import method as goniometer
 

@@ -160,9 +160,11 @@ def _transient(task_, task_run, state) -> bool:
 # tasks
 # --------------------------------------------------------------------------------------
 @task(name="validate", cache_policy=NO_CACHE, persist_result=False)
-def validate_session(session: str, settings: dict | None = None) -> pipeline.Prepared:
-    """Validate the session folder (:func:`fieldcal.pipeline.prepare`); nothing is written."""
-    return pipeline.prepare(session, _settings(settings))
+def validate_session(session: str, settings: dict | None = None,
+                     storage_options: dict | None = None) -> pipeline.Prepared:
+    """Validate the session folder, a local path or an fsspec URL with its ``storage_options``
+    (:func:`fieldcal.pipeline.prepare`); nothing is written."""
+    return pipeline.prepare(session, _settings(settings), storage_options)
 
 
 @task(name="measure-batch", cache_policy=NO_CACHE, persist_result=False, retries=1,
@@ -209,8 +211,9 @@ def measure_batch(prepared: pipeline.Prepared, names: list[str] | None, known: d
     stamps = {}
 
     def stamped(images):
+        local = prepared.session.store is None
         for name in images:
-            if name not in known:
+            if name not in known and local:
                 stamps[name] = file_stamp(prepared.session.image_path(name))
             yield name
 
@@ -448,11 +451,9 @@ def fan_out(runner: DaskTaskRunner, prepared: pipeline.Prepared, names: list[str
 
 
 def _file_bytes(prepared: pipeline.Prepared, name: str) -> int:
-    """Size of an image file [bytes]; 0 when it cannot be read (its task reports why)."""
-    try:
-        return os.stat(prepared.session.image_path(name)).st_size
-    except (OSError, ValueError):
-        return 0
+    """Size of an image file [bytes] (a store's listing, or the local file's); 0 when it
+    cannot be told (its task reports why)."""
+    return prepared.session.image_size(name)
 
 
 def _measure_on(runner: DaskTaskRunner, prepared, names, known, lake, storage_options, batch_size,
@@ -624,14 +625,16 @@ def _left_out(items: list[dict]) -> list[dict]:
 def calibrate_session(session: str, lake: str, storage_options: dict | None = None, force: bool = False,
                       settings: dict | None = None, dask_address: str | None = None,
                       n_workers: int = cluster.DEFAULT_WORKERS, batch_size: int | None = None,
-                      cluster_kwargs: dict | None = None, rehash: bool = False) -> dict:
+                      cluster_kwargs: dict | None = None, rehash: bool = False,
+                      session_storage_options: dict | None = None) -> dict:
     """Calibrate one session folder into the lake (see the module docstring).
 
     Parameters
     ----------
     session : str
-        The session folder (CONTRACT section 3), on a filesystem the Dask workers see
-        under the same path.
+        The session folder (CONTRACT section 3): a local path, which the Dask workers must
+        see under the same path, or an fsspec URL (``s3://bucket/sessions/cam/2026-05-01``),
+        whose images each worker reads from the store itself (docs/deployment.md).
     lake : str
         The lake: a local path or an fsspec URL (``s3://bucket/prefix``).
     storage_options : dict, optional
@@ -658,6 +661,9 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
     rehash : bool
         Hash every image from its bytes (ignore the remembered hashes; the new ones are
         remembered).
+    session_storage_options : dict, optional
+        fsspec options of the session's store when ``session`` is a URL (default:
+        ``storage_options``); as those, without credentials.
 
     Returns
     -------
@@ -677,7 +683,8 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
     run = _Run(session, lake, storage_options, settings, get_run_logger())
     t = time.perf_counter()
     progress.emit("stage", text=f"validating {session}")
-    run.prepared = validate_session(session, settings)
+    options = storage_options if session_storage_options is None else session_storage_options
+    run.prepared = validate_session(session, settings, options)
     run.lap("validate_s", t)
     sess = run.prepared.session
     try:

@@ -158,7 +158,7 @@ def cmd_run(args) -> int:
 
     if is_rig_session(args.session):
         return _run_rig(args, lake_url, options)
-    prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)))
+    prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)), options)
     human = common.is_tty(sys.stderr)
     version = None
     if not args.force:
@@ -527,7 +527,8 @@ def _add_dashboard(p) -> None:
 
 def _add_run_commands(sub) -> None:
     p = sub.add_parser("run", help="calibrate one session into the lake; prints the version")
-    p.add_argument("session", help="the session folder")
+    p.add_argument("session", help="the session folder: a local path or an fsspec URL (s3://bucket/sessions/x, "
+                   "its images read by the workers; --storage-options apply to it too)")
     common.add_lake_arguments(p)
     p.add_argument("--json", metavar="OUT.json", help="also write the calibration document here")
     common.add_overwrite_argument(p)

@@ -15,8 +15,9 @@
    :func:`flows.calibrate.calibrate_session` as a sub-flow whose task runner is the
    fleet's Dask cluster: the images of every session and the sessions' solves are tasks on
    the same workers. The cluster is the scheduler at ``dask_address`` (or
-   ``$FIELDCAL_DASK_ADDRESS``), else a local cluster started for the run. Sessions on an
-   object store are copied to a temporary local folder first. A failing session is
+   ``$FIELDCAL_DASK_ADDRESS``), else a local cluster started for the run. A session on an
+   object store is handed over by its URL: its small files travel with the tasks and each
+   worker reads its images from the store (docs/deployment.md). A failing session is
    recorded with its reason and never stops the others. A session that failed for a
    reason outside fieldcal (not bad input, geometry, convergence or the lake: e.g. an
    error of the Prefect API or a lost Dask connection) is run once more at once
@@ -122,13 +123,14 @@ def _run_session(folder: str, lake: str, storage_options: dict | None, root_opti
     """One run of :func:`flows.calibrate.calibrate_session` on the cluster: its result, or
     the exception that ended it (never raised)."""
     try:
-        with fleet_lib.local_copy(folder, root_options) as local, progress.quiet():
+        with progress.quiet():
             runner = cluster.task_runner(address, n_workers)
             state = calibrate_session.with_options(task_runner=runner)(
-                local, lake, storage_options=secrets.redact(storage_options), settings=settings,
-                batch_size=batch_size, return_state=True)
+                folder, lake, storage_options=secrets.redact(storage_options), settings=settings,
+                batch_size=batch_size, return_state=True,
+                session_storage_options=None if root_options == storage_options else secrets.redact(root_options))
             return state.result(raise_on_failure=False)
-    except Exception as e:  # noqa: BLE001 - e.g. the copy failed: record it, go on
+    except Exception as e:  # noqa: BLE001 - e.g. the store cannot be reached: record it, go on
         return e
 
 

@@ -151,8 +151,11 @@ class HashCache:
 def known_hashes(prepared, path="default") -> dict[str, str]:
     """``{image: sha256}`` of a prepared session's images whose stamp matches a remembered one.
 
-    ``prepared`` is a :class:`fieldcal.pipeline.Prepared`; no image is read.
+    ``prepared`` is a :class:`fieldcal.pipeline.Prepared`; no image is read. A session on
+    an object store has no file stamps here: ``{}`` (its images are hashed as they are read).
     """
+    if prepared.session.store is not None:
+        return {}                  # on an object store: hashed from the bytes the workers read
     paths = {n: os.fspath(prepared.session.image_path(n)) for n in prepared.to_measure}
     if not paths:
         return {}

@@ -79,7 +79,7 @@ from fieldcal.field.identify import IdentifyOptions, identify_images, measured_p
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
-from fieldcal.session.loader import Session, read_marks_csv
+from fieldcal.session.loader import Session
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
            "reason_category"]
@@ -96,7 +96,7 @@ def nominal_camera(session: Session) -> Camera:
     if f is None:
         raise InputError("lens.nominal_focal_mm is needed to identify the targets in the images "
                          "(the nominal camera projects the surveyed targets)",
-                         str(session.folder / "session.json"))
+                         session.manifest_where)
     params = np.zeros(13)
     params[INDEX["f_mm"]] = float(f)
     return Camera(session.sensor, params)
@@ -289,7 +289,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         the adjustment cannot calibrate.
     """
     if session.method != "field":
-        raise InputError("not a field-method session", str(session.folder / "session.json"))
+        raise InputError("not a field-method session", session.manifest_where)
     run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
                identify or IdentifyOptions(), priors or PriorOptions())
     first, keep1, marker1, res1 = _first_pass(run)
@@ -438,8 +438,7 @@ class _Run:
         self.images = list(session.images)
         self.names = [im.file for im in self.images]
         self.stations = [im.station for im in self.images]
-        self.marks = (_marks_of(read_marks_csv(session.marks_path, marks_targets, self.images), keep)
-                      if session.marks_path is not None else {})
+        self.marks = _marks_of(session.marks(marks_targets), keep) if session.marks_path is not None else {}
         self.coded = session.coded is not None
         size = (session.coded or {}).get("marker_size_mm")
         self.marker_size_m = float(size) / 1000.0 if size else None

@@ -158,6 +158,15 @@ class Storage:
             if os.path.lexists(tmp):
                 os.unlink(tmp)
 
+    def write_many(self, rel: str, objects: dict[str, bytes]) -> None:
+        """Write ``{key: bytes}`` under the folder ``rel``: on an object store all at once
+        (concurrent PUTs), locally one atomic write each."""
+        if not self.local:
+            self.fs.pipe({f"{self.path(rel)}/{k}": v for k, v in objects.items()})
+            return
+        for k, v in objects.items():
+            self.write(f"{rel}/{k}", v)
+
     def read(self, rel: str) -> bytes:
         if self.local:
             with open(self.path(rel), "rb") as f:

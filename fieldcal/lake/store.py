@@ -32,13 +32,21 @@ when the document, the residual table or an array is bad). Then:
    keeps only rows of versions in the catalog (as of the same time), so rows of a version
    whose catalog row is not committed are never visible.
 
-One version per fingerprint: a non-forced commit inserts its catalog row with a Delta
-``MERGE`` "insert unless a row has this fingerprint". Delta's conflict check fails the
-second of two concurrent such commits; it then finds the first's row, removes its own
-parts and returns the first's version (``Committed.new`` False). No claim files, no
+One version per fingerprint: a commit appends its catalog row with a Delta transaction
+identifier naming the fingerprint (:meth:`fieldcal.lake.tables.Tables.append` ``once=``),
+unless the catalog's log has that identifier already. Delta's conflict check fails the
+second of two concurrent commits of one fingerprint; it then finds the first's row, removes
+its own parts and returns the first's version (``Committed.new`` False). The check reads
+the log only, not the catalog's rows: a catalog from before (rows without identifiers)
+is also searched for the fingerprint until ``fieldcal lake optimize`` has given it the
+identifiers (:meth:`~fieldcal.lake.tables.Tables.adopt_keys`). A commit was a MERGE
+"insert unless a row has this fingerprint" before, which costs the catalog's scan twice
+(issue 28: 0.4-0.8 s locally, 4.3 s on S3; ``bench/bench_commit.py``). No claim files, no
 waiting on another process, nothing to go stale: a crashed commit leaves only unreferenced
 parts, which :meth:`Lake.gc` removes once older than its grace period. A forced commit
-appends its row. On S3 the Delta commits are conditional PUTs (``If-None-Match``).
+appends its row whatever the catalog holds (and records its fingerprint's identifier). The
+version id needs no check in the catalog: its document was created exclusively. On S3 the
+Delta commits are conditional PUTs (``If-None-Match``).
 
 Every commit records who made it in the table's history (``fieldcal lake log``): the code
 version, host, process id, user and, when given, the flow run id.
@@ -265,7 +273,7 @@ class Lake:
                                            original)
             broken: dict[str, str] = {}
             if not force:
-                existing, broken = self.committed_whole(fp)
+                existing, broken = self._committed_before(fp)
                 if existing is not None:
                     return Committed(existing, new=False)
             return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
@@ -292,17 +300,7 @@ class Lake:
             row = catalog_row(doc, utcnow() if original is None else original["committed"], force,
                               paths, where)
             meta["action"] = "commit" if original is None else "migrate"
-            if original is not None:
-                inserted = self.tables.insert_unless("catalog", row, "t.version = s.version", meta,
-                                                     exists=lambda: self._is_committed(version))
-            elif force:
-                self.tables.append("catalog", row, meta)
-                inserted = True
-            else:
-                inserted = self.tables.insert_unless(
-                    "catalog", row, _unless(broken or {}), meta,
-                    exists=lambda: self._is_committed(version) or self.find_committed(
-                        doc["inputs"]["fingerprint"]) is not None)
+            inserted = self._insert_catalog(row, doc, force, meta, original, broken or {})
             if inserted:
                 done = True
                 self._write_dictionary()
@@ -331,6 +329,38 @@ class Lake:
         if why is not None:
             raise LakeError(f"version {doc['version']} not committed to {self.url}: {why} when "
                             "read back before the commit")
+
+    CATALOG_BY_MERGE = False
+    """The commit path before issue 28 (a MERGE after a scan of the catalog), kept for
+    ``bench/bench_commit.py``'s before/after."""
+
+    def _committed_before(self, fp: str) -> tuple[str | None, dict[str, str]]:
+        """``(version, broken)``: the version of this fingerprint committed already that reads
+        back whole, or None, and the committed ones that do not (:meth:`committed_whole`): the
+        catalog's log says whether it has one (:meth:`~fieldcal.lake.tables.Tables.has_key`),
+        its rows say which (read only then, and for a catalog from before the identifiers)."""
+        if not self.CATALOG_BY_MERGE and self.tables.has_key("catalog", fp) is False:
+            return None, {}
+        return self.committed_whole(fp)
+
+    def _insert_catalog(self, row, doc: dict, force: bool, meta: dict, original,
+                        broken: Mapping[str, str]) -> bool:
+        """The commit point: the catalog row, once per fingerprint unless forced (module
+        docstring); True when inserted. When the committed versions of the fingerprint do not
+        read back whole (``broken``), the key is the fingerprint *after* the latest of them:
+        once per fingerprint and generation, so that two reruns replacing one lost version
+        still make one (issue 24)."""
+        fp, version = doc["inputs"]["fingerprint"], doc["version"]
+        if original is not None:
+            return self.tables.insert_unless("catalog", row, "t.version = s.version", meta, keys=(fp,),
+                                             exists=lambda: self._is_committed(version))
+        if self.CATALOG_BY_MERGE and not force:
+            return self.tables.insert_unless(
+                "catalog", row, "t.fingerprint = s.fingerprint OR t.version = s.version", meta)
+        if not force and not self.tables.every_key_once("catalog") and self.find_committed(fp) is not None:
+            return False                      # a catalog from before: its rows without identifiers
+        key = f"{fp}+after+{max(broken)}" if broken and not force else fp
+        return self.tables.append_once("catalog", row, key, meta, exclusive=not force)
 
     def _reserve(self, doc: dict, explicit: bool, written: list) -> str:
         """Create the version's document exclusively (the version id's reservation)."""
@@ -410,18 +440,30 @@ class Lake:
         return doc, explicit
 
     def _write_zarr(self, rel: str, arrays: dict, doc: dict) -> None:
+        """The version's Zarr group. On an object store it is made in memory and its objects
+        PUT at once: a Zarr store over fsspec writes them one after the other, ~10 requests
+        per array (0.8-1.0 s of a commit on moto S3, ``bench/bench_commit.py``)."""
         import zarr
 
+        if not self._store.local:
+            objects: dict = {}
+            self._fill_group(zarr.open_group(store=zarr.storage.MemoryStore(objects), mode="w", zarr_format=3),
+                             arrays, doc)
+            self._store.write_many(rel, {k: buf.to_bytes() for k, buf in objects.items()})
+            return
         store = self._store.zarr_store(rel, read_only=False)
         try:
-            group = zarr.open_group(store=store, mode="w", zarr_format=3)
-            group.attrs.update({"document": doc, "arrays": sorted(arrays),
-                                "digests": {n: array_digest(a) for n, (a, _, _) in arrays.items()}})
-            for name, (data, attrs, dims) in arrays.items():
-                group.create_array(name, data=data, attributes=attrs, dimension_names=dims,
-                                   config={"write_empty_chunks": True})
+            self._fill_group(zarr.open_group(store=store, mode="w", zarr_format=3), arrays, doc)
         finally:
             store.close()
+
+    @staticmethod
+    def _fill_group(group, arrays: dict, doc: dict) -> None:
+        group.attrs.update({"document": doc, "arrays": sorted(arrays),
+                            "digests": {n: array_digest(a) for n, (a, _, _) in arrays.items()}})
+        for name, (data, attrs, dims) in arrays.items():
+            group.create_array(name, data=data, attributes=attrs, dimension_names=dims,
+                               config={"write_empty_chunks": True})
 
     def _write_dictionary(self) -> None:
         """Write ``README.md`` (the data dictionary) when it is missing or outdated."""
@@ -492,8 +534,11 @@ class Lake:
                                                                                version=version))
                 rows.append(catalog_row(doc, utcnow(), force, paths, f"calibration {doc['camera_id']}"))
                 versions.append(version)
-            self.tables.append("catalog", pa.concat_tables(rows), dict(meta, action="commit rig",
-                                                                       versions=",".join(versions)))
+            # the heads' fingerprints recorded (not exclusive: the rig checked them before), so
+            # that a later commit of one of them finds it in the log (module docstring)
+            heads_fp = [p[0]["inputs"]["fingerprint"] for p in prepared]
+            self.tables.append_once("catalog", pa.concat_tables(rows), heads_fp,
+                                    dict(meta, action="commit rig", versions=",".join(versions)), exclusive=False)
             done = True
         except OSError as e:
             raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
@@ -884,15 +929,6 @@ def _as_of(value):
     if value is None or isinstance(value, int):
         return value
     return parse_time(value, "as of")
-
-
-def _unless(broken: Mapping[str, str]) -> str:
-    """The MERGE predicate of a non-forced commit: no row of these inputs (except versions
-    that do not read back whole: they are calibrated again) and no row of this version."""
-    if not broken:
-        return "t.fingerprint = s.fingerprint OR t.version = s.version"
-    dead = ", ".join(_sql_str(v) for v in sorted(broken))
-    return f"(t.fingerprint = s.fingerprint AND t.version NOT IN ({dead})) OR t.version = s.version"
 
 
 def _with_keys(res: pa.Table, doc: dict) -> pa.Table:

@@ -14,12 +14,19 @@ table                        partitioned by   rows
 ``assessments``              (none)           the acceptance of each version (derived)
 ===========================  ===============  =====================================================
 
-Writes are Delta commits: appends, an insert-unless-present (``MERGE ... WHEN NOT MATCHED
+Writes are Delta commits: appends, an append *once* per key (the commit carries a Delta
+transaction identifier, ``txn``, naming the key: a table that has it already is not
+appended to, and of two concurrent commits carrying it Delta's conflict check fails the
+second; :meth:`Tables.append`), an insert-unless-present (``MERGE ... WHEN NOT MATCHED
 INSERT``, whose conflict check makes "one row per key" hold under concurrency), deletes.
+A table created by this code carries the identifier :data:`EVERY_KEY_ONCE` from its
+first commit: every key-once append it holds carries its key; a table from before gets it
+from :meth:`Tables.adopt_keys` (with the keys of the rows it has).
 Each carries the caller's commit metadata (code version, host, process, flow run) into the
 table's history. Every ``maintain_every`` commits of a table, the commit that reaches the
-multiple compacts the table's small files (``optimize.compact``) and delta-rs writes a
-checkpoint (``delta.checkpointInterval``), so that reading stays fast as versions pile up.
+multiple compacts the table's small files (``optimize.compact``), and every
+:data:`CHECKPOINT_EVERY` delta-rs writes a checkpoint (``delta.checkpointInterval``), so
+that reading stays fast as versions pile up.
 
 Reads never let one bad file take a table down: a data file that cannot be read (zero
 bytes, garbage, truncated) is skipped and reported as a :class:`Problem`; a damaged commit
@@ -51,7 +58,12 @@ PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": [
 QUARANTINE = "quarantine"
 """The lake's folder of damaged files moved out of the way (by a writer or ``lake repair``)."""
 DEFAULT_MAINTAIN_EVERY = 100
-"""Commits of a table between compactions and checkpoints."""
+"""Commits of a table between compactions."""
+CHECKPOINT_EVERY = 10
+"""Commits of a table between checkpoints (at most ``maintain_every``): opening a table reads
+its last checkpoint and every commit since, one request each on an object store (with 100,
+a commit on moto S3 read up to ~200 commit files of the catalog and the residuals:
+``bench/bench_commit.py``)."""
 ROW_GROUP_ROWS = 4096
 """Rows per row group of the compacted catalog (pruned by their camera_id statistics)."""
 SORTED_BY = {"catalog": "camera_id", "comparisons": "version_b", "assessments": "version"}
@@ -59,6 +71,10 @@ SORTED_BY = {"catalog": "camera_id", "comparisons": "version_b", "assessments": 
 a camera, or of the latest versions (ids begin with their time), touch few row groups."""
 COMMIT_RETRIES = 200
 """Attempts of an insert-unless-present that keeps meeting concurrent commits."""
+EVERY_KEY_ONCE = "fieldcal.every-key-once"
+"""Transaction identifier of a table whose rows all have their key's identifier (:meth:`Tables.append`)."""
+KEYED = {"catalog": "fingerprint"}
+"""The column whose values the key-once appends of a table name (:meth:`Tables.adopt_keys`)."""
 
 _KEYS = [pa.field("camera_id", pa.string(), nullable=False),
          pa.field("session_id", pa.string(), nullable=False)]
@@ -157,9 +173,11 @@ class Tables:
             raise InputError(f"maintain_every must be >= 2, got {maintain_every}", "lake")
         self.storage = storage
         self.maintain_every = int(maintain_every)
+        self.checkpoint_every = min(self.maintain_every, CHECKPOINT_EVERY)
         self.problems: list[Problem] = []
         self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
         self._commit_times: dict = {}  # (name, commit) -> commitInfo.timestamp [ms]
+        self._every_key_once: set[str] = set()   # tables known to carry EVERY_KEY_ONCE
 
     # -- opening ------------------------------------------------------------------------
     def uri(self, name: str) -> str:
@@ -365,14 +383,15 @@ class Tables:
             return table
         if self.storage.local:
             os.makedirs(self.storage.root, exist_ok=True)
-        config = {"delta.checkpointInterval": str(self.maintain_every),
+        config = {"delta.checkpointInterval": str(self.checkpoint_every),
                   "delta.logRetentionDuration": "interval 3650 days",
                   "delta.deletedFileRetentionDuration": "interval 7 days"}
         failure = None
         try:
             DeltaTable.create(self.storage.delta_uri(name), table_schema(name), mode="ignore",
                               partition_by=PARTITIONS[name] or None, configuration=config,
-                              storage_options=self.storage.delta_options)
+                              storage_options=self.storage.delta_options,
+                              commit_properties=self._commit_properties(None, EVERY_KEY_ONCE))
         except Exception as e:  # noqa: BLE001 - another process created it first: loaded below
             failure = e
         # loaded afresh: the object create() returns may hold a losing creator's metadata
@@ -386,14 +405,43 @@ class Tables:
         return table
 
     # -- writing ------------------------------------------------------------------------
-    def _commit_properties(self, info: dict | None):
-        from deltalake import CommitProperties
+    def _commit_properties(self, info: dict | None, *keys: str):
+        from deltalake import CommitProperties, Transaction
 
         meta = {f"fieldcal.{k}": str(v) for k, v in (info or {}).items() if v is not None}
-        return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES)
+        return CommitProperties(custom_metadata=meta, max_commit_retries=COMMIT_RETRIES,
+                                app_transactions=[Transaction(app_id=k, version=1) for k in keys] or None)
 
-    def append(self, name: str, table: pa.Table, info: dict | None = None) -> None:
-        """Append rows (a blind append: concurrent appends never conflict).
+    def has_key(self, name: str, key: str) -> bool | None:
+        """Whether a key-once append of ``key`` is committed to the table (:meth:`append`):
+        True or False when the table holds every key it has rows of (:data:`EVERY_KEY_ONCE`),
+        None when it cannot tell (a table from before, not adopted: look in its rows)."""
+        target = self.open(name)
+        if target is None:
+            return False
+        if target.transaction_version(key) is not None:
+            return True
+        return False if self.every_key_once(name, target) else None
+
+    def every_key_once(self, name: str, target=None) -> bool:
+        """Whether the table carries :data:`EVERY_KEY_ONCE` (remembered: it never goes away).
+        Each look at a transaction identifier reads the table's log since its last checkpoint."""
+        if name not in self._every_key_once:
+            target = target if target is not None else self.open(name)
+            if target is not None and target.transaction_version(EVERY_KEY_ONCE) is not None:
+                self._every_key_once.add(name)
+        return name in self._every_key_once
+
+    def append(self, name: str, table: pa.Table, info: dict | None = None, *, once=None,
+               exclusive: bool = True) -> bool:
+        """Append rows (a blind append: concurrent appends never conflict); True when appended.
+
+        ``once``: a key (e.g. a fingerprint), or a list of keys, the commit names in Delta
+        transaction identifiers. With ``exclusive``, nothing is appended (False) when the table
+        has a commit of such a key already, or when a concurrent commit of one wins: Delta's conflict
+        check fails the second of two commits that carry one identifier, whose retry then
+        finds the first. Without ``exclusive`` the key is recorded and the rows appended
+        whatever the table holds (a forced version of a fingerprint).
 
         A table made by an older fieldcal with fewer columns gains the new ones (Delta
         schema evolution); its old rows read them as null.
@@ -405,27 +453,56 @@ class Tables:
         if any(p.table == name and p.path == f"{name}/_delta_log" for p in self.problems):
             target = self.load_for_write(name)  # opened at an older commit: heal the log first
         schema = table_schema(name)
+        keys = () if once is None else (once,) if isinstance(once, str) else tuple(once)
         for attempt in range(COMMIT_RETRIES):
+            if exclusive and any(target.transaction_version(k) is not None for k in keys):
+                return False
             # schema evolution only when needed: a metadata change conflicts with concurrent appends
             have = set(pa.schema(target.schema().to_arrow()).names)
             evolve = "merge" if set(schema.names) - have else None
             try:
                 write_deltalake(target, table.cast(schema), mode="append", schema_mode=evolve,
-                                commit_properties=self._commit_properties(info))
+                                commit_properties=self._commit_properties(info, *keys))
             except CommitFailedError:
                 # a concurrent metadata commit (a racing create or schema evolution on an
-                # object store): the data files are in no commit; write again on the new state
+                # object store) or one of the same key: the data files are in no commit;
+                # look again on the new state
                 time.sleep(0.02 * (1 + random.random()) * min(attempt + 1, 10))
                 target = self.load_for_write(name)
+                self._current[name] = target
                 continue
             self._maintain(name, target)
-            return
+            return True
         raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent "
                         "commits in a row")
 
+    def append_once(self, name: str, table: pa.Table, key, info: dict | None = None, *,
+                    exclusive: bool = True) -> bool:
+        """:meth:`append` of rows once per ``key`` (``once=key``; a key or a list of keys): the
+        catalog's commit point."""
+        return self.append(name, table, info, once=key, exclusive=exclusive)
+
+    def adopt_keys(self, name: str, info: dict | None = None) -> int:
+        """Give a table from before the key-once appends the identifiers of the keys its rows
+        have (:data:`KEYED`) and :data:`EVERY_KEY_ONCE`, in one commit, so that :meth:`has_key`
+        answers from the table's log; returns the keys adopted (0: nothing to do).
+
+        Run while no older fieldcal writes to the table (its commits carry no identifier)."""
+        from deltalake import write_deltalake
+
+        target = self.open(name)
+        if target is None or self.every_key_once(name, target):
+            return 0
+        keys = sorted(set(self.scan(name, columns=[KEYED[name]])[KEYED[name]].to_pylist()) - {None})
+        write_deltalake(target, table_schema(name).empty_table(), mode="append",
+                        commit_properties=self._commit_properties(info, EVERY_KEY_ONCE, *keys))
+        self._current.pop(name, None)
+        return len(keys)
+
     def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
-                      *, poll_s: float = 0.02, exists=None) -> bool:
+                      *, poll_s: float = 0.02, keys: tuple[str, ...] = (), exists=None) -> bool:
         """Insert ``row`` unless a row matching ``match`` exists; True when inserted.
+        ``keys``: transaction identifiers the commit carries (:meth:`append`).
 
         ``match`` is a predicate over ``t`` (the table) and ``s`` (the row), e.g.
         ``t.fingerprint = s.fingerprint``. Two processes inserting rows that match each
@@ -447,7 +524,7 @@ class Tables:
             try:
                 metrics = (target.merge(row.cast(table_schema(name)), match, source_alias="s",
                                         target_alias="t",
-                                        commit_properties=self._commit_properties(info))
+                                        commit_properties=self._commit_properties(info, *keys))
                            .when_not_matched_insert_all().execute())
             except CommitFailedError:
                 time.sleep(poll_s * (1 + random.random()) * min(attempt + 1, 10))
@@ -460,7 +537,7 @@ class Tables:
                                              "row was appended after a read that skips it"))
                 if exists():
                     return False
-                self.append(name, row, info)
+                self.append(name, row, info, once=keys or None, exclusive=False)
                 return True
             inserted = int(metrics.get("num_target_rows_inserted", 0)) > 0
             if inserted:
@@ -615,10 +692,17 @@ class Tables:
 
     # -- maintenance and audit ------------------------------------------------------------
     def optimize(self, name: str, info: dict | None = None) -> dict:
-        """Compact the table's small files and write a checkpoint."""
+        """Compact the table's small files and write a checkpoint (a keyed table from before
+        the key-once appends adopts its keys first: :meth:`adopt_keys`)."""
         target = self.open(name)
         if target is None:
             return {"table": name, "files_removed": 0, "files_added": 0}
+        if name in KEYED and self.adopt_keys(name, info):
+            target = self.open(name)
+        interval = target.metadata().configuration.get("delta.checkpointInterval")
+        if interval is None or int(interval) > self.checkpoint_every:     # a table from before
+            target.alter.set_table_properties({"delta.checkpointInterval": str(self.checkpoint_every)},
+                                              commit_properties=self._commit_properties(info))
         metrics = self._compact(name, target, info)
         target.update_incremental()
         target.create_checkpoint()

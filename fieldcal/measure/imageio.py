@@ -33,7 +33,7 @@ import tifffile
 
 from fieldcal.errors import ImageError, InputError
 
-__all__ = ["ImageInfo", "ImageFile", "probe_image", "read_file", "read_image", "check_image",
+__all__ = ["ImageInfo", "ImageFile", "probe_image", "read_file", "read_stream", "read_image", "check_image",
            "stat_stamp", "set_decode_threads", "decode_threads", "LUMA_WEIGHTS", "MAX_PIXELS", "MAX_FILE_BYTES",
            "pixel_sample_digest", "pixel_digest", "SAMPLE_ROWS"]
 
@@ -112,15 +112,15 @@ class ImageFile:
     sha256 : str
         SHA-256 of ``data``, 64 lower-case hex digits (as
         :func:`fieldcal.session.fingerprint.sha256_file` gives for the file).
-    stamp : (int, int, int, int, int)
+    stamp : (int, int, int, int, int) or None
         :func:`stat_stamp` of the open file before it was read, so a cache of hashes can
-        tell whether the file was rewritten since.
+        tell whether the file was rewritten since (None: not a local file).
     """
 
     path: str
     data: np.ndarray
     sha256: str
-    stamp: tuple[int, int, int, int, int]
+    stamp: tuple[int, int, int, int, int] | None
 
 
 def stat_stamp(st: os.stat_result) -> tuple[int, int, int, int, int]:
@@ -144,27 +144,43 @@ def read_file(path) -> ImageFile:
     try:
         with open(path, "rb", buffering=0) as f:
             st = os.fstat(f.fileno())
-            if st.st_size > MAX_FILE_BYTES:
-                raise ImageError(f"file of {st.st_size} bytes is larger than any image fieldcal reads "
-                                 f"({MAX_FILE_BYTES} bytes)", where)
-            data = np.empty(st.st_size, np.uint8)
-            view = memoryview(data)
-            digest = hashlib.sha256()
-            pos = 0
-            while pos < st.st_size:
-                n = f.readinto(view[pos:pos + _CHUNK_BYTES])
-                if not n:
-                    break
-                digest.update(view[pos:pos + n])
-                pos += n
+            image = read_stream(f, st.st_size, where)
     except FileNotFoundError:
         raise ImageError("file not found", where) from None
     except IsADirectoryError:
         raise ImageError("is a directory, not a file", where) from None
     except OSError as err:
         raise ImageError(f"cannot read the file ({_short(err)})", where) from None
+    return ImageFile(image.path, image.data, image.sha256, stat_stamp(st))
+
+
+def read_stream(f, size: int, where: str, chunk_bytes: int = _CHUNK_BYTES) -> ImageFile:
+    """The bytes of an open binary file of ``size`` bytes, read once in chunks of
+    ``chunk_bytes`` (``f.readinto``), each hashed as it arrives; ``stamp`` None.
+
+    Used for a local file (:func:`read_file`) and for an object on a store
+    (:meth:`fieldcal.session.store.SessionStore.read_image`: one ranged request per chunk).
+
+    Raises
+    ------
+    ImageError
+        ``size`` is larger than :data:`MAX_FILE_BYTES`.
+    """
+    if size > MAX_FILE_BYTES:
+        raise ImageError(f"file of {size} bytes is larger than any image fieldcal reads "
+                         f"({MAX_FILE_BYTES} bytes)", where)
+    data = np.empty(size, np.uint8)
+    view = memoryview(data)
+    digest = hashlib.sha256()
+    pos = 0
+    while pos < size:
+        n = f.readinto(view[pos:pos + chunk_bytes])
+        if not n:
+            break
+        digest.update(view[pos:pos + n])
+        pos += n
     # a file that shrank while it was read is hashed as read; decoding then finds it short
-    return ImageFile(where, data[:pos], digest.hexdigest(), stat_stamp(st))
+    return ImageFile(where, data[:pos], digest.hexdigest(), None)
 
 
 class _MemoryFile(io.RawIOBase):

@@ -20,6 +20,12 @@ columns, unique ids and finite numbers (errors name file and row).
   SHA-256 of their pixels (issue 24).
 - The ``images`` glob is matched inside the session folder (the folder's own name is
   never a pattern: ``runs/g[1]`` is a folder, not a choice of ``g1``).
+- A session on an object store (:mod:`fieldcal.session.store`) is loaded from a local
+  folder holding its small files only, with its :class:`~fieldcal.session.store.SessionStore`
+  (``store``): the images are matched, found and compared in the store's listing, and read
+  from the store where they are measured (:meth:`Session.read_image`); the tables the
+  later steps need are read into memory at once (:meth:`Session.marks`, ...), so that the
+  session works after its local folder is gone, on any machine.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import hashlib
 import itertools
 import json
 import os
+import posixpath
 import stat
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -38,13 +45,17 @@ from pathlib import Path
 
 from fieldcal.errors import InputError
 from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField
+from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.names import normal_file_name
 from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
+    MARKS_COLUMNS,
     MAX_IMAGES,
     check_size,
+    read_csv_table,
     read_marks_csv,
     read_observations_csv,
     read_scale_bars_csv,
@@ -76,6 +87,9 @@ class Session:
     images : list of FieldImage
         Images named as the session lists them (relative paths, forward slashes); for a glob,
         the matching files in sorted order.
+    store : SessionStore or None
+        Where the images are when the session is on an object store (``folder`` then holds
+        its small files only, while it is loaded); None: in ``folder``.
     """
 
     folder: Path
@@ -98,6 +112,7 @@ class Session:
     coded: dict | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
+    store: SessionStore | None = None
     scale_bars_path: Path | None = None
     strict_targets: bool = False
     datum: str = "auto"
@@ -111,9 +126,67 @@ class Session:
             self._read["targets"] = read_targets_csv(self.targets_path)
         return copy.deepcopy(self._read["targets"])
 
+    def marks(self, targets: TargetField | None = None) -> dict:
+        """marks.csv of a field session over ``targets`` (default: :meth:`targets`)
+        (:func:`read_marks_csv`); the file is read once, so this works where the session's
+        folder is not (a worker); ``{}`` without one."""
+        if self.marks_path is None:
+            return {}
+        if "marks.csv" not in self._read:
+            self._read["marks.csv"] = read_csv_table(self.marks_path, MARKS_COLUMNS, kind="marks.csv")
+        return read_marks_csv(self.marks_path, self.targets() if targets is None else targets, list(self.images),
+                              table=self._read["marks.csv"])
+
     def image_path(self, name: str) -> Path:
-        """The file of an image named as in the session (checked to stay inside the folder)."""
+        """The local file of an image named as in the session (checked to stay inside the
+        folder). A session on an object store has none: :meth:`read_image`."""
+        if self.store is not None:
+            raise InputError(f"image {name!r} is on an object store, not a local file", self.store.url_of(name))
         return safe_path(self.folder, name, "image")
+
+    @property
+    def location(self) -> str:
+        """The session folder as a user named it: its local path or its URL."""
+        return self.store.url if self.store is not None else str(self.folder)
+
+    @property
+    def manifest_where(self) -> str:
+        """session.json's path or URL, for messages."""
+        return self.store.url_of(MANIFEST) if self.store is not None else str(self.folder / MANIFEST)
+
+    def read_image(self, name: str) -> ImageFile:
+        """An image's bytes, read once and hashed as read, from wherever the session is
+        (:func:`fieldcal.measure.imageio.read_file`, :meth:`SessionStore.read_image`)."""
+        if self.store is not None:
+            safe_path(self.folder, name, "image")          # the name's checks; nothing is read here
+            return self.store.read_image(name)
+        return read_file(self.image_path(name))
+
+    def image_size(self, name: str) -> int:
+        """An image file's size [bytes] as listed or stat'ed; 0 when it cannot be told."""
+        if self.store is not None:
+            return int(self.store.files.get(name, 0))
+        try:
+            return os.stat(self.image_path(name)).st_size
+        except (OSError, ValueError, InputError):
+            return 0
+
+    def missing_image(self, name: str) -> str | None:
+        """Why an image cannot be read (``"file not found"``, ``"not a regular file"``), or None."""
+        if self.store is not None:
+            if name in self.store.files:
+                return None
+            return "not a regular file" if self.store.has_folder(name) else "file not found"
+        path = self.image_path(name)
+        if os.path.isfile(path):
+            return None
+        return "file not found" if not os.path.lexists(path) else "not a regular file"
+
+    def has_image_folder(self, name: str) -> bool:
+        """Whether the folder an image is listed in exists (on a store: holds some file)."""
+        if self.store is not None:
+            return self.store.has_folder(posixpath.dirname(name))
+        return self.image_path(name).parent.is_dir()
 
     @property
     def parameter_set(self) -> tuple[str, ...]:
@@ -182,12 +255,15 @@ def safe_path(folder: Path, relative: str, what: str, *, base: Path | None = Non
     return full
 
 
-def _resolve_images(folder: Path, spec, where: str) -> list[FieldImage]:
+def _resolve_images(folder: Path, spec, where: str, store: SessionStore | None = None) -> list[FieldImage]:
     """The session's images, named in their one spelling (module docstring); none listed twice."""
     if isinstance(spec, str):
         safe_path(folder, spec, "images")  # the pattern itself must stay inside
         pattern = spec.replace("\\", "/")
-        matches = sorted(itertools.islice(glob.iglob(pattern, root_dir=folder), MAX_IMAGES + 1))
+        if store is not None:
+            matches = glob_names(pattern, store.files)[:MAX_IMAGES + 1]
+        else:
+            matches = sorted(itertools.islice(glob.iglob(pattern, root_dir=folder), MAX_IMAGES + 1))
         if len(matches) > MAX_IMAGES:
             raise InputError(f"images {shown(spec)} matches more than {MAX_IMAGES} files (fieldcal's "
                              "limit for one session) (at /images)", where)
@@ -195,7 +271,7 @@ def _resolve_images(folder: Path, spec, where: str) -> list[FieldImage]:
         base = Path(folder).resolve()
         for rel in matches:
             safe_path(folder, rel, "image", base=base)
-            if (folder / rel).is_file():
+            if (rel in store.files) if store is not None else (folder / rel).is_file():
                 out.append(FieldImage(normal_file_name(rel, "image", where), None))
         return out
     first: dict[str, int] = {}
@@ -221,7 +297,8 @@ def _sample_digest(path: Path, size: int) -> str:
         return hashlib.sha256(fh.read(n)).hexdigest()
 
 
-def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image") -> None:
+def check_distinct_files(folder: Path, names: list[str], where: str, what: str = "image",
+                         store: SessionStore | None = None) -> None:
     """Refuse two names of one photograph: one file reached twice (a link), the same bytes, or the
     same decoded pixels (another encoding).
 
@@ -237,9 +314,18 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
     Files that are missing, empty or not regular are skipped here: measuring reports them.
     Only files of equal size whose middle 64 KiB agree are read whole (module docstring);
     then the same pixels in another encoding (:func:`_check_distinct_pixels`).
+    With a ``store`` the sizes come from its listing, files its MD5s tell apart are not read
+    (:func:`fieldcal.session.store.distinct_by_md5`), and the samples are ranged reads (an
+    object store has no links); the pixels are not compared there (that would read every
+    image on the flow's machine: docs/deployment.md).
     """
+    if store is not None:
+        known = distinct_by_md5(store, names)
+        sizes = {n: store.files[n] for n in names if store.files.get(n) and n not in known}
+        _same_bytes(sizes, lambda n, size: sample_digest(store, n, size), store.sha256, where, what)
+        return
     by_file: dict[tuple[int, int], str] = {}
-    by_size: dict[int, list[str]] = defaultdict(list)
+    by_size: dict[str, int] = {}
     for name in names:
         try:
             st = os.stat(folder / name)
@@ -252,28 +338,38 @@ def check_distinct_files(folder: Path, names: list[str], where: str, what: str =
             raise InputError(f"{what} {shown(name)} is the file {shown(by_file[key])} again (a link): "
                              "a photograph counts once", where)
         by_file[key] = name
-        by_size[st.st_size].append(name)
+        by_size[name] = st.st_size
+    _same_bytes(by_size, lambda n, size: _sample_digest(folder / n, size), lambda n: sha256_file(folder / n),
+                where, what)
+    _check_distinct_pixels(folder, list(by_size), where, what)
+
+
+def _same_bytes(sizes: dict[str, int], sample, whole, where: str, what: str) -> None:
+    """Refuse two names of equal bytes: by ``sizes`` ``{name: size}``, then ``sample(name,
+    size)`` (digest of the middle), then ``whole(name)`` (SHA-256) for those that agree."""
+    by_size: dict[int, list[str]] = defaultdict(list)
+    for name, size in sizes.items():
+        by_size[size].append(name)
     for size, group in by_size.items():
         if len(group) < 2:
             continue
         by_sample: dict[str, list[str]] = defaultdict(list)
         for name in group:
             try:
-                by_sample[_sample_digest(folder / name, size)].append(name)
+                by_sample[sample(name, size)].append(name)
             except OSError:                  # unreadable: measuring reports it
                 continue
         for same in (g for g in by_sample.values() if len(g) > 1):
             by_hash: dict[str, str] = {}
             for name in same:
                 try:
-                    h = sha256_file(folder / name)
+                    h = whole(name)
                 except (OSError, InputError):
                     continue
                 if h in by_hash:
                     raise InputError(f"{what} {shown(name)} has the same bytes as {shown(by_hash[h])} "
                                      f"(SHA-256 {h[:12]}...): a photograph counts once", where)
                 by_hash[h] = name
-    _check_distinct_pixels(folder, [n for group in by_size.values() for n in group], where, what)
 
 
 def _check_distinct_pixels(folder: Path, names: list[str], where: str, what: str) -> None:
@@ -326,7 +422,7 @@ def _unique_keys(pairs):
     return dict(pairs)
 
 
-def _check_frame_paths(folder: Path, frames_path: Path) -> None:
+def _check_frame_paths(folder: Path, frames_path: Path, store: SessionStore | None = None) -> None:
     """Every frame that frames.csv names stays inside the session folder (path checks only)."""
     from fieldcal.goniometer.method import read_frames_csv
 
@@ -346,7 +442,7 @@ def _check_frame_paths(folder: Path, frames_path: Path) -> None:
                 raise InputError(f"frame {shown(normal)} is listed twice (as {shown(name)}; first on line "
                                  f"{first[normal]})", f"{frames_path}:{line}")
             first[normal] = line
-    check_distinct_files(folder, list(first), str(frames_path), "frame")
+    check_distinct_files(folder, list(first), str(frames_path), "frame", store)
 
 
 def read_manifest(folder) -> dict:
@@ -381,8 +477,11 @@ def read_manifest(folder) -> dict:
     return manifest
 
 
-def load_session(folder) -> Session:
+def load_session(folder, store: SessionStore | None = None) -> Session:
     """Read and validate ``folder/session.json`` and resolve the paths it names.
+
+    ``store``: the session is on an object store and ``folder`` holds its small files
+    (module docstring).
 
     Raises
     ------
@@ -419,7 +518,7 @@ def load_session(folder) -> Session:
         sensor=sensor, nominal_focal_mm=(manifest.get("lens") or {}).get("nominal_focal_mm"),
         default_sigma_px=float(manifest.get("default_sigma_px", DEFAULT_SIGMA_PX)),
         estimate=tuple(estimate) if estimate is not None else None,
-        images=_resolve_images(folder, manifest["images"], where),
+        images=_resolve_images(folder, manifest["images"], where, store), store=store,
     )
     if method == "field":
         fld = manifest["field"]
@@ -439,7 +538,7 @@ def load_session(folder) -> Session:
                 aruco_dictionary(sess.coded["dictionary"])
             except InputError as err:
                 raise InputError(f"{err.reason} (at /field/coded/dictionary)", where) from None
-        check_distinct_files(folder, [im.file for im in sess.images], where)
+        check_distinct_files(folder, [im.file for im in sess.images], where, store=store)
         for name, attr in ((OBSERVATIONS, "observations_path"), (MARKS, "marks_path"),
                            (SCALE_BARS, "scale_bars_path")):
             p = safe_path(folder, name, name)
@@ -452,7 +551,7 @@ def load_session(folder) -> Session:
         sess.frames_path = safe_path(folder, manifest["frames"], "frames")
         if not sess.frames_path.is_file():
             raise InputError(f"the frames file {manifest['frames']!r} does not exist (at /frames)", where)
-        _check_frame_paths(folder, sess.frames_path)
+        _check_frame_paths(folder, sess.frames_path, store)
     return sess
 
 

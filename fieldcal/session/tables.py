@@ -502,9 +502,15 @@ def read_observations_csv(path, targets: TargetField, images: list[FieldImage], 
     return FieldObservations(img, tgt, np.column_stack([u, v]), sigma)
 
 
-def read_marks_csv(path, targets: TargetField, images: list[FieldImage]) -> dict[int, tuple]:
-    """``marks.csv``: ``image,target_id,u,v`` -> ``{image index: (target indices, uv (n,2))}``."""
-    t = read_csv_table(path, ("image", "target_id", "u", "v"), kind="marks.csv")
+MARKS_COLUMNS = ("image", "target_id", "u", "v")
+
+
+def read_marks_csv(path, targets: TargetField, images: list[FieldImage], *, table: CsvTable | None = None
+                   ) -> dict[int, tuple]:
+    """``marks.csv``: ``image,target_id,u,v`` -> ``{image index: (target indices, uv (n,2))}``.
+
+    ``table``: the file as :func:`read_csv_table` read it already (``path`` is not read again)."""
+    t = table if table is not None else read_csv_table(path, MARKS_COLUMNS, kind="marks.csv")
     img, tgt = _image_targets(t, targets, images, False, "marked")
     uv = np.column_stack([_numbers(t, "u"), _numbers(t, "v")])
     return {int(i): (tgt[img == i], uv[img == i]) for i in dict.fromkeys(img.tolist())}

@@ -160,7 +160,7 @@ KILLER = textwrap.dedent("""
         elif point == "zarr-written":        # document and Zarr group written, no residuals, no row
             after(fieldcal.lake.store.Lake, "_write_zarr")
         elif point == "residuals-appended":  # residual rows committed, the catalog row not
-            before(fieldcal.lake.tables.Tables, "insert_unless")
+            before(fieldcal.lake.tables.Tables, "append_once")
         else:
             raise SystemExit(f"unknown point {point}")
         from flows.calibrate import calibrate_session

@@ -26,6 +26,7 @@ from fieldcal.lake import history
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES
 from fieldcal.session.fingerprint import sha256_file
+from fieldcal.session.loader import Session
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.session_writer import write_field_session
@@ -125,7 +126,7 @@ def test_rerun_of_the_same_session_is_a_no_op_that_reads_no_image(first_run, gon
     def must_not_run(*a, **k):
         raise AssertionError("an image was read")
 
-    monkeypatch.setattr(batch, "read_file", must_not_run)     # reads (and hashes) an image
+    monkeypatch.setattr(Session, "read_image", must_not_run)  # reads (and hashes) an image
     monkeypatch.setattr(batch.pipeline, "measure", must_not_run)
     again = calibrate_session(str(gonio[0].folder), str(lake_dir))
     assert again["status"] == "unchanged" and again["new"] is False

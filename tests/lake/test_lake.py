@@ -442,7 +442,7 @@ def _crashing_commit(root, storage_options=None):
             os._exit(17)
         raise AssertionError(f"unexpected insert into {name}")
 
-    Tables.insert_unless = crash
+    Tables.append_once = crash
     Lake(root, storage_options).commit(field_document(), {}, residual_table())
 
 
@@ -491,7 +491,7 @@ def test_failed_catalog_commit_cleans_up_and_the_next_commit_succeeds(tmp_path, 
     def fail(self, name, *args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(Tables, "insert_unless", fail)
+    monkeypatch.setattr(Tables, "append_once", fail)
     with pytest.raises(LakeError, match="cannot commit to .*Permission denied") as info:
         lake.commit(field_document(), {}, residual_table())
     assert "\n" not in str(info.value)

@@ -24,10 +24,10 @@ def test_a_crash_before_the_rig_row_is_finished_by_a_rerun(tmp_path, outcome, mo
     lake = Lake(tmp_path / "lake")
     real = lake.tables.append
 
-    def failing(name, table, info=None):
+    def failing(name, table, info=None, **kwargs):
         if name == "rigs":
             raise LakeError("simulated crash before the rig row")
-        return real(name, table, info)
+        return real(name, table, info, **kwargs)
 
     monkeypatch.setattr(lake.tables, "append", failing)
     with pytest.raises(LakeError, match="simulated crash"):
@@ -46,10 +46,10 @@ def test_a_failed_head_leaves_no_catalog_row(tmp_path, outcome, monkeypatch):
     lake = Lake(tmp_path / "lake")
     real = lake.tables.append
 
-    def failing(name, table, info=None):
+    def failing(name, table, info=None, **kwargs):
         if name == "catalog":
             raise OSError(28, "No space left on device")
-        return real(name, table, info)
+        return real(name, table, info, **kwargs)
 
     monkeypatch.setattr(lake.tables, "append", failing)
     with pytest.raises(LakeError, match="No space left"):
@@ -57,3 +57,19 @@ def test_a_failed_head_leaves_no_catalog_row(tmp_path, outcome, monkeypatch):
     monkeypatch.setattr(lake.tables, "append", real)
     assert lake.catalog().num_rows == 0 and lake.rig_catalog().num_rows == 0
     assert not list((tmp_path / "lake" / "calibrations").rglob("*.json"))    # the parts were removed
+
+
+def test_the_heads_fingerprints_are_in_the_catalogs_log_so_a_head_is_not_committed_twice(tmp_path, outcome):
+    """Issue 28: the catalog's commit point is an append once per fingerprint, looked up in the
+    log; the rig's one transaction records every head's fingerprint there too."""
+    _, _, out = outcome
+    lake = Lake(tmp_path / "lake")
+    _, heads = lake.commit_rig(out.heads, out.rig_document)
+    fresh = Lake(tmp_path / "lake")
+    for head, version in zip(out.heads, heads, strict=True):
+        fp = head["document"]["inputs"]["fingerprint"]
+        assert fresh.tables.has_key("catalog", fp) is True
+        again = fresh.commit(head["document"], head.get("arrays"), head.get("residuals"),
+                             array_attrs=head.get("array_attrs"))
+        assert not again.new and again == version
+    assert Lake(tmp_path / "lake").catalog().num_rows == len(heads)
