@@ -339,9 +339,17 @@ class Lake:
         back whole, or None, and the committed ones that do not (:meth:`committed_whole`): the
         catalog's log says whether it has one (:meth:`~fieldcal.lake.tables.Tables.has_key`),
         its rows say which (read only then, and for a catalog from before the identifiers)."""
-        if not self.CATALOG_BY_MERGE and self.tables.has_key("catalog", fp) is False:
+        keyed = self.tables.has_key("catalog", fp)
+        if not self.CATALOG_BY_MERGE and keyed is False:
             return None, {}
-        return self.committed_whole(fp)
+        version, broken = self.committed_whole(fp)
+        if version is None and not broken and keyed:
+            # committed once (the log has its key) but no row: taken out by `lake repair`, or
+            # hidden by a damaged file; the log names the versions
+            broken = {e["version"]: "its catalog row is missing" for e in self.tables.commits("catalog")
+                      if e.get("fingerprint") == fp and e.get("action") in ("commit", "migrate")
+                      and isinstance(e.get("version"), str)}
+        return version, broken
 
     def _insert_catalog(self, row, doc: dict, force: bool, meta: dict, original,
                         broken: Mapping[str, str]) -> bool:

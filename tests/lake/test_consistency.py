@@ -37,10 +37,11 @@ def during_commit(monkeypatch, action) -> None:
     """Run ``action(version)`` right after a commit's residual rows, before its catalog row."""
     original = Tables.append
 
-    def append(self, name, table, info=None):
-        original(self, name, table, info)
+    def append(self, name, table, info=None, **kwargs):
+        done = original(self, name, table, info, **kwargs)
         if name == "residuals":
             action(info["version"])
+        return done
 
     monkeypatch.setattr(Tables, "append", append)
 
