@@ -8,7 +8,8 @@ A local lake of ``--versions`` versions over 20 cameras (made by ``Lake.commit``
 - a rerun's answer (``Lake.find_committed``: the catalog lookup and, since issue 24, the
   read-back of the version found) against the catalog lookup alone;
 - ``fieldcal fleet``'s selection (:func:`fieldcal.fleet.select_sessions`) of every session
-  of the lake, each latest version read back, against the lookups alone.
+  of the lake, each latest version read back, against the same without (``Lake.whole``
+  replaced by a no-op).
 
 ``--s3 N``: first, one commit with and without the read-back on a moto S3 server (a lake of
 N versions).
@@ -71,6 +72,11 @@ def commits_on_s3(n_versions: int, repeat: int) -> None:
         Lake._read_back = real
         print(f"commit on moto S3 ({n_versions} versions): {statistics.median(times[True]):.3f} s with the "
               f"read-back, {statistics.median(times[False]):.3f} s without (median of {repeat})")
+        rows = Lake(url, opts).catalog().to_pylist()
+        found = [fleet.FoundSession(f"/x/{r['camera_id']}/{r['session_id']}", r["camera_id"],
+                                    r["session_id"], acquired=r["acquired"]) for r in rows]
+        t = timed(lambda: fleet.select_sessions(found, Lake(url, opts)))
+        print(f"fleet selection of {len(found)} sessions on moto S3: {t:.2f} s")
     finally:
         server.stop()
 
@@ -109,13 +115,17 @@ def main() -> None:
         find = [timed(lambda f=f: Lake(lake.url).find_committed(f)) for f in fps]
         print(f"rerun's answer: {statistics.median(find):.3f} s with the read-back, "
               f"{statistics.median(look):.3f} s the lookup alone")
-        found = [fleet.FoundSession(f"/x/{c}/{s}", c, s)
-                 for c, s in Lake(lake.url).sessions_with_calibration()]
+        rows = Lake(lake.url).catalog().to_pylist()
+        found = [fleet.FoundSession(f"/x/{r['camera_id']}/{r['session_id']}", r["camera_id"], r["session_id"],
+                                    acquired=r["acquired"]) for r in rows]
+        real_whole = Lake.whole
         sel = timed(lambda: fleet.select_sessions(found, Lake(lake.url)))
-        probe = Lake(lake.url)
-        alone = timed(lambda: [probe.latest(s.camera_id, s.session_id) for s in found])
+        assert all(s.version for s in found), "every session is calibrated: none selected"
+        Lake.whole = lambda self, version, row=None: None
+        alone = timed(lambda: fleet.select_sessions(found, Lake(lake.url)))
+        Lake.whole = real_whole
         print(f"fleet selection of {len(found)} sessions: {sel:.2f} s with the read-backs, "
-              f"{alone:.2f} s the lookups alone")
+              f"{alone:.2f} s without")
 
 
 if __name__ == "__main__":

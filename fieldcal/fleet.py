@@ -157,9 +157,9 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
     not read back whole (:meth:`Lake.whole`) is selected, with the reason in its ``note``.
     """
     rows: dict = {}
-    for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS]).to_pylist():
+    for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS, "document_path", "zarr_path"]).to_pylist():
         rows.setdefault((r["camera_id"], *order.session_key(r)), []).append(r)
-    todo = []
+    todo, calibrated = [], []
     for s in found:
         if s.error:
             continue
@@ -167,13 +167,18 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
         mine = rows.get((s.camera_id, s.session_id, s.acquired)) or rows.get((s.camera_id, s.session_id, None))
         if mine:
             latest = order.latest(mine)
-            why = lake.whole(latest)
-            if why is None:
-                s.version = latest
-                continue
-            s.note = f"version {latest} does not read back whole ({why}): calibrated again"
-        todo.append(s)
-    return todo
+            calibrated.append((s, next(r for r in mine if r["version"] == latest)))
+        else:
+            todo.append(s)
+    for s, row in calibrated:
+        why = lake.whole(row["version"], row)
+        if why is None:
+            s.version = row["version"]
+        else:
+            s.note = f"version {row['version']} does not read back whole ({why}): calibrated again"
+            todo.append(s)
+    pos = {id(s): i for i, s in enumerate(found)}
+    return sorted(todo, key=lambda s: pos[id(s)])                 # in the order found
 
 
 def entry(s: FoundSession, status: str | None = None, reason: str | None = None) -> dict:

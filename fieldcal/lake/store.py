@@ -673,11 +673,12 @@ class Lake:
             self.not_whole[row["version"]] = why
         return None, broken
 
-    def whole(self, version: str) -> str | None:
-        """Why a committed version does not read back whole, or None when it does."""
+    def whole(self, version: str, row: Mapping | None = None) -> str | None:
+        """Why a committed version does not read back whole, or None when it does (``row``:
+        its catalog row, when the caller has read it: ``document_path`` and ``zarr_path``)."""
         from fieldcal.lake.check import read_back
 
-        row = self.row(version)
+        row = row if row is not None else self.row(version)
         return read_back(self, version, row["document_path"], row["zarr_path"])
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
