@@ -74,23 +74,32 @@ def cost_child(kind: str) -> None:
     import resource
     import tracemalloc
 
-    from fieldcal.field.adjustment import adjust_field
+    from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
+    from fieldcal.field.data import ScaleBars
     from fieldcal.synthetic.field import paper_field
 
     sf = paper_field(seed=1)
     data = sf.data
-    if kind == "unsurveyed":
+    options = AdjustmentOptions()
+    if kind in ("unsurveyed", "bars"):
         rng = np.random.default_rng(0)
         pick = rng.choice(len(data.targets), 1000, replace=False)
         xyz = data.targets.xyz_m.copy()
         xyz[pick] = np.nan
         data = replace(data, targets=replace(data.targets, xyz_m=xyz))
-    adjust_field(data)                       # warm: the kernels loaded, the first call's imports done
+    if kind == "bars":            # a free network, 4 bars (0.02 mm) between the busiest targets
+        busy = np.argsort(-np.bincount(data.obs.target, minlength=len(data.targets)), kind="stable")[:8]
+        a, b = busy[0::2], busy[1::2]
+        Xt = sf.targets_true.xyz_m
+        data = replace(data, scale_bars=ScaleBars(a, b, np.linalg.norm(Xt[b] - Xt[a], axis=1) * 1e3,
+                                                  np.full(4, 0.02)))
+        options = AdjustmentOptions(datum="free")
+    adjust_field(data, options)                       # warm: the kernels loaded, the first call's imports done
     t0, c0 = time.perf_counter(), time.process_time()
-    res = adjust_field(data)
+    res = adjust_field(data, options)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     tracemalloc.start()
-    adjust_field(data)
+    adjust_field(data, options)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     out = {"wall_s": wall, "cpu_s": cpu, "peak_traced_mib": peak / 2**20,
@@ -103,7 +112,7 @@ def cost_child(kind: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--draws", type=int, default=20)
-    ap.add_argument("--child", choices=("surveyed", "unsurveyed"))
+    ap.add_argument("--child", choices=("surveyed", "unsurveyed", "bars"))
     args = ap.parse_args()
     if args.child:
         cost_child(args.child)
@@ -119,7 +128,7 @@ def main() -> None:
         print(f"| {c} median sigma | " + " | ".join(f"{r['median_sigma'].get(p, float('nan')):.3g}" for p in PARAMS)
               + " | |")
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    for kind in ("surveyed", "unsurveyed", "surveyed", "unsurveyed"):
+    for kind in ("surveyed", "unsurveyed", "bars", "surveyed", "unsurveyed", "bars"):
         out = subprocess.run([sys.executable, __file__, "--child", kind], capture_output=True, text=True,
                              env=env, check=True).stdout.strip().splitlines()[-1]
         print(kind, out)

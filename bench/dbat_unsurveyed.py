@@ -3,8 +3,9 @@
 PhotoModeler's marks of the 21 photos (``../shared/data/dbat-camcal``, ``tests/realdata.py``),
 the four control points 1001-1004 at the unit square's corners (``ctrlpts-weighted.txt``,
 sigma 0.001 units; the sheet's units used as metres), the other 96 targets unsurveyed. Three
-runs: (a) weighted control (4 points), (b) a free network scaled by two sides of the square
-as scale bars (1001-1002 and 1003-1001, 1 unit each, sigma 0.0001 units), (c) for comparison,
+runs: (a) weighted control (4 points), (b) a free network without scale, (c) scaled by one side
+of the square as a scale bar (1001-1002, 1 unit, sigma 0.0001 units; a minimal scale), (d) by two
+sides (1001-1002 and 1003-1001; observations of the adjustment), (e) for comparison,
 today's way: PhotoModeler's adjusted coordinates of all 100 targets as the survey.
 fieldcal-brown/1 models the pixel aspect with ``a1, a2`` where PhotoModeler and DBAT fit a
 format width.
@@ -52,7 +53,10 @@ def main():
     index = data.targets.index()
     bars = ScaleBars([index["1001"], index["1003"]], [index["1002"], index["1001"]], [1000.0, 1000.0],
                      [0.1, 0.1])
+    one = ScaleBars([index["1001"]], [index["1002"]], [1000.0], [0.1])
     runs = {"4 control points, 96 unsurveyed": (data, AdjustmentOptions()),
+            "free network, no scale bar": (data, AdjustmentOptions(datum="free")),
+            "free network, 1 side as a scale bar": (replace(data, scale_bars=one), AdjustmentOptions(datum="free")),
             "free network, 2 sides as scale bars": (replace(data, scale_bars=bars), AdjustmentOptions(datum="free")),
             "PhotoModeler's 100 object points as survey": (pm, AdjustmentOptions())}
     print("| run | f [mm] | xp [mm] | yp [mm] | k1 [mm^-2] | sigma0 | held |")
@@ -65,7 +69,8 @@ def main():
         held = ", ".join(st["fixed_parameters"]) or "-"
         print(f"| {name} | " + " | ".join(cells) + f" | {st['sigma0']:.3f} | {held} |")
         if "scale_bars" in r.datum:
-            print("   bars:", [(b["from_id"], b["to_id"], round(b["adjusted_mm"], 3), round(b["sigma_adjusted_mm"], 3))
+            print("   bars:", [(b["from_id"], b["to_id"], round(b["adjusted_mm"], 3), round(b["sigma_adjusted_mm"], 3),
+                            round(b["residual_mm"], 4), round(b["redundancy"], 3), b["normalized_residual"])
                            for b in r.datum["scale_bars"]])
         if "n_unsurveyed_targets" in st:
             print("   unsurveyed targets adjusted:", st["n_unsurveyed_targets"], "; a2", r.params[INDEX["a2"]],

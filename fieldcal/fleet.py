@@ -11,6 +11,9 @@ level deeper (``ROOT/<camera>/<session>/``); it is a local path or an fsspec URL
   On an object store only the small files (``*.json``, ``*.csv``) are fetched for this.
 - :func:`select_sessions` pairs them with the lake's calibrations: which have one
   already (with the latest version) and which are to be calibrated.
+- A rig session (CONTRACT section 3, "Rig sessions") is found like any other, loaded with the
+  rig loader (:func:`fieldcal.rig.session.load_rig_session`): its ``camera_id`` is the rig's
+  id, ``heads`` its heads' camera ids, and its version the rig's (the ``rigs`` table).
 
 A session on an object store is never copied: a run reads its images on the workers
 (:mod:`fieldcal.session.store`).
@@ -27,11 +30,12 @@ from datetime import datetime
 
 from fieldcal.errors import InputError, one_line
 from fieldcal.lake import order
+from fieldcal.rig.session import is_rig_session, load_rig_session
 from fieldcal.session.loader import load_session
 from fieldcal.session.store import SMALL_FILES
 
 __all__ = ["FoundSession", "root_filesystem", "check_root", "scan_sessions", "select_sessions",
-           "entry", "status_text", "summarize", "SMALL_FILES"]
+           "entry", "status_text", "summarize", "head_entries", "SMALL_FILES"]
 
 PATTERNS = ("*/session.json", "*/*/session.json")
 
@@ -45,6 +49,8 @@ class FoundSession:
     ``version`` is its latest committed version once :func:`select_sessions` has looked;
     ``note`` why a session with a committed version is calibrated again (that version does
     not read back whole: its folder removed, a partial restore; issue 24).
+    A rig session has ``rig`` True, ``camera_id`` the rig's id, ``heads`` its heads' camera
+    ids and, once committed, ``head_versions`` their calibrations' versions (of the rig version).
     """
 
     folder: str                  # local path or URL of the folder
@@ -54,6 +60,9 @@ class FoundSession:
     error: str | None = None
     version: str | None = None
     acquired: datetime | None = None      # with session_id, which session it is (fieldcal.lake.order)
+    rig: bool = False
+    heads: list | None = None
+    head_versions: list | None = None
     note: str | None = None
 
 
@@ -122,6 +131,10 @@ def _load(fs, folder: str) -> FoundSession:
                 tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="fieldcal-scan-"))
                 local = os.path.join(tmp, posixpath.basename(folder.rstrip("/")))
                 _fetch_small_files(fs, folder, local)
+            if is_rig_session(local):
+                rig = load_rig_session(local)
+                return FoundSession(url, rig.rig_id, rig.session_id, rig.observations_path is None, rig=True,
+                                    heads=[h.camera_id for h in rig.heads])
             sess = load_session(local)
         has_images = sess.method == "goniometer" or sess.observations_path is None
         return FoundSession(url, sess.camera_id, sess.session_id, has_images, acquired=sess.acquired)
@@ -159,9 +172,17 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
     rows: dict = {}
     for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS, "document_path", "zarr_path"]).to_pylist():
         rows.setdefault((r["camera_id"], *order.session_key(r)), []).append(r)
+    rigs = {(r["rig_id"], r["session_id"]): r for r in lake.rig_catalog().to_pylist()}   # oldest first
     todo, calibrated = [], []
     for s in found:
         if s.error:
+            continue
+        if s.rig:
+            row = rigs.get((s.camera_id, s.session_id))
+            if row is None:
+                todo.append(s)
+            else:
+                s.version, s.head_versions = row["version"], list(row["head_versions"])
             continue
         # same-named folders: told apart by acquisition (a version without one: by its name)
         mine = rows.get((s.camera_id, s.session_id, s.acquired)) or rows.get((s.camera_id, s.session_id, None))
@@ -185,7 +206,15 @@ def entry(s: FoundSession, status: str | None = None, reason: str | None = None)
     """A session's line of the fleet's summary (before or without a run: ``status`` given)."""
     return {"folder": s.folder, "camera_id": s.camera_id, "session_id": s.session_id, "status": status,
             "version": s.version, "new": False, "reason": reason, "seconds": 0.0, "retried": None,
-            "n_images": None, "n_left_out": 0}
+            "n_images": None, "n_left_out": 0, "rig": s.rig, "heads": head_entries(s.heads, s.head_versions)}
+
+
+def head_entries(heads: list | None, versions: list | None) -> list[dict] | None:
+    """A rig's heads in its summary entry: ``[{"camera_id", "version"}]`` (None: not a rig)."""
+    if heads is None:
+        return None
+    versions = versions if versions is not None else [None] * len(heads)
+    return [{"camera_id": c, "version": v} for c, v in zip(heads, versions, strict=True)]
 
 
 def status_text(e: dict) -> str:
@@ -210,7 +239,9 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
         ``lake``, ``root``, ``sessions`` (entries: ``folder``, ``camera_id``, ``session_id``,
         ``status``, ``version``, ``new``, ``reason``, ``seconds``, ``retried``: the first
         run's reason when a session was run again, ``n_images`` and ``n_left_out``: the
-        images of a session that was run and those of them left out), ``n_found``,
+        images of a session that was run and those of them left out, ``rig``: whether it is
+        a rig session, and then ``camera_id`` the rig's id, ``version`` the rig's and ``heads``
+        its heads ``[{"camera_id", "version"}]``), ``n_found``,
         ``n_committed`` (of them ``n_partial`` with images left out), ``n_failed``, ``n_skipped``.
     """
     results = results or {}

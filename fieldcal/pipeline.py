@@ -291,6 +291,11 @@ def _field_result(prepared, measurements, progress, left_out):
     return data, result
 
 
+ECCENTRICITY_OBSERVATIONS = {"max_px": None, "normals": "none", "applied": False,
+                             "reason": "observations.csv: image points measured elsewhere are used as given"}
+"""``stats.eccentricity`` of a session of observations.csv (no image of ours measured them)."""
+
+
 def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
     sess = prepared.session
     data, res = _field_result(prepared, measurements, progress, left_out)
@@ -300,6 +305,7 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
     stats["left_out"] = [{"image": r.get("image"), "reason": r.get("reason")} for r in left_out]
     if "identification" in data.meta:
         stats["identification"] = data.meta["identification"]
+    stats["eccentricity"] = data.meta.get("eccentricity", ECCENTRICITY_OBSERVATIONS)
     if prepared.settings.cross_validate:
         from fieldcal.field.cross_validation import cross_validate_by_station
 

@@ -1,27 +1,31 @@
 """One rig session's calibration as plain steps: prepare (validate, nothing written), solve, commit.
 
 A rig session (CONTRACT section 3, "Rig sessions") that carries ``observations.csv`` is
-calibrated by :func:`fieldcal.rig.adjust_rig`; its results are one calibration document per
+calibrated by :func:`fieldcal.rig.adjust_rig`; one without it is measured from its images first
+(:mod:`fieldcal.rig.from_images`: every head identified as a single camera is, the images a
+head could not identify alone started from the rig's other heads); its results are one calibration document per
 head and the rig document (:mod:`fieldcal.rig.document`), committed to the lake as one version
 of the rig by :meth:`fieldcal.lake.store.Lake.commit_rig`.
 
-Fingerprints: the rig's is that of its inputs (session.json, targets.csv, observations.csv)
-and settings; each head's is the rig's with the head's id, so that a head's version is
+Fingerprints: the rig's is that of its inputs (session.json, targets.csv, observations.csv or
+the SHA-256 of every image) and settings; each head's is the rig's with the head's id, so that a head's version is
 recognised as the same inputs and a rerun finds it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from fieldcal.errors import InputError
+from fieldcal.field.adjustment import AdjustmentOptions
 from fieldcal.pipeline import Settings
 from fieldcal.rig.data import RigData
 from fieldcal.rig.session import RigSession, load_rig_session, rig_data_from_observations
-from fieldcal.session.fingerprint import fingerprint, sha256_bytes
+from fieldcal.session.fingerprint import fingerprint, sha256_bytes, sha256_file
+from fieldcal.session.loader import safe_path
 
-__all__ = ["RigPrepared", "RigOutcome", "prepare_rig", "solve_rig", "run_rig"]
+__all__ = ["RigPrepared", "RigOutcome", "prepare_rig", "measure_rig", "solve_rig", "run_rig"]
 
 
 @dataclass
@@ -30,8 +34,10 @@ class RigPrepared:
 
     session: RigSession
     settings: Settings
-    data: RigData
+    data: RigData | None
     fingerprint: str
+    to_measure: list = field(default_factory=list)
+    report: list = field(default_factory=list)
 
 
 @dataclass
@@ -51,22 +57,77 @@ def prepare_rig(folder, settings: Settings | None = None) -> RigPrepared:
     Raises
     ------
     InputError
-        One line naming the file and what is wrong (also: a rig session without
-        ``observations.csv``, which this version of fieldcal cannot measure from images).
+        One line naming the file and what is wrong (also: a rig session of images without
+        coded targets, or whose images' folder does not exist, or with unsurveyed targets).
     """
     settings = settings or Settings()
     if settings.solver not in ("lmqn", "lm"):
         raise InputError(f"solver must be 'lmqn' or 'lm', got {settings.solver!r}", "settings")
     sess = load_rig_session(folder)
-    if sess.observations_path is None:
-        raise InputError("a rig session needs observations.csv (measuring a rig's images is not supported yet)",
-                         str(sess.folder))
-    data = rig_data_from_observations(sess)
     parts = {"session": sha256_bytes((sess.folder / "session.json").read_bytes()),
-             "targets": sha256_bytes(sess.targets_path.read_bytes()),
-             "observations": sha256_bytes(sess.observations_path.read_bytes()),
-             "settings": settings.to_dict(), "kind": "rig"}
-    return RigPrepared(sess, settings, data, fingerprint(parts))
+             "targets": sha256_bytes(sess.targets_path.read_bytes()), "settings": settings.to_dict(), "kind": "rig"}
+    if sess.observations_path is not None:
+        data = rig_data_from_observations(sess)                    # refuses unsurveyed targets it observes
+        parts["observations"] = sha256_bytes(sess.observations_path.read_bytes())
+        return RigPrepared(sess, settings, data, fingerprint(parts))
+    if sess.coded is None:
+        raise InputError("a rig session measured from its images needs coded targets (field.coded; marks.csv "
+                         "is not supported for rigs)", sess.where)
+    _refuse_unsurveyed(sess, sess.targets())                        # validated now
+    names = [im.file for im in sess.images]
+    _check_image_folders(sess, names)
+    parts["images"] = {n: sha256_file(safe_path(sess.folder, n, "image")) for n in names
+                       if safe_path(sess.folder, n, "image").is_file()}
+    return RigPrepared(sess, settings, None, fingerprint(parts), to_measure=names)
+
+
+def _refuse_unsurveyed(sess: RigSession, targets) -> None:
+    """Bad input (for now): unsurveyed targets in a rig session of images (as
+    :func:`fieldcal.rig.session.rig_data_from_observations` refuses them in its observations):
+    the rig adjustment holds every target by its survey."""
+    bad = targets.ids[~targets.surveyed]
+    if len(bad):
+        raise InputError(f"{len(bad)} unsurveyed target(s) ({', '.join(map(str, bad[:3]))}"
+                         f"{', ...' if len(bad) > 3 else ''}): a rig session needs every target surveyed "
+                         "(unsurveyed targets are supported for single cameras only)", str(sess.targets_path))
+
+
+def _check_image_folders(sess: RigSession, names) -> None:
+    """Bad input: a folder the session's images are listed in does not exist."""
+    folders: dict = {}
+    for name in names:
+        folders.setdefault(safe_path(sess.folder, name, "image").parent, []).append(name)
+    for folder, listed in folders.items():
+        if not folder.is_dir():
+            raise InputError(f"no such folder; the session lists {len(listed)} image(s) in it ({listed[0]}"
+                             f"{', ...' if len(listed) > 1 else ''})", str(folder) + "/")
+
+
+def measure_rig(prepared: RigPrepared, *, progress: Callable[[str], None] | None = None,
+                target_normals=None) -> RigData:
+    """Measure and identify a rig session's images (:mod:`fieldcal.rig.from_images`); sets and
+    returns ``prepared.data`` (and ``prepared.report``, one entry per image). An image that cannot
+    be read or measured is left out (its reason in the report)."""
+    from fieldcal.errors import FieldcalError
+    from fieldcal.rig.adjustment import RigOptions
+    from fieldcal.rig.from_images import measure_rig_image, rig_data_from_measurements
+
+    sess, st = prepared.session, prepared.settings
+    measurements, failed = {}, {}
+    for name in prepared.to_measure:
+        try:
+            measurements[name] = measure_rig_image(sess, name)
+        except (FieldcalError, OSError) as e:
+            failed[name] = str(e)
+    options = AdjustmentOptions(targets_adjusted=st.targets_adjusted, estimate=sess.estimate, method=st.solver)
+    data, report = rig_data_from_measurements(
+        sess, measurements, options=options, progress=progress, target_normals=target_normals,
+        rig_options=RigOptions(targets_adjusted=st.targets_adjusted, estimate=sess.estimate, method=st.solver))
+    for r in report:
+        if r["image"] in failed:
+            r["reason"] = failed[r["image"]]
+    prepared.data, prepared.report = data, report
+    return data
 
 
 def solve_rig(prepared: RigPrepared, *, progress: Callable[[str], None] | None = None) -> RigOutcome:
@@ -75,6 +136,8 @@ def solve_rig(prepared: RigPrepared, *, progress: Callable[[str], None] | None =
     from fieldcal.rig.document import head_arrays, head_document, head_residual_table, rig_document
 
     sess, st = prepared.session, prepared.settings
+    if prepared.data is None:
+        measure_rig(prepared, progress=progress)
     options = RigOptions(targets_adjusted=st.targets_adjusted, estimate=sess.estimate, method=st.solver)
     res = adjust_rig(prepared.data, options, progress=progress)
     acquired = sess.acquired.strftime("%Y-%m-%dT%H:%M:%SZ")

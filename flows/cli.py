@@ -234,10 +234,15 @@ def _fleet_table(summary: dict) -> str:
     from fieldcal.fleet import status_text
     from fieldcal.lake.history import to_text
 
-    rows = [{"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "", "status": status_text(r),
-             "version": r["version"] or "", "seconds": float(r["seconds"] or 0.0),
-             "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried") else ""))}
-            for r in summary["sessions"]]
+    rows = []
+    for r in summary["sessions"]:
+        rows.append({"camera_id": r["camera_id"] or "", "session_id": r["session_id"] or "",
+                     "status": ("rig: " if r.get("rig") else "") + status_text(r), "version": r["version"] or "",
+                     "seconds": float(r["seconds"] or 0.0),
+                     "reason": one_line(r["reason"] or (f"run again after: {r['retried']}" if r.get("retried")
+                                                        else ""))})
+        rows += [{"camera_id": "  " + h["camera_id"], "session_id": r["session_id"] or "", "status": "head",
+                  "version": h["version"] or "", "seconds": None, "reason": ""} for h in r.get("heads") or ()]
     schema = pa.schema([("camera_id", pa.string()), ("session_id", pa.string()), ("status", pa.string()),
                         ("version", pa.string()), ("seconds", pa.float64()), ("reason", pa.string())])
     return to_text(pa.Table.from_pylist(rows, schema=schema))
@@ -410,6 +415,8 @@ def cmd_history(args) -> int:
     lake = common.open_lake(args)
     if args.camera:
         common.require_camera(lake, args.camera)
+    if args.rig:
+        return _rig_history(lake, args)
     handler = getattr(args, "history_extra_handler", None)
     if handler is not None:
         status = handler(args)
@@ -434,6 +441,26 @@ def cmd_history(args) -> int:
 
     report_problems(lake, "fieldcal history")
     sys.stdout.write(history.format_table(table, args.format))
+    if args.format == "json":
+        sys.stdout.write("\n")
+    return 0
+
+
+def _rig_history(lake, args) -> int:
+    """``fieldcal history --rig RIG_ID``: the rig's relative orientations over time
+    (:func:`fieldcal.lake.history.rig_history`)."""
+    from fieldcal.lake import history
+    from flows.cli_lake import report_problems
+
+    if args.camera or args.sql or args.start or args.end or args.param:
+        raise UsageError("--rig cannot be combined with --camera, --sql, --from, --to or --param")
+    table = history.rig_history(lake, args.rig, all_versions=args.all_versions, as_of=args.as_of)
+    if not table.num_rows:
+        rigs = sorted(set(lake.rig_catalog(as_of=args.as_of)["rig_id"].to_pylist()))
+        raise UsageError(f"rig {args.rig!r} has no version in {lake.url}; "
+                         + (f"its rigs: {', '.join(rigs)}" if rigs else "it holds no rig"))
+    report_problems(lake, "fieldcal history")
+    sys.stdout.write(history.format_table(common.shown_columns(table, "rig", args), args.format))
     if args.format == "json":
         sys.stdout.write("\n")
     return 0
@@ -570,15 +597,17 @@ def _add_query_commands(sub) -> None:
     p = sub.add_parser("history", help="calibration history: SQL over the catalog")
     common.add_lake_arguments(p)
     p.add_argument("--camera", help="one camera's calibrations over time")
+    p.add_argument("--rig", metavar="RIG_ID", help="one rig's relative orientations over time (per head but the "
+                   "reference: rotation and lever arm, their sigmas [arcsec, mm] and changes since the first)")
     p.add_argument("--param", action="append", help="catalog column to show with --camera (repeatable; "
                    "default f_mm, xp_mm, yp_mm)")
-    p.add_argument("--all-versions", action="store_true", help="with --camera: every version (default: the "
+    p.add_argument("--all-versions", action="store_true", help="with --camera or --rig: every version (default: the "
                    "latest version of each session; a line on standard error says how many are not shown)")
     p.add_argument("--from", dest="start", metavar="DATE", help="every camera's latest calibration acquired "
                    "from this date or time")
     p.add_argument("--to", dest="end", metavar="DATE", help="... up to this date (inclusive) or time")
     p.add_argument("--sql", help="a read-only DuckDB SELECT over the views catalog, residuals, "
-                   "observations_field, observations_goniometer (no COPY, ATTACH, INSTALL or file access)")
+                   "observations_field, observations_goniometer, rigs (no COPY, ATTACH, INSTALL or file access)")
     p.add_argument("--as-of", metavar="TIME", help="answer as the lake was at this time (ISO 8601, UTC)")
     p.add_argument("--format", choices=("text", "csv", "json"), default="text")
     p.add_argument("--columns", metavar="A,B,...", help="the columns to show, in this order (default, as text: a "

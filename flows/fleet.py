@@ -23,6 +23,10 @@
    error of the Prefect API or a lost Dask connection) is run once more at once
    (:data:`RETRIES`); the lake makes that safe (observations cached, one version per
    fingerprint) and its summary entry keeps the first failure's reason (``retried``).
+   A rig session (CONTRACT section 3, "Rig sessions") is calibrated by the task
+   :func:`calibrate_rig` (:func:`fieldcal.rig_run.run_rig`: its observations need no image
+   work, so the adjustment runs in the task's thread), committed as one version of the rig;
+   its summary entry has the rig's id and version and lists its heads with their versions.
 4. **progress and summary**: "session 3 of 5: cam / session: committed VERSION (12.3 s)" in
    the flow run's logs (and on a terminal), and a summary with every session found and
    its version, new or existing.
@@ -41,7 +45,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from fieldcal import fleet as fleet_lib
 from fieldcal import progress
-from fieldcal.errors import FieldcalError, one_line
+from fieldcal.errors import FieldcalError, InputError, one_line
 from fieldcal.lake import secrets
 from fieldcal.lake.store import Lake
 
@@ -49,7 +53,7 @@ from . import cluster
 from .calibrate import calibrate_session
 from .publish import fleet_run_name
 
-__all__ = ["recalibrate_fleet", "calibrate_one", "scan_sessions", "fleet_deployment", "serve_fleet",
+__all__ = ["recalibrate_fleet", "calibrate_one", "calibrate_rig", "scan_sessions", "fleet_deployment", "serve_fleet",
            "publish_dashboard", "watch_runs",
            "DEFAULT_CRON", "DEPLOYMENT_NAME", "MAX_THREADS"]
 
@@ -93,8 +97,11 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
     progress.emit("note", text=f"{label}: started")
     t = time.perf_counter()
     for attempt in range(1 + RETRIES):
-        outcome = _run_session(found.folder, lake, storage_options, root_options, address, n_workers, settings,
-                               batch_size)
+        if found.rig:
+            outcome = calibrate_rig(found.folder, lake, storage_options, root_options, settings)
+        else:
+            outcome = _run_session(found.folder, lake, storage_options, root_options, address, n_workers,
+                                   settings, batch_size)
         if attempt == RETRIES or not _worth_retrying(outcome):
             break
         entry["retried"] = one_line(outcome)
@@ -107,11 +114,15 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
     else:
         entry.update(status=outcome["status"], version=outcome["version"], new=bool(outcome["new"]),
                      n_images=outcome["images"]["total"], n_left_out=len(outcome["left_out"]))
+        if found.rig:
+            entry["heads"] = fleet_lib.head_entries(found.heads, outcome["head_versions"])
         if entry["retried"] and outcome["status"] == "unchanged":
             # the session had no version when the fleet started: the first run committed this
             # one and failed after its commit (e.g. closing its connection to the cluster)
             entry.update(status="committed", new=True)
         left = (f", {entry['n_left_out']} of {entry['n_images']} images left out" if entry["n_left_out"] else "")
+        if entry.get("heads"):
+            left += "; heads " + ", ".join(f"{h['camera_id']} {h['version']}" for h in entry["heads"])
         line = f"{label}: {entry['status']} {entry['version']}{left} ({entry['seconds']:.1f} s)"
         (logger.warning if entry["n_left_out"] else logger.info)(line)
         progress.emit("note", text=line)
@@ -132,6 +143,28 @@ def _run_session(folder: str, lake: str, storage_options: dict | None, root_opti
             return state.result(raise_on_failure=False)
     except Exception as e:  # noqa: BLE001 - e.g. the store cannot be reached: record it, go on
         return e
+
+
+@task(name="calibrate-rig", cache_policy=NO_CACHE, persist_result=False)
+def calibrate_rig(folder: str, lake: str, storage_options: dict | None, root_options: dict | None,
+                  settings: dict | None):
+    """One rig session's run (:func:`fieldcal.rig_run.run_rig`) in this task's thread: a result
+    like :func:`flows.calibrate.calibrate_session`'s (``status``, ``version`` the rig's, ``new``,
+    ``images``, ``left_out``) with ``head_versions``, or the exception that ended it (never raised)."""
+    from fieldcal import pipeline, rig_run
+
+    try:
+        if "://" in folder and not folder.startswith("file://"):
+            raise InputError("a rig session is read from a local folder; rig sessions on an object store "
+                             "are not supported yet", folder)
+        local = folder.removeprefix("file://")
+        prepared = rig_run.prepare_rig(local, pipeline.Settings(**(settings or {})))
+        version, heads, outcome = rig_run.run_rig(local, Lake(lake, storage_options), prepared=prepared)
+    except Exception as e:  # noqa: BLE001 - recorded in the session's entry, the fleet goes on
+        return e
+    return {"status": "committed" if outcome is not None else "unchanged", "version": str(version),
+            "new": outcome is not None, "images": {"total": len(prepared.session.images)}, "left_out": [],
+            "head_versions": list(heads)}
 
 
 def _worth_retrying(outcome) -> bool:
@@ -255,8 +288,13 @@ def _publish_summary(summary: dict, counts: str) -> None:
     """The fleet's summary as a table artifact (:data:`SUMMARY_KEY`), its counts as the description."""
     from prefect.artifacts import create_table_artifact
 
-    rows = [{"camera_id": e["camera_id"], "session_id": e["session_id"], "status": fleet_lib.status_text(e),
-             "version": e["version"], "seconds": e["seconds"], "reason": e["reason"]} for e in summary["sessions"]]
+    rows = []
+    for e in summary["sessions"]:
+        rows.append({"camera_id": e["camera_id"], "session_id": e["session_id"], "status": fleet_lib.status_text(e),
+                     "version": e["version"], "seconds": e["seconds"], "reason": e["reason"]})
+        rows += [{"camera_id": h["camera_id"], "session_id": e["session_id"], "status": "head of rig "
+                  f"{e['camera_id']}", "version": h["version"], "seconds": None, "reason": None}
+                 for h in e.get("heads") or ()]
     create_table_artifact(rows, key=SUMMARY_KEY, description=counts)
 
 

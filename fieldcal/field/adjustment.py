@@ -14,9 +14,10 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
    (a self-calibrating bundle; ``targets_adjusted=False`` holds them fixed as the paper does).
 3. **Blunders**: first gross rejection on residuals normalised by a robust scale
    (``robust_k`` times 1.4826 MAD), then data snooping: the test statistic of each image
-   point (2-D) and each survey (3-D) ``T = v^T Q_vv^-1 v / sigma0^2`` with
+   point (2-D), each survey (3-D) and each scale bar (1-D) ``T = v^T Q_vv^-1 v / sigma0^2`` with
    ``Q_vv = I - J_g N^-1 J_g^T`` from the normal equations, rejected above the chi-square
-   quantile of ``snoop_alpha``; repeat until nothing is rejected. Each round starts at the
+   quantile of ``snoop_alpha`` (bars: the worst one per round, while
+   :data:`MIN_BARS_TO_REJECT` are in use); repeat until nothing is rejected. Each round starts at the
    previous round's solution and continues LM with the damping it ended with (a warm start:
    1-2 iterations where a cold damping took 4-5); a round over the same observations (a
    re-weighting, step 4b) reuses the Jacobian's index analysis.
@@ -63,6 +64,7 @@ from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_
 from fieldcal.field.data import FieldData
 from fieldcal.field.datum import MIN_CONTROL_POINTS, minimal_constraints, to_minimum_trace
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
+from fieldcal.field.scale_bars import BarObservations, bar_ends, covariance_blocks, usable
 from fieldcal.field.variance_components import (
     MIN_GROUP_REDUNDANCY,
     WEIGHT_TOLERANCE,
@@ -95,6 +97,8 @@ MIN_IMAGES = 3
 CHECK_POINT = "check point"
 """The residual table's ``reason`` of an image point of a check point."""
 MAX_COMPONENT_ROUNDS = 4
+MIN_BARS_TO_REJECT = 3
+"""Data snooping rejects a scale bar only while at least this many are in use (step 3)."""
 """At most this many re-weighted re-solutions for the variance components (step 4b)."""
 
 
@@ -222,7 +226,7 @@ class FieldProblem:
     (they depend only on which observations enter, ~10-15 ms to make on the paper field).
     """
 
-    def __init__(self, model: BundleModel, like: FieldProblem | None = None):
+    def __init__(self, model: BundleModel, like: FieldProblem | None = None, bars: BarObservations | None = None):
         self.model = model
         m = model
         k = len(m.img)
@@ -235,14 +239,28 @@ class FieldProblem:
         self._cols_sur = m.n_reduced + 3 * m.t_slot[m.survey_k][:, None] + np.arange(3)
         self._template: list[ResidualBlock] | None = None
         self._structure = None
-        # eliminated blocks: the targets (3 each) when adjusted; with the targets fixed, the
-        # exterior orientations (6 each), so that only the interior is solved densely
-        self.n_dense = m.n_reduced if m.targets_adjusted else m.n_int
+        # eliminated blocks: the targets (3 each) when adjusted, but the bar ends (global, dense;
+        # fieldcal.field.scale_bars); with the targets fixed, the exterior orientations (6 each),
+        # so that only the interior is solved densely
+        self.n_dense = m.n_reduced + 3 * m.n_global if m.targets_adjusted else m.n_int
         self.block_size = 3 if m.targets_adjusted else 6
-        if like is not None and like._template is not None and _same_pattern(like.model, m):
+        self.bars = bars if bars is not None and len(bars) else None
+        # image points and surveys of the bar ends are blocks of their own (dense target columns)
+        self._img_split = [g for g in (m.tgt_slot >= m.n_global, m.tgt_slot < m.n_global) if g.any()] \
+            if m.n_global else [None]
+        sur_slot = m.t_slot[m.survey_k]
+        self._sur_split = [g for g in (sur_slot >= m.n_global, sur_slot < m.n_global) if g.any()] \
+            if m.n_global else ([None] if ns else [])
+        if like is not None and like._template is not None and _same_pattern(like.model, m) and \
+                _same_bars(like.bars, self.bars):
             self._template, self._structure = like._template, like._structure
         self._last = None               # (x, r, J) of the last evaluation with the Jacobian
         self.datum = None               # MinimalConstraints of a free network (fieldcal.field.datum)
+
+    @property
+    def n_rows_data(self) -> int:
+        """Rows of the observations: image points, surveys, bars (the datum's come after)."""
+        return self.model.n_rows + (len(self.bars) if self.bars is not None else 0)
 
     def evaluate(self, x, jacobian: bool):
         """``(r, J)`` at ``x``; the last evaluation with the Jacobian is kept, and asked again at
@@ -252,6 +270,8 @@ class FieldProblem:
             return self._last[1], self._last[2]
         m = self.model
         r, jb, sd = m.residuals_and_blocks(x, jacobian)
+        if self.bars is not None:
+            r = np.concatenate([r, self.bars.residuals(x)])
         if self.datum is not None:
             r = np.concatenate([r, self.datum.residuals(x)])
         if not jacobian:
@@ -260,7 +280,9 @@ class FieldProblem:
         if m.targets_adjusted:
             parts.append((self._cols_tgt, jb.d_tgt))
         sur_values = sd[:, None, None] * np.eye(3)[None]
-        if self._template is None:
+        if m.n_global:
+            blocks = self._split_blocks(parts, sur_values)
+        elif self._template is None:
             blocks = [ResidualBlock.from_parts(self._rows_img, parts)]
             if len(sd):
                 blocks.append(ResidualBlock.from_parts(self._rows_sur, [(self._cols_sur, sur_values)]))
@@ -269,24 +291,57 @@ class FieldProblem:
             blocks = [self._template[0].with_values(*[p[1] for p in parts], combined=jb.combined)]
             if len(sd):
                 blocks.append(self._template[1].with_values(sur_values))
-        n_rows = m.n_rows
+        n_rows = self.n_rows_data
+        if self.bars is not None:
+            blocks = [*blocks, self.bars.block(m.n_rows, x)]
         if self.datum is not None:
-            blocks = [*blocks, self.datum.block(m.n_rows)]
-            n_rows += 7
+            blocks = [*blocks, self.datum.block(n_rows)]
+            n_rows += len(self.datum.D)
         J = BlockSparseJacobian(n_rows, m.n_params, self.n_dense, self.block_size, blocks,
                                 structure=self._structure)
         self._structure = J.structure
         self._last = (np.array(x, float), r, J)
         return r, J
 
+    def _split_blocks(self, parts, sur_values):
+        """The image and survey blocks split into those of eliminated and of global targets."""
+        def cut(c, g):
+            return c if c.ndim == 1 else c[g]
+        blocks = [ResidualBlock.from_parts(self._rows_img[g], [(cut(c, g), v[g]) for c, v in parts])
+                  for g in self._img_split]
+        blocks += [ResidualBlock.from_parts(self._rows_sur[g], [(self._cols_sur[g], sur_values[g])])
+                   for g in self._sur_split]
+        return blocks
+
+    def group_covariances(self, ne):
+        """``J_g N^-1 J_g^T`` of every image point (m_active, 2, 2) and survey (n_survey, 3, 3),
+        in the model's order, and of every bar (n_bars,), whatever the blocks' split."""
+        out, b = [], 0
+        m = self.model
+        for split, size, d in ((self._img_split, len(m.img), 2), (self._sur_split, len(m.survey_k), 3)):
+            Q = np.zeros((size, d, d))
+            for g in split:
+                Q[slice(None) if g is None else g] = ne.group_covariance(b)
+                b += 1
+            out.append(Q)
+        out.append(ne.group_covariance(b)[:, 0, 0] if self.bars is not None else np.zeros(0))
+        return out
+
     def observation_blocks(self, x):
         """``(d_int, d_ext)`` (m, 2, n_int), (m, 2, 6) of the image residuals at ``x``: those of the
         kept Jacobian when ``x`` is its point (the same numbers), else evaluated."""
-        if self._last is not None and np.array_equal(self._last[0], x):
+        if self._last is not None and np.array_equal(self._last[0], x) and not self.model.n_global:
             parts = self._last[2].blocks[0].part_values
             return parts[0], parts[1]
         _, jb, _ = self.model.residuals_and_blocks(x, True)
         return jb.d_int, jb.d_ext
+
+
+def _same_bars(a: BarObservations | None, b: BarObservations | None) -> bool:
+    """Whether two problems carry the same bars (the same rows and columns)."""
+    if a is None or b is None:
+        return a is None and b is None
+    return np.array_equal(a.index, b.index) and np.array_equal(a.cols, b.cols)
 
 
 def _same_pattern(a: BundleModel, b: BundleModel) -> bool:
@@ -295,7 +350,8 @@ def _same_pattern(a: BundleModel, b: BundleModel) -> bool:
     return (a.estimate == b.estimate and a.targets_adjusted == b.targets_adjusted
             and a.n_images == b.n_images and a.n_targets == b.n_targets
             and np.array_equal(a.k, b.k) and np.array_equal(a.img, b.img)
-            and np.array_equal(a.tgt, b.tgt) and np.array_equal(a.survey_k, b.survey_k))
+            and np.array_equal(a.tgt, b.tgt) and np.array_equal(a.survey_k, b.survey_k)
+            and np.array_equal(a.target_index, b.target_index) and a.n_global == b.n_global)
 
 
 # ---------------------------------------------------------------------------- the result
@@ -442,6 +498,8 @@ class _Solver:
         self.model: BundleModel | None = None
         self.problem: FieldProblem | None = None
         self.free = False                                  # a free network (fieldcal.field.datum)
+        bars = data.scale_bars
+        self.bar_active = np.ones(len(bars) if bars is not None else 0, bool)   # not rejected
         self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
         self.sigma_mm0 = data.targets.sigma_mm.copy()
         self.vc = VarianceComponents()
@@ -462,14 +520,22 @@ class _Solver:
     def run(self, estimate, obs_active, survey_active, label, before=None):
         """One adjustment from the current state; ``before(model, x0, J0)`` sees its start."""
         o = self.options
+        bars, used = self.data.scale_bars, None
+        if o.targets_adjusted and len(self.bar_active):
+            seen = np.zeros(len(self.data.targets), bool)
+            seen[self.data.obs.target[obs_active]] = True
+            used = usable(bars, self.bar_active, seen)
         model = BundleModel(self.data, self.params, estimate, self.R,
                             targets_adjusted=o.targets_adjusted, obs_active=obs_active,
-                            survey_active=survey_active)
+                            survey_active=survey_active,
+                            global_targets=bar_ends(bars, self.bar_active, seen) if used is not None else None)
         x0 = model.pack(self.params, self.C, self.X)
         self.model = model
-        problem = FieldProblem(model, like=self.problem)
+        problem = FieldProblem(model, like=self.problem,
+                               bars=BarObservations(bars, used, model) if used is not None else None)
         if self.free:
-            problem.datum = minimal_constraints(model, x0, np.bincount(model.img, minlength=model.n_images))
+            problem.datum = minimal_constraints(model, x0, np.bincount(model.img, minlength=model.n_images),
+                                                scale=problem.bars is None)
         self.problem = problem
         if before is not None:
             r0, J0 = problem.evaluate(x0, True)
@@ -658,7 +724,7 @@ def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o
     reason[k] = "blunder"
     n = int(bad_i.sum())
     if model.targets_adjusted and len(model.survey_k):
-        rs = r[model.n_rows_image:].reshape(-1, 3)
+        rs = r[model.n_rows_image:model.n_rows].reshape(-1, 3)
         norm_s = np.linalg.norm(rs, axis=1)
         bad_s = norm_s > o.robust_k * max(s, 1.0) * np.sqrt(3.0)
         survey_active[model.survey_k[bad_s]] = False
@@ -666,21 +732,27 @@ def _gross_rejection(solver, model, result, obs_active, survey_active, reason, o
     return n
 
 
-def _snooping(model, result, flags: _Flags, o):
+def _snooping(problem, result, flags: _Flags, o, bar_active=None):
     """Data snooping with redundancy (module docstring, step 3); returns how many rejected.
 
     Records every tested observation's redundancy (the trace of its ``Q_vv`` block) in
-    ``flags`` for the variance components."""
+    ``flags`` for the variance components. Scale bars are tested too (one row each; a bar
+    rejected leaves ``bar_active``)."""
+    model = problem.model
     obs_active, survey_active, reason, test = flags.obs_active, flags.survey_active, flags.reason, flags.test
     ne = result.jac.normal_equations()
     sigma0 = max(result.sigma0, 1e-12)
     n = 0
-    Qi = np.eye(2) - ne.group_covariance(0)
+    Qg_img, Qg_sur, qg_bar = problem.group_covariances(ne)
+    Qi = np.eye(2) - Qg_img
     flags.red_img[model.k] = Qi[:, 0, 0] + Qi[:, 1, 1]
     ri = result.r[: model.n_rows_image].reshape(-1, 2)
     Ti = _quadratic_form(Qi, ri) / sigma0**2
     test[model.k] = Ti
     lim2 = chdtri(2, o.snoop_alpha)
+    bars_worse = _snoop_bars(problem, result, qg_bar, Ti.max() / lim2, bar_active, sigma0, o)
+    if bars_worse is not None:
+        return bars_worse
     bad = Ti > lim2
     if bad.any():
         # reject the clearly worst ones only: a blunder inflates its neighbours' statistics
@@ -690,9 +762,9 @@ def _snooping(model, result, flags: _Flags, o):
         reason[k] = "blunder"
         n += int(worst.sum())
     if model.targets_adjusted and len(model.survey_k):
-        Qs = np.eye(3) - ne.group_covariance(1)
+        Qs = np.eye(3) - Qg_sur
         flags.red_sur[model.survey_k] = np.einsum("kii->k", Qs)
-        rs = result.r[model.n_rows_image:].reshape(-1, 3)
+        rs = result.r[model.n_rows_image:model.n_rows].reshape(-1, 3)
         Ts = _quadratic_form(Qs, rs) / sigma0**2
         bad_s = Ts > chdtri(3, o.snoop_alpha)
         if bad_s.any():
@@ -700,6 +772,30 @@ def _snooping(model, result, flags: _Flags, o):
             survey_active[model.survey_k[worst]] = False
             n += int(worst.sum())
     return n
+
+
+def _snoop_bars(problem, result, qg_bar, worst_image, bar_active, sigma0, o) -> int | None:
+    """When a scale bar is worse than every image point (its statistic over its chi-square
+    limit above ``worst_image``, the image points'), the bar, not the points it bends, is the
+    suspect, and no image point or survey is rejected this round: returns how many bars were
+    rejected (the worst, in ``bar_active``, while :data:`MIN_BARS_TO_REJECT` are in use; with
+    fewer, two disagreeing lengths cannot tell which one is wrong: both residuals show it and
+    neither is rejected, 0). None: the bars are not the worst."""
+    bars = problem.bars
+    if bars is None or bar_active is None:
+        return None
+    model = problem.model
+    qv = 1.0 - qg_bar
+    rb = result.r[model.n_rows:problem.n_rows_data]
+    Tb = np.where(qv > 1e-8, rb**2 / np.maximum(qv, 1e-300), 0.0) / sigma0**2
+    k = int(np.argmax(Tb))
+    ratio = Tb[k] / chdtri(1, o.snoop_alpha)
+    if not (ratio > 1.0 and ratio >= worst_image):
+        return None
+    if len(bars) >= MIN_BARS_TO_REJECT:
+        bar_active[bars.index[k]] = False
+        return 1
+    return 0
 
 
 def _quadratic_form(Q, r, rcond: float = 1e-8):
@@ -843,7 +939,9 @@ def _reduced_covariance(model, ne):
     With the targets adjusted they are the eliminated blocks and this is the inverse Schur
     complement; with the targets fixed the exteriors are eliminated and it is all of N^-1.
     """
-    return ne.covariance_reduced() if model.targets_adjusted else ne.covariance_dense()
+    if not model.targets_adjusted:
+        return ne.covariance_dense()
+    return ne.covariance_reduced()[: model.n_reduced, : model.n_reduced]     # bar ends: after
 
 
 def _reduced_normal_matrix(model, ne):
@@ -1216,7 +1314,7 @@ def _solve_clean(solver, flags: _Flags, estimate, o, label):
                                    before=check)
         n = _gross_rejection(solver, model, result, flags.obs_active, flags.survey_active, flags.reason, o)
         if n == 0:
-            n = _snooping(model, result, flags, o)
+            n = _snooping(solver.problem, result, flags, o, solver.bar_active)
         # readmit initial outliers that now fit (they were only suspects)
         res = solver.residuals_all()
         s = data.obs.sigma_px * max(result.sigma0, 1.0)
@@ -1249,7 +1347,7 @@ def _update_components(solver, model, result, flags: _Flags, o) -> bool:
     if len(model.survey_k):
         red_s = flags.red_sur[model.survey_k]
         vc.survey_redundancy = float(np.nansum(red_s))
-        rel = group_factor(result.r[model.n_rows_image:], red_s)
+        rel = group_factor(result.r[model.n_rows_image:model.n_rows], red_s)
         factor = vc.survey_factor * rel if np.isfinite(rel) else vc.survey_factor
     change = max(weight_change(solver.sigma_px0[k], vc.image_floor_px, floor), abs(factor / vc.survey_factor - 1.0))
     if change <= WEIGHT_TOLERANCE or vc.rounds >= MAX_COMPONENT_ROUNDS:
@@ -1261,6 +1359,30 @@ def _update_components(solver, model, result, flags: _Flags, o) -> bool:
     return True
 
 
+def _bar_report(solver, result, bars) -> dict:
+    """The datum's account of the scale bars (observations of the adjustment,
+    :mod:`fieldcal.field.scale_bars`): each bar in use with its residual and test statistic,
+    and the bars rejected or not usable (an end no image point placed)."""
+    sb = solver.data.scale_bars
+    if sb is None or not len(sb):
+        return {}
+    ids = solver.data.targets.ids
+    out: dict = {"n_scale_bars_unused": int(len(sb) - (len(bars) if bars is not None else 0)),
+                 "rejected_scale_bars": [f"{ids[a]}-{ids[c]}" for a, c in
+                                         zip(sb.from_target[~solver.bar_active], sb.to_target[~solver.bar_active],
+                                             strict=True)]}
+    if bars is None:
+        return {**out, "scale_bars": []}
+    ne = result.jac.normal_equations()
+    rows = bars.report(result.x, ne.covariance_reduced(), result.sigma0, ids)
+    qv = 1.0 - solver.problem.group_covariances(ne)[2]
+    for row, q in zip(rows, qv, strict=True):
+        row["redundancy"] = float(q)
+        row["normalized_residual"] = (float(abs(row["residual_mm"]) / row["sigma_mm"] / np.sqrt(q) / result.sigma0)
+                                      if q > 1e-8 else None)
+    return {**out, "scale_bars": rows}
+
+
 def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
     """The :class:`FieldResult`, centres and targets translated back to the data's frame."""
     cov, s, corr = stats
@@ -1268,21 +1390,23 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
     ne = result.jac.normal_equations()
     X, var_X = solver.X, None
     datum = {"type": "weighted control", "n_control": int(len(model.survey_k))}
+    bars = solver.problem.bars
     if solver.free:
-        fn = to_minimum_trace(model, result, R, C, solver.X, solver.X_start, solver.data.scale_bars, result.sigma0)
+        fn = to_minimum_trace(model, result, R, C, solver.X, solver.X_start, bars, result.sigma0)
         R, C, X = fn.R, fn.C, fn.X
         cov = fn.cov_reduced * result.sigma0**2
         var_X = np.einsum("kii->ki", fn.cov_targets)
         datum = {"type": "free network", "constraints": "inner (minimum trace over the adjusted targets)",
-                 "scale": f"{len(fn.info['scale_bars'])} scale bar(s)" if "scale_bars" in fn.info
+                 "scale": f"{len(bars)} scale bar(s)" if bars is not None
                  else "the initial values' (no scale bars)", **fn.info}
+    datum.update(_bar_report(solver, result, bars))
     ext_var = np.diag(cov)[model.n_int:].reshape(-1, 6)
     sigma_C = np.sqrt(ext_var[:, 3:])
     sigma_X = None
     if o.targets_adjusted:
         sigma_X = np.full((len(data.targets), 3), np.nan)    # NaN: not adjusted (no image sees it)
         if var_X is None:
-            var_X = np.einsum("kii->ki", ne.covariance_elim_blocks())
+            var_X = np.einsum("kii->ki", covariance_blocks(model, ne)[1])
         sigma_X[model.target_index] = np.sqrt(var_X) * result.sigma0
     sigma = {n: float(s[j]) for j, n in enumerate(estimate)}
     targets_m = X + origin
@@ -1296,6 +1420,7 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         used = flags.obs_active
         ss = np.sum((residual_px[used] / solver.sigma_px0[used, None]) ** 2)
         ss += np.sum((survey_res[model.survey_k] / solver.sigma_mm0[model.survey_k, None]) ** 2)
+        ss += np.sum(result.r[model.n_rows:solver.problem.n_rows_data] ** 2)       # bars: not re-weighted
         m, n = result.jac.shape
         sigma0 = float(np.sqrt(ss / (m - n))) if m > n else float("nan")
     init = replace(init, center_m=init.center_m + origin)

@@ -117,10 +117,14 @@ class BundleModel:
         Image observations in use (others are ignored, e.g. rejected blunders).
     survey_active : (n_targets,) bool, optional
         Survey observations in use (a rejected survey leaves the target to the images).
+    global_targets : (g,) int array_like, optional
+        Targets whose slots come first (``n_global`` of them, those adjusted): the ends of
+        scale bars, which the solver keeps among its dense unknowns
+        (:mod:`fieldcal.field.scale_bars`).
     """
 
     def __init__(self, data: FieldData, params0, estimate, R0, *, targets_adjusted=True,
-                 obs_active=None, survey_active=None):
+                 obs_active=None, survey_active=None, global_targets=None):
         self.data = data
         self.params0 = np.asarray(params0, dtype=float).copy()
         self.estimate = tuple(estimate)
@@ -146,6 +150,9 @@ class BundleModel:
         # adjusted targets: those some active image point sees (a target seen by none adds
         # nothing to the camera); slot t_slot[t] in the parameter vector, -1 when not adjusted
         self.target_index = np.unique(self.tgt) if self.targets_adjusted else np.zeros(0, np.int64)
+        g = np.isin(self.target_index, np.zeros(0, np.int64) if global_targets is None else global_targets)
+        self.n_global = int(g.sum())            # bar ends first (fieldcal.field.scale_bars)
+        self.target_index = np.concatenate([self.target_index[g], self.target_index[~g]])
         self.t_slot = np.full(n_t, -1, np.int64)
         self.t_slot[self.target_index] = np.arange(len(self.target_index))
         self.tgt_slot = self.t_slot[self.tgt]

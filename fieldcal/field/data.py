@@ -16,10 +16,24 @@ from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData", "ScaleBars"]
+__all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData", "ScaleBars", "normal_problem"]
 
 DEFAULT_TARGET_SIGMA_MM = 5.0
 DEFAULT_SIGMA_PX = 0.1
+NORMAL_NORM_TOLERANCE = 0.01
+"""How far from 1 the length of a given target normal may be (rounded unit vectors pass)."""
+
+
+def normal_problem(normal) -> str | None:
+    """Why ``normal`` (3 numbers) is not a target's unit normal (docs/conventions.md section 3),
+    or None when it is one (its length within :data:`NORMAL_NORM_TOLERANCE` of 1)."""
+    n = np.asarray(normal, float)
+    if n.shape != (3,) or not np.all(np.isfinite(n)):
+        return f"must be 3 finite numbers, got {np.asarray(normal).tolist()}"
+    length = float(np.linalg.norm(n))
+    if abs(length - 1.0) > NORMAL_NORM_TOLERANCE:
+        return f"must be a unit vector, got {n.tolist()} of length {length:.4g}"
+    return None
 
 
 @dataclass
@@ -42,7 +56,8 @@ class TargetField:
         ArUco id of a coded target, -1 for a plain circular target.
     normals : (n, 3) ndarray or None
         Unit normal of each target's plane, pointing to the side it is seen from (known
-        for synthetic fields; the renderer and the eccentricity correction use it).
+        for synthetic fields; given in targets.csv or session.json; the renderer and the
+        eccentricity correction use it). A row of NaN: that target's normal is unknown.
     """
 
     ids: np.ndarray

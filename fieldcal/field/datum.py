@@ -24,13 +24,15 @@ targets best (least squares) onto their initial coordinates ``X0``: the inner co
 targets, Fraser 1982; Granshaw 1980), and the covariance follows by the S-transformation
 ``Q' = S Q S^T``, ``S = I - E (K^T E)^-1 K^T`` (Baarda 1973), evaluated for the blocks the
 result reports (interior and exterior, each target's 3 x 3) from ``Q K``, seven solves with
-the factorised normal equations. With scale bars (``scale_bars.csv``) the scale is theirs: the
-network is scaled by the weighted least-squares factor ``s = sum w d L / sum w d^2`` of the
-measured lengths ``L`` over the adjusted distances ``d`` (weights ``1 / (sigma_L^2 + sigma_d^2)``,
-``sigma_d`` from the network's covariance), the seventh constraint becomes ``ds = 0`` (its
-gradient ``b``), and the lengths' errors add ``var(s) E_s E_s^T`` along the scale direction.
-The bars scale the network; their residuals are reported, they do not reshape it (the image
-points determine the shape far better than a bar or two).
+the factorised normal equations.
+
+Scale bars (``scale_bars.csv``) are observations of the adjustment
+(:mod:`fieldcal.field.scale_bars`): they fix the scale, so a free network with bars in use has
+six defects (translation, rotation), six minimal constraints (the reference image's pose) and
+six inner constraints, the report moves it rigidly (``s = 1``) and the S-transformation uses
+the first six columns of ``E``. One bar is a minimal scale (its residual is zero); more bars
+are redundant lengths that reshape the network like any observation, with residuals and data
+snooping of their own.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fieldcal.field.scale_bars import covariance_blocks
 from fieldcal.solver.blocksparse import ResidualBlock
 
 __all__ = ["MIN_CONTROL_POINTS", "MinimalConstraints", "minimal_constraints", "null_space", "to_minimum_trace"]
@@ -65,11 +68,13 @@ class MinimalConstraints:
         return self.D @ (np.asarray(x)[self.cols] - self.x0)
 
     def block(self, first_row: int) -> ResidualBlock:
-        return ResidualBlock.from_parts((first_row + np.arange(7))[None], [(self.cols, self.D[None])])
+        return ResidualBlock.from_parts((first_row + np.arange(len(self.D)))[None], [(self.cols, self.D[None])])
 
 
-def minimal_constraints(model, x, counts) -> MinimalConstraints:
-    """The pose of the image with most points ``counts`` and its baseline to the farthest image."""
+def minimal_constraints(model, x, counts, scale: bool = True) -> MinimalConstraints:
+    """The pose of the image with most points ``counts`` and its baseline to the farthest image.
+
+    ``scale=False`` (scale bars in the adjustment fix the scale): the pose alone, six rows."""
     n_int = model.n_int
     C = x[n_int:model.n_reduced].reshape(-1, 6)[:, 3:]
     i = int(np.argmax(counts))
@@ -82,6 +87,8 @@ def minimal_constraints(model, x, counts) -> MinimalConstraints:
     D[:3, :3] = np.eye(3) / CONSTRAINT_SIGMA
     D[3:6, 3:6] = np.eye(3) / (CONSTRAINT_SIGMA * length)
     D[6, 3:6], D[6, 6:9] = -u / (CONSTRAINT_SIGMA * length), u / (CONSTRAINT_SIGMA * length)
+    if not scale:
+        cols, D = cols[:6], D[:6, :6]
     return MinimalConstraints(cols, D, np.asarray(x, float)[cols].copy())
 
 
@@ -134,60 +141,28 @@ class FreeNetwork:
     info: dict
 
 
-def _bar_scale(model, ne, X_adj, bars, sigma0):
-    """Weighted least-squares scale of the bars (module docstring); ``(s, b, var_s, rows)``."""
-    slot = model.t_slot
-    ok = (slot[bars.from_target] >= 0) & (slot[bars.to_target] >= 0)
-    a, c = slot[bars.from_target[ok]], slot[bars.to_target[ok]]
-    diff = X_adj[c] - X_adj[a]
-    d_mm = np.linalg.norm(diff, axis=1) * 1000.0
-    L, sL = bars.length_mm[ok], bars.sigma_mm[ok]
-    G = np.zeros((len(a), model.n_params))
-    unit = diff / (d_mm[:, None] / 1000.0)
-    for k in range(len(a)):
-        G[k, model.n_reduced + 3 * a[k] + np.arange(3)] = -unit[k] * 1000.0      # d d_mm / d X [mm/m]
-        G[k, model.n_reduced + 3 * c[k] + np.arange(3)] = unit[k] * 1000.0
-    var_d = np.array([-g @ ne.solve(g) for g in G]) * sigma0**2    # solve: -N^-1 g
-    w = 1.0 / (sL**2 + var_d)
-    D = np.sum(w * d_mm**2)
-    s = float(np.sum(w * d_mm * L) / D)
-    b = ((w * (L - 2.0 * s * d_mm)) / D) @ G          # d s / d x
-    var_s = float(np.sum((w * d_mm / D) ** 2 * sL**2))
-    ids = model.data.targets.ids
-    rows = [{"from_id": str(ids[i]), "to_id": str(ids[j]), "length_mm": float(x), "sigma_mm": float(y)}
-            for i, j, x, y in zip(bars.from_target[ok], bars.to_target[ok], L, sL, strict=True)]
-    for r, dd, vd in zip(rows, d_mm, var_d, strict=True):
-        r["adjusted_mm"] = float(s * dd)
-        r["sigma_adjusted_mm"] = float(s * np.sqrt(vd))
-    return s, b, var_s, rows, int((~ok).sum())
-
-
 def to_minimum_trace(model, result, R, C, X, X0, bars, sigma0) -> FreeNetwork:
     """The free network's solution in the minimum-trace datum, scaled by ``bars`` (module docstring).
 
     ``R, C, X``: the solution (rotations, centres, all targets [m]); ``X0`` the targets'
-    initial coordinates; ``bars``: :class:`fieldcal.field.data.ScaleBars` or None.
+    initial coordinates; ``bars``: the :class:`fieldcal.field.scale_bars.BarObservations` of the
+    adjustment, or None. With bars the scale is theirs (six datum defects, six inner
+    constraints, a rigid motion); without, the initial values' (seven).
     """
     ne = result.jac.normal_equations()
     idx = model.target_index
     X_adj = X[idx]
     info: dict = {}
-    s_bar, b = 1.0, None
-    if bars is not None and len(bars):
-        s_bar, b, var_s, rows, n_skipped = _bar_scale(model, ne, X_adj, bars, sigma0)
-        info.update(scale_bars=rows, scale_bar_factor=s_bar, sigma_scale_ppm=1e6 * np.sqrt(var_s) / s_bar,
-                    n_scale_bars_unused=n_skipped)
-    # the point estimate: similarity onto the initial coordinates (bars: their scale)
-    Xs = X_adj * s_bar
+    nd = 6 if bars is not None and len(bars) else 7          # datum defects
+    # the point estimate: rigid motion (bars) or similarity onto the initial coordinates
     ok = np.isfinite(X0[idx]).all(axis=1)
-    s_fit, Rm, t = _similarity(Xs[ok], X0[idx][ok], with_scale=b is None)
-    s_tot = s_bar * s_fit
+    s_tot, Rm, t = _similarity(X_adj[ok], X0[idx][ok], with_scale=nd == 7)
     new_X = X.copy()
-    new_X[idx] = s_fit * Xs @ Rm.T + t
+    new_X[idx] = s_tot * X_adj @ Rm.T + t
     new_C = s_tot * C @ Rm.T + t
     new_R = R @ Rm.T
     # the covariance: A Q A^T (A: the similarity's Jacobian), then S (.) S^T, S = I - E (K^T E)^-1 K^T
-    E = null_space(model, new_R, new_C, new_X[idx])
+    E = null_space(model, new_R, new_C, new_X[idx])[:, :nd]
     K = np.zeros_like(E)
     K[model.n_reduced:] = E[model.n_reduced:]
     nr, n_int = model.n_reduced, model.n_int
@@ -203,27 +178,18 @@ def to_minimum_trace(model, result, R, C, X, X0, bars, sigma0) -> FreeNetwork:
         return out
 
     A3 = s_tot * Rm
-    if b is not None:
-        K[:, 6] = apply(b, np.linalg.inv(A3).T)           # ds/dx in the moved network's units
-    W = np.column_stack([apply(-ne.solve(apply(K[:, j], A3.T)), A3) for j in range(7)])   # Q K
+    W = np.column_stack([apply(-ne.solve(apply(K[:, j], A3.T)), A3) for j in range(nd)])   # Q K
     M = np.linalg.inv(K.T @ E)
     EM = E @ M
     KW = K.T @ W
-    Qr = ne.covariance_reduced()
+    Qr, Qt = covariance_blocks(model, ne)
     Qr = apply(apply(Qr, A3).T, A3).T
     Er, Wr = EM[:nr], W[:nr]
     cov_r = Qr - Er @ Wr.T - Wr @ Er.T + Er @ KW @ Er.T
-    Qt = np.einsum("ab,kbc,dc->kad", A3, ne.covariance_elim_blocks(), A3)
-    Et, Wt = EM[nr:].reshape(-1, 3, 7), W[nr:].reshape(-1, 3, 7)
+    Qt = np.einsum("ab,kbc,dc->kad", A3, Qt, A3)
+    Et, Wt = EM[nr:].reshape(-1, 3, nd), W[nr:].reshape(-1, 3, nd)
     cov_t = (Qt - np.einsum("kai,kbi->kab", Et, Wt) - np.einsum("kai,kbi->kab", Wt, Et)
              + np.einsum("kai,ij,kbj->kab", Et, KW, Et))
-    if b is not None:   # the bars' own errors along the scale direction (rigid constraints kept)
-        E6, K6 = E[:, :6], K[:, :6]
-        Es = E[:, 6] - E6 @ np.linalg.solve(K6.T @ E6, K6.T @ E[:, 6])
-        v = var_s / s_bar**2 / sigma0**2               # unit weight, like the rest
-        cov_r = cov_r + v * np.outer(Es[:nr], Es[:nr])
-        es = Es[nr:].reshape(-1, 3)
-        cov_t = cov_t + v * np.einsum("ka,kb->kab", es, es)
     info["similarity"] = {"scale": s_tot, "rotation_deg": float(np.degrees(np.arccos(
         np.clip((np.trace(Rm) - 1) / 2, -1, 1)))), "translation_m": t.tolist()}
     return FreeNetwork(new_R, new_C, new_X, cov_r, cov_t, info)

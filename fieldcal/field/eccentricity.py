@@ -42,7 +42,7 @@ import numpy as np
 from fieldcal.errors import InputError
 from fieldcal.model.camera import Camera
 
-__all__ = ["correction_px", "remove_eccentricity", "ellipse_centre_ideal_mm"]
+__all__ = ["correction_px", "remove_eccentricity", "ellipse_centre_ideal_mm", "rim_px"]
 
 
 def _plane_axes(normals):
@@ -142,6 +142,18 @@ def correction_px(camera: Camera, R_world_to_camera, center_m, centers_m, normal
         ``(u, v)`` of the centre of the imaged disc minus ``(u, v)`` of the image of the
         disc's centre [px]; NaN for a disc not wholly in front of the camera.
     """
+    uv = _rim_and_centre_px(camera, R_world_to_camera, center_m, centers_m, normals, radius_m, rim_points)
+    return _polygon_centroid(uv[:, :-1]) - uv[:, -1]
+
+
+def rim_px(camera: Camera, R_world_to_camera, center_m, centers_m, normals, radius_m, *,
+           rim_points: int = 32) -> np.ndarray:
+    """The discs' rims in one image: (n, rim_points, 2) measured pixels (homography, then the
+    camera's distortion); NaN for a disc not wholly in front of the camera."""
+    return _rim_and_centre_px(camera, R_world_to_camera, center_m, centers_m, normals, radius_m, rim_points)[:, :-1]
+
+
+def _rim_and_centre_px(camera, R_world_to_camera, center_m, centers_m, normals, radius_m, rim_points):
     R, C, X, N, r = _check(R_world_to_camera, center_m, centers_m, normals, radius_m)
     if not (isinstance(rim_points, (int, np.integer)) and rim_points >= 8):
         raise InputError(f"rim_points must be an integer >= 8, got {rim_points!r}")
@@ -154,8 +166,7 @@ def correction_px(camera: Camera, R_world_to_camera, center_m, centers_m, normal
     z = pts[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         q = -camera.f_mm * pts[..., :2] / np.where(z < 0, z, np.nan)[..., None]
-    uv = camera.sensor.mm_to_pixel(camera.distort(q, check=False))
-    return _polygon_centroid(uv[:, :-1]) - uv[:, -1]
+    return camera.sensor.mm_to_pixel(camera.distort(q, check=False))
 
 
 def remove_eccentricity(uv_px, camera: Camera, R_world_to_camera, center_m, centers_m, normals,

@@ -27,23 +27,33 @@ calibration (:func:`calibrate_from_measurements`):
    adjustment it does not spoil (:func:`_admit`: when the adjustment fails, or the image's
    points are mostly rejected or scatter three times more than the others', the group is
    halved until the culprits are found; they are left out with the reason).
-4. **Perspective eccentricity** (optional, when the targets' plane normals are known: given,
-   or the plane of a planar field, and the session gives ``target_diameter_mm``): the
+4. **Perspective eccentricity** (when the session gives ``target_diameter_mm``): the
    detector measures the centre of the imaged ellipse; with the calibrated camera and the
    poses :func:`fieldcal.field.eccentricity.correction_px` moves every disc's point to the image
-   of its centre.
+   of its centre. The targets' normals are given (targets.csv's ``nx,ny,nz``, the session's
+   ``field.target_normal``), the plane of a planar field, or estimated from the adjusted
+   targets' local planes (:mod:`fieldcal.field.normals`); a disc whose normal is not
+   determined is left out when such discs are few; else it keeps its point, and the largest
+   move of the parameters its eccentricity can cause is added to their variances
+   (:mod:`fieldcal.field.sensitivity`).
+   ``data.meta["eccentricity"]`` says what was done (``max_px``, ``normals``, ``n_targets``),
+   ``data.meta["target_normals"]`` holds the normals used.
 5. **Second identification, calibrated camera**, from the adjusted poses (kept: they are the
    adjustment's, better than one image's resection) and target coordinates: the gates shrink
    to the measurement noise, and targets near the corners, where the nominal camera's missing
    distortion was too large, are found too. Images left out so far are tried again from their
    seeds.
-6. **Final adjustment**: the result. The markers' a-priori sigmas are first scaled by how
+6. **Final adjustment**: the result (unless step 7 follows). The markers' a-priori sigmas are first scaled by how
    much more their normalised residuals scatter than the discs' did in the first adjustment
    (a variance component, at least 1): the corner-based centres of markers measure worse
    than the detector's edge-line sigma says. It starts from the latest adjustment (a warm
    start: its interior orientation, poses and targets, with the suspects a cold start would
    have: the initialisers' outliers that were never readmitted and the gross errors), so it
    reaches the same optimum without the initial values and with fewer rounds.
+
+7. **Automatic referencing** (optional, ``referencing``; :mod:`fieldcal.field.referencing`):
+   the discs no target names are matched across the adjusted images, become unsurveyed
+   targets (``AR0001``, ...) and the adjustment is repeated from step 6's (warm).
 
 The report has one entry per image of the session: ``image``, ``status`` (``"ok"`` or
 ``"left out"``), ``reason``, ``n_measured`` (rows of its measurement table), ``n_coded``
@@ -74,9 +84,11 @@ from fieldcal.field.adjustment import (
 )
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
-from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
+from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
+from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session
@@ -104,21 +116,15 @@ def nominal_camera(session: Session) -> Camera:
 
 def target_normals_of(targets: TargetField, normals=None):
     """Unit normals (n, 3) of the targets' planes: ``normals`` when given, else the
-    ``targets.normals``, else the best-fit plane's normal when the field is planar; None when
-    unknown (a field in 3-D without normals)."""
-    if normals is None:
-        normals = targets.normals
+    ``targets.normals``, else the best-fit plane's normal when the field is planar (NaN rows:
+    unknown); None when none is known (a field in 3-D without normals; :func:`_eccentricity`
+    estimates them)."""
     if normals is not None:
         N = np.asarray(normals, float).reshape(-1, 3)
-        if N.shape[0] == 1:
-            N = np.repeat(N, len(targets), axis=0)
-        if N.shape != (len(targets), 3):
+        if N.shape[0] not in (1, len(targets)):
             raise InputError(f"target normals must be (n, 3) with n = {len(targets)}, got {N.shape}")
-        return N / np.linalg.norm(N, axis=1, keepdims=True)
-    if len(targets) >= 3 and is_coplanar(targets.xyz_m):
-        _, B = plane_frame(targets.xyz_m)
-        return np.repeat(B[:, 2][None], len(targets), axis=0)
-    return None
+    tn = resolve_normals(targets, normals, estimate=False)
+    return tn.normals if tn.known.any() else None
 
 
 def _sigma(table: pa.Table, rows: np.ndarray, default: float) -> np.ndarray:
@@ -139,9 +145,13 @@ def _identify_all(run, targets, sigma_m, camera, poses, only=None, fixed_pose: b
     return dict(zip(idx, idents, strict=True))
 
 
-def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_view=True):
+def _build(run, keep, idents, *, uv_override=None, bound_px=None, marker_factor=1.0, single_view=True):
     """FieldData of the identified points of the images ``keep`` (session image indices).
 
+    ``uv_override`` ({image index: per measured row}) replaces the measured points;
+    ``bound_px`` (the same) bounds their remaining systematic error [px] (:func:`_eccentricity`;
+    inf: the point is left out), kept aligned with the observations in
+    ``data.meta["eccentricity_bound_px"]``;
     ``marker_factor`` scales the markers' a-priori sigmas (see :func:`_marker_factor`);
     ``single_view=False`` leaves out the points of targets that only one of the images sees,
     and then the images left with fewer than :data:`MIN_POINTS` points.
@@ -160,7 +170,7 @@ def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_vie
     dropped: dict[int, str] = {}
     while True:
         data, marker = _assemble(run.session, run.targets, run.images, keep, idents, run.measurements,
-                                 run.names, uv_override, marker_factor, single_view)
+                                 run.names, uv_override, bound_px, marker_factor, single_view)
         counts = np.bincount(data.obs.image, minlength=len(keep))
         weak = [i for n, i in enumerate(keep) if counts[n] < MIN_POINTS]
         if not weak:
@@ -174,32 +184,38 @@ def _build(run, keep, idents, *, uv_override=None, marker_factor=1.0, single_vie
             return data, marker, keep, dropped
 
 
-def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, marker_factor,
-              single_view):
-    img, tgt, uv, sig, mk = [], [], [], [], []
+def _assemble(session, targets, images, keep, idents, measurements, names, uv_override, bound_px,
+              marker_factor, single_view):
+    img, tgt, uv, sig, mk, bd = [], [], [], [], [], []
     for n, i in enumerate(keep):
         table = measurements[names[i]]
         rows = np.flatnonzero(idents[i].target >= 0)
+        if bound_px is not None and i in bound_px:            # inf: left out (:func:`_eccentricity`)
+            rows = rows[np.isfinite(bound_px[i][rows])]
         kind, _, uv_all, _ = measured_points(table)
         marker = kind[rows] == "aruco"
         img.append(np.full(len(rows), n))
         tgt.append(idents[i].target[rows])
         uv.append(uv_override[i][rows] if uv_override is not None and i in uv_override else uv_all[rows])
         sig.append(_sigma(table, rows, session.default_sigma_px) * np.where(marker, marker_factor, 1.0))
+        bd.append(bound_px[i][rows] if bound_px is not None and i in bound_px else np.zeros(len(rows)))
         mk.append(marker)
     if not img:
-        img, tgt, uv, sig, mk = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
-            [np.zeros(0, bool)]
+        img, tgt, uv, sig, mk, bd = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, 2))], [np.zeros(0)], \
+            [np.zeros(0, bool)], [np.zeros(0)]
     obs = FieldObservations(np.concatenate(img), np.concatenate(tgt), np.concatenate(uv),
                             np.concatenate(sig))
-    marker = np.concatenate(mk)
+    marker, bound = np.concatenate(mk), np.concatenate(bd)
     if not single_view:
         views = np.bincount(obs.target, minlength=len(targets))
         multi = views[obs.target] >= 2
-        obs, marker = obs.take(multi), marker[multi]
+        obs, marker, bound = obs.take(multi), marker[multi], bound[multi]
+    meta = {"camera_id": session.camera_id, "session_id": session.session_id}
+    if bound_px is not None:
+        meta["eccentricity_bound_px"] = bound
     data = FieldData(sensor=session.sensor, targets=targets, images=[images[i] for i in keep], obs=obs,
                      nominal_focal_mm=session.nominal_focal_mm, default_sigma_px=session.default_sigma_px,
-                     meta={"camera_id": session.camera_id, "session_id": session.session_id})
+                     meta=meta)
     return data, marker
 
 
@@ -244,9 +260,11 @@ def _check_enough(keep, names, idents, measurements, stage):
 def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.Table],
                                 options: AdjustmentOptions | None = None, *,
                                 progress: Callable[[str], None] | None = None,
-                                target_normals=None, eccentricity: bool = True,
+                                target_normals=None, eccentricity: bool = True, estimate_normals: bool = True,
                                 identify: IdentifyOptions | None = None,
-                                priors: PriorOptions | None = None) -> tuple[FieldData, FieldResult, list[dict]]:
+                                priors: PriorOptions | None = None,
+                                referencing: ReferencingOptions | None = None,
+                                ) -> tuple[FieldData, FieldResult, list[dict]]:
     """Identify the measured targets of every image and calibrate (module docstring).
 
     Parameters
@@ -261,15 +279,23 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     progress : callable, optional
         Called with one line per stage.
     target_normals : (n, 3) or (3,) array_like, optional
-        Normals of the targets' planes (synthetic fields know them); without them a planar
-        field's plane is used, and a 3-D field gets no eccentricity correction.
+        Normals of the targets' planes (NaN rows unknown); they replace the session's
+        (targets.csv, ``field.target_normal``). Unknown normals come from a planar field's plane
+        or the local planes of a 3-D field's targets (:mod:`fieldcal.field.normals`).
     eccentricity : bool
         Apply the perspective-eccentricity correction to disc centres when it can be computed
-        (normals known and ``field.target_diameter_mm`` in the session).
+        (``field.target_diameter_mm`` in the session).
+    estimate_normals : bool
+        Estimate the unknown normals of a 3-D field (:mod:`fieldcal.field.normals`); False
+        leaves them unknown (their discs uncorrected, with the eccentricity bound in their sigmas).
     identify : IdentifyOptions, optional
         Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
     priors : PriorOptions, optional
         Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
+    referencing : ReferencingOptions, optional
+        Automatic referencing (step 7; off when None): the discs no target names are matched
+        across the adjusted images (:func:`fieldcal.field.referencing.reference_discs`), get
+        ids of their own (``AR0001``, ...) and join the adjustment as unsurveyed targets.
 
     Returns
     -------
@@ -302,8 +328,9 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                            only={i for i in range(len(run.names)) if i not in state.rejected})
     keep2 = _usable(second, run.names, measurements)
     _check_enough(keep2, run.names, second, measurements, "calibrated camera")
-    uv_override, ecc_max = _eccentricity(run, second, keep2, state.camera, state.targets, target_normals,
-                                         eccentricity)
+    uv_override, bound_px, ecc_max, ecc_summary, normals = _eccentricity(
+        run, second, keep2, state.camera, state.targets, state.sigma_m, target_normals, eccentricity,
+        estimate_normals)
     # 6: the final adjustment
     factor = _marker_factor(res1, marker1)
     if factor > 1.0:
@@ -311,14 +338,26 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                 "to the discs: their sigmas are scaled by that")
 
     def build(keep):
-        return _build(run, keep, second, uv_override=uv_override, marker_factor=factor,
+        return _build(run, keep, second, uv_override=uv_override, bound_px=bound_px, marker_factor=factor,
                       single_view=not run.options.targets_adjusted)
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
+    if referencing is not None:
+        data, result = _referenced(run, data, result, second, keep2, referencing)
+    bound = data.meta.get("eccentricity_bound_px")
+    if bound is not None and len(bound) == len(result.data.obs) and np.any(bound > 0):
+        result, moves = with_bias_bounds(result, eccentricity_bias_bounds(
+            result, bound > 0, run.session.target_diameter_mm / 2000.0))
+        ecc_summary["bias_bound"] = moves
+        run.say("the uncorrected discs can move f by up to "
+                f"{1000 * moves.get('f_mm', float('nan')):.3g} um: added in quadrature to its sigma "
+                f"(now {1000 * result.sigma['f_mm']:.3g} um)")
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
         data.meta["eccentricity_max_px"] = float(max(ecc_max.values()))
+    data.meta["eccentricity"] = ecc_summary
+    data.meta["target_normals"] = normals
     report = _report(run, data, first, second, keep2, starts, prior_reasons, ecc_max)
     data.meta["identification"] = summary = identification_summary(report)
     run.say("images used: " + f"{summary['used']} of {summary['images']}" +
@@ -385,6 +424,52 @@ def _admit(fixed, candidates, attempt):
     return outcome, rejected
 
 
+REFERENCED_PREFIX = "AR"
+"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
+
+
+def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions):
+    """7: automatic referencing (:mod:`fieldcal.field.referencing`). The usable discs of the
+    images ``keep`` (``data``'s images, in order) that the identification ``second`` left
+    unnamed are matched across the adjusted images; each track becomes an unsurveyed target
+    (``AR0001``, ...; ``data.meta["referenced_targets"]``) and the adjustment is repeated from
+    this one (its camera, poses and targets; the tracks at their intersections)."""
+    uv, sig = [], []
+    for i in keep:
+        table = run.measurements[run.names[i]]
+        kind, _, uv_all, usable = measured_points(table)
+        rows = np.flatnonzero((second[i].target < 0) & (kind == "disc") & usable)
+        uv.append(uv_all[rows])
+        sig.append(_sigma(table, rows, run.session.default_sigma_px))
+    tracks = reference_discs(result.camera, result.R_world_to_camera, result.center_m, uv, options)
+    run.say(f"automatic referencing: {len(tracks)} unsurveyed target(s) found in {len(keep)} images "
+            f"({len(tracks.image)} points)")
+    data.meta["referenced_targets"] = len(tracks)
+    if not len(tracks):
+        return data, result
+    taken = set(data.targets.ids.tolist())
+    ids, k = [], 0
+    while len(ids) < len(tracks):
+        k += 1
+        name = f"{REFERENCED_PREFIX}{k:04d}"
+        if name not in taken:
+            ids.append(name)
+    first = len(data.targets)
+    new = FieldObservations(tracks.image, first + tracks.track,
+                            np.stack([uv[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]),
+                            np.array([sig[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]))
+    old = data.obs
+    obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
+                            np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
+    data = replace(data, targets=data.targets.with_unsurveyed(ids), obs=obs)
+    init = InitialValues(np.asarray(result.params, float).copy(), result.R_world_to_camera, result.center_m,
+                         np.concatenate([~result.obs_used, np.zeros(len(new), bool)]), np.full(len(keep), np.nan),
+                         "the adjustment before the automatic referencing (warm start)", lm_tau=result.lsq.mu,
+                         targets_m=np.vstack([result.targets_m, tracks.X_m]))
+    result = adjust_field(data, run.options, progress=run.progress, initial=init)
+    return data, result
+
+
 def _final_adjustment(run, state, build, keep, probation, second):
     """6: the adjustment, the images identified from pose priors and not adjusted yet admitted
     as :func:`_admit` says (an image that spoils it is left out)."""
@@ -435,6 +520,7 @@ class _Run:
         self.priors = priors
         self.nominal = nominal_camera(session)
         self.targets, marks_targets, keep = _surveyed_only(session.targets(), say)
+        self.surveyed = keep
         self.images = list(session.images)
         self.names = [im.file for im in self.images]
         self.stations = [im.station for im in self.images]
@@ -446,8 +532,8 @@ class _Run:
 
 def _surveyed_only(targets, say):
     """From photographs, targets are identified by their surveyed coordinates: unsurveyed rows of
-    targets.csv are left out, with a line saying so (they enter with observations.csv;
-    finding unsurveyed discs in the photographs, automatic referencing, is not implemented).
+    targets.csv are left out, with a line saying so (they enter with observations.csv, or
+    their discs through automatic referencing, step 7, under ids of its own).
     Returns ``(surveyed targets, all targets, mask)``."""
     keep = targets.surveyed
     if keep.all():
@@ -603,32 +689,112 @@ def _with_priors(run: _Run, state: _Oriented, starts) -> dict:
     return reasons
 
 
-def _eccentricity(run: _Run, second, keep2, cam, adjusted, target_normals, eccentricity):
-    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses."""
-    normals = target_normals_of(run.targets, target_normals)
+def _towards(run: _Run, second, keep2, n_targets):
+    """Per target, the mean centre of the images that see it (NaN when none) [m]."""
+    acc, cnt = np.zeros((n_targets, 3)), np.zeros(n_targets)
+    for i in keep2:
+        t = second[i].target[second[i].target >= 0]
+        np.add.at(acc, t, np.asarray(second[i].center_m, float))
+        np.add.at(cnt, t, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return acc / cnt[:, None]
+
+
+def _shape_views(run: _Run, second, keep2):
+    """Per image: its pose, the targets identified as discs and their ellipses' shape vectors
+    (:func:`fieldcal.field.normals.choose_by_shapes`)."""
+    views = []
+    for i in keep2:
+        table = run.measurements[run.names[i]]
+        kind = np.asarray(table.column("kind").to_numpy(zero_copy_only=False))
+        rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
+        cols = [np.asarray(table.column(c).fill_null(np.nan).to_numpy(zero_copy_only=False), float)[rows]
+                if c in table.column_names else np.full(len(rows), np.nan)
+                for c in ("major_px", "minor_px", "angle_deg")]
+        views.append((second[i].R_world_to_camera, second[i].center_m, second[i].target[rows],
+                      measured_shape_vectors(*cols)))
+    return views
+
+
+LEAVE_OUT_FRACTION = 0.05
+"""Disc centres whose normal is not determined are left out of the final adjustment when they
+are at most this fraction of the disc centres; otherwise they stay, and the largest bias they
+can cause widens the parameters' sigmas (:mod:`fieldcal.field.sensitivity`)."""
+ECC_TOL_FACTOR = 3.0
+"""A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets."""
+ECC_TOL_MIN_M = 0.001
+"""... and at least this [m] (the targets' flatness on their support)."""
+
+
+def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_normals, eccentricity, estimate=True):
+    """4: perspective eccentricity of the discs, with the calibrated camera and the new poses.
+
+    The normals are resolved (:func:`fieldcal.field.normals.resolve_normals`: given, planar
+    fit, or estimated from the adjusted targets' local planes). A disc whose normal is not
+    determined is left out when such discs are few (:data:`LEAVE_OUT_FRACTION`), else it keeps
+    its point and after the final adjustment the largest move of every parameter its
+    eccentricity can cause is added in quadrature to its variance
+    (:mod:`fieldcal.field.sensitivity`). Returns
+    ``(uv_override, bound_px, ecc_max, summary, normals)`` (the
+    :class:`~fieldcal.field.normals.TargetNormals`, None when not applied).
+    """
     diameter_mm = run.session.target_diameter_mm
     ecc_max: dict[int, float] = {}
-    if not (eccentricity and normals is not None and diameter_mm):
-        return None, ecc_max
-    uv_override, all_e = {}, []
+    if not (eccentricity and diameter_mm):
+        why = "not asked" if not eccentricity else "no field.target_diameter_mm in the session"
+        return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}, None
+    tol = max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(np.atleast_1d(sigma_m))))
+    if target_normals is not None:          # given for every row of targets.csv: the surveyed ones
+        N = np.asarray(target_normals, float)
+        if N.ndim == 2 and len(N) == len(run.surveyed) != len(run.targets):
+            target_normals = N[run.surveyed]
+    tn = resolve_normals(run.targets, target_normals, xyz_m=adjusted.xyz_m, tol_m=tol, estimate=estimate,
+                         towards_m=_towards(run, second, keep2, len(run.targets)),
+                         shapes=(cam, _shape_views(run, second, keep2), diameter_mm / 2000.0))
+    radius_m = diameter_mm / 2000.0
+    uv_override, bound_px, all_e, bounds, seen = {}, {}, [], [], np.zeros(len(run.targets), bool)
     for i in keep2:
         kind, _, uv_all, _ = measured_points(run.measurements[run.names[i]])
         rows = np.flatnonzero((second[i].target >= 0) & (kind == "disc"))
         t = second[i].target[rows]
-        e = correction_px(cam, second[i].R_world_to_camera, second[i].center_m, adjusted.xyz_m[t],
-                          normals[t], diameter_mm / 2000.0)
+        seen[t] = True
+        R, C = second[i].R_world_to_camera, second[i].center_m
+        known = tn.known[t]
+        e = np.zeros((len(rows), 2))
+        if known.any():
+            e[known] = correction_px(cam, R, C, adjusted.xyz_m[t[known]], tn.normals[t[known]], radius_m)
         e = np.where(np.isfinite(e), e, 0.0)
         uv = uv_all.copy()
         uv[rows] = uv_all[rows] - e
         uv_override[i] = uv
+        extra = np.zeros(len(uv_all))
+        if (~known).any():
+            b = eccentricity_bound_px(cam, R, C, adjusted.xyz_m[t[~known]], radius_m)
+            extra[rows[~known]] = b
+            bounds.append(b)
+        bound_px[i] = extra
         norm = np.hypot(e[:, 0], e[:, 1])
         ecc_max[i] = float(norm.max()) if len(norm) else 0.0
         all_e.append(norm)
     all_e = np.concatenate(all_e) if all_e else np.zeros(0)
+    summary = {"max_px": float(all_e.max()) if len(all_e) else 0.0, **normals_summary(tn.source, seen),
+               "applied": bool(len(all_e) and all_e.max() > 0)}
+    if bounds:
+        b = np.concatenate(bounds)
+        summary["uncorrected_bound_max_px"] = float(b.max())
+        if len(b) <= LEAVE_OUT_FRACTION * len(all_e):
+            for i in bound_px:
+                bound_px[i][bound_px[i] > 0] = np.inf
+            summary["n_left_out"] = len(b)
+            run.say(f"{len(b)} disc centres of targets whose normal is not determined (eccentricity up to "
+                    f"{b.max():.4f} px): left out of the final adjustment")
+        else:
+            run.say(f"{len(b)} disc centres of targets whose normal is not determined: not corrected (their "
+                    f"eccentricity up to {b.max():.4f} px bounds the parameters' bias)")
     if len(all_e):
-        run.say(f"perspective eccentricity removed from {len(all_e)} disc centres: median "
-                f"{np.median(all_e):.4f} px, max {all_e.max():.4f} px")
-    return uv_override, ecc_max
+        run.say(f"perspective eccentricity removed from {int(np.sum(all_e > 0))} disc centres (normals: "
+                f"{summary['normals']}): median {np.median(all_e):.4f} px, max {all_e.max():.4f} px")
+    return uv_override, bound_px, ecc_max, summary, tn
 
 
 def _report(run: _Run, data, first, second, keep2, starts, prior_reasons, ecc_max) -> list[dict]:

@@ -4,8 +4,9 @@
 damaged object: a table's commit or data file that cannot be read (with the versions or
 cameras whose rows it held, from the file's statistics), a catalogued version whose
 document or Zarr group is missing or does not match, an array whose chunk is missing or
-whose bytes differ from the SHA-256 recorded at the commit. ``fieldcal lake check`` prints
-them and exits 1 when there is any.
+whose bytes differ from the SHA-256 recorded at the commit, a rig version (a row of the
+``rigs`` table) whose rig document is missing or does not match, or whose heads' versions are
+not in the catalog. ``fieldcal lake check`` prints them and exits 1 when there is any.
 
 :func:`verify_group` is the check :meth:`fieldcal.lake.store.Lake.open_zarr` runs on every
 read: Zarr reads a missing chunk back as the fill value (zeros), which must never pass
@@ -173,6 +174,8 @@ def _dependents(name: str, add: dict) -> str:
     lo, hi = add.get("min.version"), add.get("max.version")
     if name == "catalog":
         return f"{n} catalog row(s), versions {lo} .. {hi}, are hidden from every reader"
+    if name == "rigs":
+        return f"{n} rig version(s), {lo} .. {hi}, are hidden from history and compare"
     cam = add.get("partition.camera_id")
     what = f"versions {lo} .. {hi}" if lo else f"sessions {add.get('min.session_id')} .. " \
                                                 f"{add.get('max.session_id')}"
@@ -211,15 +214,39 @@ def _hidden_versions(lake, catalogued: set[str]) -> list[Damage]:
             for rel, _, stem in walk_calibrations(lake) if stem in named and rel.endswith(".json")]
 
 
+def _rig_damage(lake, row: dict, catalogued: set) -> list[Damage]:
+    """A rig version's document (readable, this version's, listing the row's heads) and its
+    heads' calibration versions (catalogued)."""
+    v, rel = row["version"], row["document_path"]
+    affects = f"rig version {v}: history --rig, compare, the rig in reports and certificates"
+    try:
+        doc = json.loads(lake.storage.read(rel))
+        if not isinstance(doc, dict) or doc.get("version") != v:
+            raise ValueError("not this rig version's document")
+        if [h.get("version") for h in doc.get("heads", [])] != list(row["head_versions"]):
+            raise ValueError("its heads' versions differ from the rigs table's")
+    except FileNotFoundError:
+        return [Damage(rel, "missing", affects)]
+    except (OSError, ValueError, AttributeError) as e:
+        return [Damage(rel, reason(e), affects)]
+    missing = [h for h in row["head_versions"] if h not in catalogued]
+    if missing:
+        return [Damage(f"rigs: version={v}", f"head version(s) {', '.join(missing)} not in the catalog", affects)]
+    return []
+
+
 def check(lake) -> list[Damage]:
     """Every damaged object of the lake (empty when the lake is sound)."""
     out = []
     for name in TABLES:
         out += _table_damage(lake, name)
-    rows = lake.catalog().to_pylist()
-    for row in rows:
+    catalog = lake.catalog().to_pylist()
+    for row in catalog:
         out += _version_damage(lake, row)
-    out += _hidden_versions(lake, {r["version"] for r in rows})
+    catalogued = {row["version"] for row in catalog}
+    out += _hidden_versions(lake, catalogued)
+    for row in lake.rig_catalog().to_pylist():
+        out += _rig_damage(lake, row, catalogued)
     seen, unique = set(), []
     for d in out:
         if (d.path, d.problem) not in seen:

@@ -1,12 +1,15 @@
 """Garbage collection: the parts of versions that were never committed.
 
 A commit that failed or was killed before its catalog row leaves parts nobody sees: its
-document and Zarr group under ``calibrations/`` and its rows in ``residuals`` (hidden by
-the residuals view, which keeps only rows of catalogued versions), and on a local lake
-temporary files of interrupted writes. :func:`gc` removes those older than a grace period
-(which must exceed the longest commit in progress). It lists folders one level at a time
-and never uses a path as a glob pattern, so a lake at ``x/lake[ab]`` cannot touch
-``x/lakea``. Delta's own unreferenced files are :func:`fieldcal.lake.maintenance.vacuum`'s.
+document and Zarr group under ``calibrations/`` and its rows in ``residuals`` (hidden by the
+residuals view, which keeps only rows of catalogued versions), and on a local lake temporary
+files of interrupted writes. A rig commit interrupted after its rig document
+(``rigs/R/S/V.json``) and before its row in the ``rigs`` table leaves that document: it is
+removed as a calibration's is (a rerun of the rig's inputs writes a new one). :func:`gc`
+removes those older than a grace period (which must exceed the longest commit in progress).
+It lists folders one level at a time and never uses a path as a glob pattern, so a lake at
+``x/lake[ab]`` cannot touch ``x/lakea``. Delta's own unreferenced files are
+:func:`fieldcal.lake.maintenance.vacuum`'s.
 
 Age by the store's clock (issue 24, goal 1): a part's age is the store's time now (the
 modification time of a probe file gc writes, :meth:`Storage.now`) minus the newest
@@ -26,21 +29,51 @@ from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.ids import ID_PATTERN, VERSION_PATTERN
 from fieldcal.lake.parts import reason
 
-__all__ = ["gc", "version_parts", "walk_calibrations", "logged_versions"]
+__all__ = ["gc", "version_parts", "walk_calibrations", "walk_rigs", "logged_versions"]
+
+
+def _walk(lake, top: str):
+    """``(rel, name, stem)`` of every entry of ``top/A/S/`` (valid A and S only)."""
+    store = lake.storage
+    for cam in store.listdir(top):
+        if not ID_PATTERN.fullmatch(cam):
+            continue
+        for ses in store.listdir(f"{top}/{cam}"):
+            if not ID_PATTERN.fullmatch(ses):
+                continue
+            for name in store.listdir(f"{top}/{cam}/{ses}"):
+                stem = name.rsplit(".", 1)[0] if name.endswith((".json", ".zarr")) else None
+                yield f"{top}/{cam}/{ses}/{name}", name, stem
 
 
 def walk_calibrations(lake):
     """``(rel, name, stem)`` of every entry of ``calibrations/C/S/`` (valid C and S only)."""
-    store = lake.storage
-    for cam in store.listdir("calibrations"):
-        if not ID_PATTERN.fullmatch(cam):
-            continue
-        for ses in store.listdir(f"calibrations/{cam}"):
-            if not ID_PATTERN.fullmatch(ses):
-                continue
-            for name in store.listdir(f"calibrations/{cam}/{ses}"):
-                stem = name.rsplit(".", 1)[0] if name.endswith((".json", ".zarr")) else None
-                yield f"calibrations/{cam}/{ses}/{name}", name, stem
+    yield from _walk(lake, "calibrations")
+
+
+def walk_rigs(lake):
+    """``(rel, name, stem)`` of every entry of ``rigs/R/S/`` (valid R and S only): rig documents."""
+    yield from _walk(lake, "rigs")
+
+
+def _doomed(lake, walk, committed: set, cutoff: float) -> list[str]:
+    """The entries of ``walk`` of versions not in ``committed`` none of whose files was
+    modified after ``cutoff`` (the store's clock), and temporary files older than it."""
+    parts: dict[str, list[str]] = {}
+    out = []
+    for rel, name, stem in walk:
+        if stem is not None and VERSION_PATTERN.fullmatch(stem):
+            if stem not in committed:
+                parts.setdefault(stem, []).append(rel)
+        elif name.startswith(".") and name.endswith(".tmp"):
+            mtime = lake.storage.mtime(rel)
+            if mtime is not None and mtime <= cutoff:
+                out.append(rel)
+    for rels in parts.values():
+        newest = _newest(lake, rels)
+        if newest is not None and newest <= cutoff:
+            out += rels
+    return out
 
 
 def version_parts(lake, versions: set[str]) -> list[str]:
@@ -102,31 +135,21 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
     Returns
     -------
     list of str
-        Lake-relative paths removed (or that would be), and ``residuals: version=V`` for the
+        Lake-relative paths removed (or that would be: documents and Zarr groups under
+        ``calibrations/``, rig documents under ``rigs/``), and ``residuals: version=V`` for the
         residual rows of each uncommitted version.
     """
     if not (grace_s >= 0):
         raise InputError(f"grace_s must be >= 0, got {grace_s}", "gc")
     committed = set(lake.tables.scan("catalog", columns=["version"])["version"].to_pylist())
+    rigs = set(lake.tables.scan("rigs", columns=["version"])["version"].to_pylist())
     if lake.problems:
-        raise LakeError(f"gc stops: the catalog of {lake.url} is damaged ({lake.problems[0]}); "
-                        "run `fieldcal lake check`")
+        raise LakeError(f"gc stops: the catalog or the rigs table of {lake.url} is damaged "
+                        f"({lake.problems[0]}); run `fieldcal lake check`")
     committed |= logged_versions(lake)
     cutoff = lake.storage.now() - grace_s
-    parts: dict[str, list[str]] = {}
-    doomed = []
-    for rel, name, stem in walk_calibrations(lake):
-        if stem is not None and VERSION_PATTERN.fullmatch(stem):
-            if stem not in committed:
-                parts.setdefault(stem, []).append(rel)
-        elif name.startswith(".") and name.endswith(".tmp"):
-            mtime = lake.storage.mtime(rel)
-            if mtime is not None and mtime <= cutoff:
-                doomed.append(rel)
-    for rels in parts.values():
-        newest = _newest(lake, rels)
-        if newest is not None and newest <= cutoff:
-            doomed += rels
+    doomed = (_doomed(lake, walk_calibrations(lake), committed, cutoff)
+              + _doomed(lake, walk_rigs(lake), rigs, cutoff))
     stray = _stray_residuals(lake, committed, cutoff)
     if dry_run:
         return doomed + [f"residuals: version={v}" for v in stray]

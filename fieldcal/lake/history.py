@@ -8,7 +8,8 @@ needed):
 - ``catalog``: one row per committed version (``schemas/catalog.arrow.json``);
 - ``residuals``: the residual rows of catalogued versions only (a semi-join on
   ``version``), with ``camera_id``, ``session_id``, ``version``;
-- ``observations_field`` and ``observations_goniometer``: the cached measurements.
+- ``observations_field`` and ``observations_goniometer``: the cached measurements;
+- ``rigs``: one row per committed rig version (its heads' versions, CONTRACT section 3).
 
 ``as_of`` (an ISO 8601 time or a datetime) reads every table as it was then (Delta time
 travel): the catalog of that time and the residuals of its versions. Empty tables have
@@ -20,7 +21,8 @@ The connection is read-only for the query: only ``SELECT`` statements run, and D
 external access is switched off and locked before the query (no ``COPY``, ``ATTACH``,
 ``INSTALL``, ``read_csv('/etc/passwd')``: the query sees the views and nothing else).
 
-:func:`camera_history` (one camera over time), :func:`fleet` (every camera's latest
+:func:`camera_history` (one camera over time), :func:`rig_history` (a rig's relative
+orientations over time, from its rig documents), :func:`fleet` (every camera's latest
 calibration in a date range), :func:`fleet_pairs` (that and the version before it) and
 :func:`sql` (anything) return :class:`pyarrow.Table`; :func:`to_text`, :func:`to_csv` and
 :func:`to_json` format a table for people and scripts.
@@ -43,13 +45,14 @@ from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC, SESSION_SQL
 from fieldcal.session.schemas import arrow_schema
 
-__all__ = ["connect", "sql", "camera_history", "fleet", "fleet_pairs", "pick_columns", "DEFAULT_COLUMNS",
+__all__ = ["connect", "sql", "camera_history", "rig_history", "fleet", "fleet_pairs", "pick_columns",
+           "DEFAULT_COLUMNS",
            "to_text", "to_csv",
            "to_json", "format_table", "FORMATS", "VIEWS", "READ_ONLY_NOTE"]
 
 UTC = dt.UTC
 FORMATS = ("text", "csv", "json")
-VIEWS = ("catalog", "residuals", "observations_field", "observations_goniometer")
+VIEWS = ("catalog", "residuals", "observations_field", "observations_goniometer", "rigs")
 READ_ONLY_NOTE = ("history --sql is read-only: one or more SELECT statements over the views "
                   f"{', '.join(VIEWS)}; no COPY, ATTACH, INSTALL or file access")
 
@@ -245,6 +248,102 @@ def camera_history(lake, camera_id: str, parameters=("f_mm", "xp_mm", "yp_mm"), 
     return sql(lake, query, [camera_id], as_of=as_of, views=("catalog",), only={"camera_id": camera_id})
 
 
+RIG_COMPONENTS = ("x", "y", "z")
+
+
+def _rig_rows(lake, row: dict, doc: dict) -> list[dict]:
+    """One history row per head but the reference of one rig version (:func:`rig_history`)."""
+    import numpy as np
+
+    from fieldcal.model.rotations import opk_from_R_world_to_camera
+
+    out = []
+    for head in doc["heads"]:
+        if head["camera_id"] == doc["reference"]:
+            continue
+        R = np.asarray(head["R_camera_to_rig"], float)
+        angles = np.degrees(opk_from_R_world_to_camera(R.T))      # R_camera_to_rig = Rz(k) Ry(p) Rx(o)
+        r = {"rig_id": row["rig_id"], "session_id": row["session_id"], "version": row["version"],
+             "acquired": row["acquired"], "committed": row["committed"], "camera_id": head["camera_id"],
+             "head_version": head["version"], "R_camera_to_rig": R}
+        r.update(zip(("omega_deg", "phi_deg", "kappa_deg"), map(float, angles), strict=True))
+        for i, c in enumerate(RIG_COMPONENTS):
+            r[f"sigma_rot_{c}_arcsec"] = float(head["sigma_rotation_arcsec"][i])
+        for i, c in enumerate(RIG_COMPONENTS):
+            r[f"t_{c}_mm"] = 1000.0 * float(head["t_camera_in_rig_m"][i])
+            r[f"sigma_t_{c}_mm"] = float(head["sigma_t_mm"][i])
+        r.update({"rmse_px": head.get("rmse_px"), "sigma0": row["sigma0"], "n_exposures": row["n_exposures"]})
+        out.append(r)
+    return out
+
+
+def _with_changes(rows: list[dict]) -> list[dict]:
+    """Per head, the change since its first row: ``delta_rot_*_arcsec``, the small rotation about
+    the rig frame's axes ``log(R R_first^T)`` (the convention of ``sigma_rotation_arcsec`` and of
+    ``fieldcal compare RIG_V1 RIG_V2``), and ``delta_t_*_mm``."""
+    import numpy as np
+
+    from fieldcal.model.rotations import rotvec_from_R
+
+    first: dict[str, dict] = {}
+    for r in rows:
+        f = first.setdefault(r["camera_id"], r)
+        d_rot = rotvec_from_R(r["R_camera_to_rig"] @ f["R_camera_to_rig"].T) * (180.0 * 3600.0 / np.pi)
+        for i, c in enumerate(RIG_COMPONENTS):
+            r[f"delta_rot_{c}_arcsec"] = float(d_rot[i])
+            r[f"delta_t_{c}_mm"] = r[f"t_{c}_mm"] - f[f"t_{c}_mm"]
+    return rows
+
+
+RIG_HISTORY_COLUMNS = (
+    ["rig_id", "session_id", "version", "acquired", "committed", "camera_id", "head_version",
+     "omega_deg", "phi_deg", "kappa_deg"]
+    + [f"{k}_rot_{c}_arcsec" for k in ("delta", "sigma") for c in RIG_COMPONENTS]
+    + [f"{k}_{c}_mm" for k in ("t", "sigma_t", "delta_t") for c in RIG_COMPONENTS]
+    + ["rmse_px", "sigma0", "n_exposures"])
+"""The columns of :func:`rig_history`, in order."""
+
+
+def rig_history(lake, rig_id: str, *, all_versions: bool = False, as_of=None) -> pa.Table:
+    """A rig's relative orientations over time: one row per rig version and head (the reference
+    head, the identity by definition, left out), from the ``rigs`` table and its rig documents.
+
+    Parameters
+    ----------
+    lake : fieldcal.lake.store.Lake
+    rig_id : str
+    all_versions : bool
+        Every committed rig version instead of the latest version of each session.
+    as_of : str or datetime, optional
+        The history as the lake knew it at that time.
+
+    Returns
+    -------
+    pyarrow.Table
+        :data:`RIG_HISTORY_COLUMNS`: the head's ``R_camera_to_rig`` as ``omega, phi, kappa``
+        [deg] (``R = Rz(kappa) Ry(phi) Rx(omega)``, CONTRACT section 1), the change of its rotation
+        since the head's first row as a small rotation about the rig frame's axes [arcsec] and
+        the rotation's sigmas [arcsec], its lever arm ``t_camera_in_rig`` [mm] with sigmas and
+        change; ordered by ``acquired`` (versions without it last), then commit time.
+    """
+    t = lake.rig_catalog(rig_id=rig_id, as_of=_as_of(as_of)).to_pylist()
+    if not all_versions:
+        latest = {}
+        for row in t:                                   # oldest first: the last of a session wins
+            latest[row["session_id"]] = row
+        t = list(latest.values())
+    far = dt.datetime.max.replace(tzinfo=UTC)
+    t.sort(key=lambda r: (r["acquired"] or far, r["committed"], r["version"]))
+    rows = []
+    for row in t:
+        rows += _rig_rows(lake, row, lake.load_rig_document(row["version"], row=row))
+    rows = _with_changes(rows)
+    schema = pa.schema([(c, pa.string() if c in ("rig_id", "session_id", "version", "camera_id", "head_version")
+                         else pa.timestamp("us", "UTC") if c in ("acquired", "committed")
+                         else pa.int32() if c == "n_exposures" else pa.float64()) for c in RIG_HISTORY_COLUMNS])
+    return pa.Table.from_pylist([{c: r.get(c) for c in RIG_HISTORY_COLUMNS} for r in rows], schema=schema)
+
+
 def _bound(value, *, end: bool):
     """A range bound as an aware UTC datetime; a date as an end bound means the day's end."""
     if value is None:
@@ -355,10 +454,13 @@ DEFAULT_COLUMNS = {
     "fleet": ("camera_id", "session_id", "acquired", "method", "f_mm", "rmse_px", "n_images"),
     "camera": ("session_id", "acquired", "{params}"),
     "changes": ("camera_id", "acquired", "max_change_um", "p_value", "changed", "flagged"),
+    "rig": ("session_id", "acquired", "camera_id", "delta_rot_x_arcsec", "delta_rot_y_arcsec",
+            "delta_rot_z_arcsec", "delta_t_x_mm", "delta_t_y_mm", "delta_t_z_mm"),
 }
 """The columns ``fieldcal history`` shows by default (about 100 characters wide): every
 camera's latest (``fleet``), one camera (``camera``; ``{params}`` stands for each parameter
-asked for and its sigma), ``--fleet`` (``changes``); ``--wide`` shows every column,
+asked for and its sigma), ``--fleet`` (``changes``), one rig (``rig``: the changes of its
+heads' relative orientations); ``--wide`` shows every column,
 ``--columns`` the ones named."""
 
 

@@ -585,19 +585,30 @@ class Lake:
                            dict(_who(), action="commit", version=rig["version"]))
         return Committed(rig["version"], new=True)
 
-    def rig_catalog(self, *, rig_id: str | None = None, fingerprint: str | None = None) -> pa.Table:
-        """Committed rig versions (the ``rigs`` table), oldest first; of one rig or fingerprint."""
+    def rig_catalog(self, *, rig_id: str | None = None, fingerprint: str | None = None, as_of=None) -> pa.Table:
+        """Committed rig versions (the ``rigs`` table), oldest first; of one rig or fingerprint;
+        ``as_of``: as the table was at that time."""
         f = None
         if rig_id is not None:
             f = ds.field("rig_id") == rig_id
         if fingerprint is not None:
             g = ds.field("fingerprint") == fingerprint
             f = g if f is None else f & g
-        t = self.tables.scan("rigs", filter=f)
+        t = self.tables.scan("rigs", filter=f, as_of=_as_of(as_of))
         if t.num_rows < 2:
             return t
         return t.take(pa.compute.sort_indices(t.select(["committed", "version"]),
                                               [("committed", "ascending"), ("version", "ascending")]))
+
+    def rig_of(self, document: Mapping) -> dict | None:
+        """The rig document of the rig version a head's calibration ``document`` belongs to (its
+        ``rig`` key names the rig; the latest rig version listing the document's version), or None."""
+        rig = document.get("rig")
+        if not isinstance(rig, Mapping) or not isinstance(rig.get("rig_id"), str):
+            return None
+        hits = [r for r in self.rig_catalog(rig_id=rig["rig_id"]).to_pylist()
+                if document.get("version") in r["head_versions"]]
+        return self.load_rig_document(hits[-1]["version"], row=hits[-1]) if hits else None
 
     def is_rig_version(self, version: str) -> bool:
         """Whether ``version`` is a committed rig version."""
@@ -605,15 +616,16 @@ class Lake:
             return False
         return version in self.rig_catalog()["version"].to_pylist()
 
-    def load_rig_document(self, version: str) -> dict:
-        """The rig document of a committed rig version."""
+    def load_rig_document(self, version: str, *, row: Mapping | None = None) -> dict:
+        """The rig document of a committed rig version (``row``: its ``rigs`` row, when known)."""
         check_version(version)
-        t = self.rig_catalog()
-        hits = [r for r in t.to_pylist() if r["version"] == version]
-        if not hits:
-            raise LakeError(f"rig version {version} is not committed in {self.url}")
+        if row is None:
+            hits = [r for r in self.rig_catalog().to_pylist() if r["version"] == version]
+            if not hits:
+                raise LakeError(f"rig version {version} is not committed in {self.url}")
+            row = hits[-1]
         try:
-            return json.loads(self._store.read(hits[-1]["document_path"]))
+            return json.loads(self._store.read(row["document_path"]))
         except (OSError, ValueError) as e:
             raise LakeError(f"rig version {version}: cannot read its document: {reason(e)}") from None
 

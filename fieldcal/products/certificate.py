@@ -12,7 +12,9 @@ sensing imagery sensors, optical sensors) and ISO/IEC 17025's items of a calibra
 certificate (identity, conditions, traceability, uncertainty with its coverage factor):
 
 1. identity: certificate number (the version), camera, lens and sensor, method, facility,
-   issuer, dates of calibration and issue, valid until; focus and aperture;
+   issuer, dates of calibration and issue, valid until; focus and aperture; for a head of a
+   rig, the rig (every head's relative orientation to the reference with standard
+   uncertainties in arc seconds and mm, and its calibration's version);
 2. the calibrated interior orientation with standard uncertainties ``u`` and expanded
    uncertainties ``U = k u``, ``k = 2`` (:data:`COVERAGE_FACTOR`), and the focal lengths a
    user needs (:mod:`fieldcal.products.focal_length`): the model's ``f``, the effective
@@ -297,12 +299,13 @@ def acceptance(cal: Calibration, residuals, config: dict, change=None) -> dict:
 # the document
 # --------------------------------------------------------------------------------------
 def certificate_html(cal: Calibration, residuals, config: dict, *, change=None, previous_label=None,
-                     issued: dt.datetime | None = None) -> str:
+                     issued: dt.datetime | None = None, rig: dict | None = None) -> str:
     """The certificate's HTML (module docstring); ``change`` a
-    :class:`fieldcal.products.compare.Comparison` with the previous calibration or None."""
+    :class:`fieldcal.products.compare.Comparison` with the previous calibration or None;
+    ``rig`` the rig document of the rig version this calibration is a head of, or None."""
     issued = issued or dt.datetime.now(dt.UTC)
     return sections.page(cal, residuals, config, acceptance(cal, residuals, config, change),
-                         change=change, previous_label=previous_label, issued=issued)
+                         change=change, previous_label=previous_label, issued=issued, rig=rig)
 
 
 def check_outputs(out_dir, *, pdf: bool = False) -> None:
@@ -359,8 +362,8 @@ def write_certificate(lake, version: str, out_dir, config_path=None, *, pdf: boo
         raise InputError(f"cannot create the output folder: {e.strerror or e}", str(out)) from None
     page = out / FILES[0]
     tmp = out / f".{FILES[0]}.{os.getpid()}"
-    tmp.write_text(certificate_html(cal, residuals, config, change=change, previous_label=label),
-                   encoding="utf-8")
+    tmp.write_text(certificate_html(cal, residuals, config, change=change, previous_label=label,
+                                    rig=lake.rig_of(cal.document)), encoding="utf-8")
     os.replace(tmp, page)
     if not pdf:
         return page

@@ -311,6 +311,8 @@ def _adjustment(cal: Calibration, residuals) -> list[str]:
                    [[_num(adj["sigma0"], ".4g"), f'<td class="num">{adj["redundancy"]}</td>',
                      f'<td class="num">{adj["n_equations"]}</td>', f'<td class="num">{adj["n_unknowns"]}</td>',
                      f'<td class="num">{E(fig)}</td>']]),
+            *([f'<p id="eccentricity">{E(ecc[0].upper() + ecc[1:])}.</p>']
+              if (ecc := content.eccentricity_text(cal)) else []),
             _coverage(cal, residuals)]
 
 
@@ -447,8 +449,31 @@ def _summary(cal: Calibration, foc: dict, acc: dict) -> str:
             f"calibrated focal length (balanced distortion) c = {c:.4f} mm &mdash; which to use: section 2.</div>")
 
 
+def _rig(cal: Calibration, rig: dict | None) -> str:
+    """Section 1's rig (a head of a rig): each head's relative orientation, ``u`` in arcsec and mm."""
+    if rig is None:
+        return ""
+    rows = []
+    for r in content.rig_rows(rig):
+        ref = r["role"] == "reference"
+        me = " (this certificate)" if r["version"] == cal.version else ""
+        rows.append([f"<td>{E(r['camera_id'] + me)}</td>", f"<td>{E(r['role'])}</td>",
+                     f"<td>{E(r['version'])}</td>",
+                     *(_num(a, ".5f") for a in r["opk_deg"]),
+                     *(("<td>&mdash;</td>",) * 3 if ref else (_num(v, ".2f") for v in r["sigma_rotation_arcsec"])),
+                     *(_num(v, ".2f") for v in r["t_mm"]),
+                     *(("<td>&mdash;</td>",) * 3 if ref else (_num(v, ".2f") for v in r["sigma_t_mm"]))])
+    return (f"<h3>The rig</h3><p>A head of rig <b>{E(str(rig['rig_id']))}</b> (rig version {E(str(rig['version']))}, "
+            f"reference head {E(str(rig['reference']))}): every head calibrated in one adjustment with its "
+            "relative orientation to the reference, R_camera_to_rig = Rz(κ) Ry(φ) Rx(ω) and the lever arm t; u of "
+            "a small rotation about the rig frame's x, y, z axes [arcsec] and of t [mm].</p>"
+            + _table(["head", "role", "calibration version", "ω [°]", "φ [°]", "κ [°]", "u x ['']",
+                      "u y ['']", "u z ['']", "t x [mm]", "t y [mm]", "t z [mm]", "u x [mm]", "u y [mm]",
+                      "u z [mm]"], rows, "keep corr"))
+
+
 def page(cal: Calibration, residuals, config: dict, acc: dict, *, change, previous_label,
-         issued: dt.datetime) -> str:
+         issued: dt.datetime, rig: dict | None = None) -> str:
     """The whole certificate (:mod:`fieldcal.products.certificate`)."""
     reach = content.data_radius_mm(cal, residuals)
     foc = focal_lengths(cal, reach)
@@ -458,7 +483,7 @@ def page(cal: Calibration, residuals, config: dict, acc: dict, *, change, previo
         f"<title>{E(title)} {E(cal.version)}</title>", f"<style>{_css(cal, config)}</style></head><body>",
         f"<h1>{E(title)}</h1>", f'<p class="certno">Certificate No. <span>{E(cal.version)}</span></p>',
         _summary(cal, foc, acc),
-        "<h2>1. Identity</h2>", _identity(cal, config, issued),
+        "<h2>1. Identity</h2>", _identity(cal, config, issued), _rig(cal, rig),
         "<h2>2. Calibrated interior orientation</h2>", _interior(cal),
         '<p class="small">Image-plane frame: origin at the sensor centre, x right, y up; pixel frame: '
         "u right, v down, the centre of the top-left pixel at (0, 0) (docs/conventions.md). u: standard "

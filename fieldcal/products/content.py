@@ -18,6 +18,12 @@ and :mod:`fieldcal.products.certificate` only lay them out.
 - :func:`data_radius_mm`: how far from the principal point the data reach (beyond, the
   model is extrapolated).
 - :func:`previous_version`: the calibration of the same camera acquired before this one.
+- :func:`rig_rows`: the rig a head's calibration belongs to (its rig document, CONTRACT
+  section 3 "Rig sessions"): per head its calibration's version, ``R_camera_to_rig`` as
+  ``omega, phi, kappa`` [deg] (``R = Rz(kappa) Ry(phi) Rx(omega)``), the sigmas of a small
+  rotation about the rig frame's axes [arcsec], the lever arm and its sigmas [mm].
+- :func:`eccentricity_text`: the perspective eccentricity of the discs (``stats.eccentricity``):
+  the largest correction applied [px] and how the targets' normals were obtained.
 - :data:`MODEL_EQUATIONS`: the camera model ``fieldcal-brown/1`` in text.
 """
 
@@ -34,7 +40,7 @@ from fieldcal.products.uncertainty import Calibration, decentering_curve, radial
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
-           "check_points", "parse_time", "residual_format", "sig"]
+           "check_points", "parse_time", "residual_format", "sig", "rig_rows", "eccentricity_text"]
 
 MODEL_EQUATIONS = """\
 xb = x' - xp        yb = y' - yp        r^2 = xb^2 + yb^2
@@ -232,6 +238,31 @@ def check_points(cal: Calibration) -> dict | None:
     return dict(cp) if isinstance(cp, dict) else {"check points": cp}
 
 
+def eccentricity_text(cal: Calibration) -> str | None:
+    """One sentence on the perspective eccentricity of the discs (field method; docs/uncertainty.md
+    section 2): the largest correction applied and how the normals were obtained (given,
+    planar fit, estimated, none); None for a document without ``stats.eccentricity``."""
+    ecc = (cal.document.get("stats") or {}).get("eccentricity")
+    if cal.method != "field" or not isinstance(ecc, dict):
+        return None
+    counts = ecc.get("n_targets") or {}
+    how = ", ".join(f"{k} ({v} targets)" for k, v in counts.items()) if counts else str(ecc.get("normals", "none"))
+    if not ecc.get("applied"):
+        why = ecc.get("reason") or "no target normal determined"
+        text = f"perspective eccentricity of the discs not corrected ({why}); target normals: {how}"
+    else:
+        text = (f"perspective eccentricity of the discs corrected: largest correction {sig(ecc.get('max_px'))} px; "
+                f"target normals: {how}")
+    bound = ecc.get("uncorrected_bound_max_px")
+    if ecc.get("n_left_out"):
+        text += (f"; {ecc['n_left_out']} disc centres of undetermined normal (eccentricity up to {sig(bound)} px) "
+                 "left out")
+    elif isinstance(ecc.get("bias_bound"), dict) and ecc["bias_bound"].get("f_mm") is not None:
+        text += (f"; discs of undetermined normal (eccentricity up to {sig(bound)} px) not corrected: the bias "
+                 f"they can cause, up to {sig(1000 * ecc['bias_bound']['f_mm'])} µm in f, is in the sigmas")
+    return text
+
+
 def parse_time(value) -> dt.datetime | None:
     if value is None:
         return None
@@ -253,3 +284,19 @@ def previous_version(lake, cal: Calibration) -> str | None:
     from fieldcal.lake import order
 
     return order.previous(lake.camera_rows(str(cal.document.get("camera_id"))), cal.version)
+
+
+def rig_rows(rig: dict) -> list[dict]:
+    """One row per head of a rig document (module docstring), the reference first as listed."""
+    from fieldcal.model.rotations import opk_from_R_world_to_camera
+
+    rows = []
+    for h in rig["heads"]:
+        R = np.asarray(h["R_camera_to_rig"], float)
+        rows.append({"camera_id": h["camera_id"], "version": h["version"],
+                     "role": "reference" if h["camera_id"] == rig["reference"] else "head",
+                     "opk_deg": [float(a) for a in np.degrees(opk_from_R_world_to_camera(R.T))],
+                     "sigma_rotation_arcsec": [float(v) for v in h["sigma_rotation_arcsec"]],
+                     "t_mm": [1000.0 * float(v) for v in h["t_camera_in_rig_m"]],
+                     "sigma_t_mm": [float(v) for v in h["sigma_t_mm"]], "rmse_px": h.get("rmse_px")})
+    return rows

@@ -5,6 +5,8 @@
 as ``<out>/<name>.png``. The report holds:
 
 - what the calibration is (camera, session, version, method, dates, inputs' fingerprint);
+- for a head of a rig, the rig: every head's relative orientation with its sigmas [arcsec,
+  mm] and calibration version (:func:`fieldcal.products.report_sections.rig_section`);
 - what went in and what was left out, and why (images, frames, observations rejected as
   blunders, surveyed coordinates rejected, parameters held fixed);
 - the parameter table: values, a-posteriori sigmas, units, ``|value| / sigma``; parameters
@@ -180,6 +182,8 @@ def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
                        f"{st.get('n_targets')} targets in the final adjustment")
         went_in.append("surveyed target coordinates entered as weighted observations"
                        if st.get("targets_adjusted") else "surveyed target coordinates held fixed")
+        if (ecc := content.eccentricity_text(cal)) is not None:
+            went_in.append(ecc)
         detailed = st.get("left_out") if isinstance(st.get("left_out"), list) else None
         named = set()
         for item in detailed or []:
@@ -552,9 +556,10 @@ def _figures_section(figures_png: dict, captions: dict) -> list[str]:
 
 
 def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captions: dict, *,
-                previous: Calibration | None = None, change=None) -> str:
+                previous: Calibration | None = None, change=None, rig: dict | None = None) -> str:
     """The report's HTML (self-contained: PNGs as data URIs); ``previous`` the camera's
-    calibration before this one and ``change`` the comparison with it (or None)."""
+    calibration before this one and ``change`` the comparison with it (or None); ``rig`` the
+    rig document of the rig version this calibration is a head of (or None)."""
     doc = cal.document
     e = html.escape
     title = f"fieldcal report: {doc.get('camera_id')} / {doc.get('session_id')}"
@@ -564,6 +569,7 @@ def render_html(cal: Calibration, residuals: pa.Table, figures_png: dict, captio
            f"<p>Version <code>{e(cal.version)}</code>, {e(cal.method)} method, model "
            f"{e(str(doc.get('model')))}.</p>"]
     out += _meta_section(cal)
+    out.append(sections.rig_section(cal, rig))
     out += _inputs_section(cal, residuals)
     out += _parameters_section(cal)
     out.append(sections.model_equations())
@@ -618,8 +624,8 @@ def write_report(lake, version: str, out_dir) -> ReportFiles:
         paths[name] = out / f"{name}.png"
         paths[name].write_bytes(pngs[name])
     page = out / "report.html"
-    page.write_text(render_html(cal, residuals, pngs, captions, previous=previous, change=change),
-                    encoding="utf-8")
+    page.write_text(render_html(cal, residuals, pngs, captions, previous=previous, change=change,
+                                rig=lake.rig_of(cal.document)), encoding="utf-8")
     return ReportFiles(page, paths)
 
 

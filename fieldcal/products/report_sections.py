@@ -4,7 +4,8 @@ Each function returns an HTML fragment (``<h2>`` and its tables) for
 :func:`fieldcal.products.report.render_html`: the interior orientation in pixels and the
 model's equations (:mod:`fieldcal.products.content`), the exterior orientations with their
 sigmas, the precision of the adjusted targets and the survey residuals (field method), and
-the previous calibration of the same camera with the change test.
+the previous calibration of the same camera with the change test, and the rig the camera
+was calibrated in (a head of a rig).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from fieldcal.products import content
 from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["interior_px", "model_equations", "exterior_table", "targets_section", "previous_section",
-           "table", "validation_section"]
+           "table", "validation_section", "rig_section"]
 
 
 def _num(x, fmt: str = ".4g") -> str:
@@ -214,3 +215,33 @@ def validation_section(cal: Calibration) -> str:
         out.append(table(["station", "images", "RMS move [px]", "max move [px]", "predicted RMS [px]",
                           "chi2 / dof", "p", ""], rows, table_id="cross-validation"))
     return "\n".join(out)
+
+
+def rig_section(cal: Calibration, rig: dict | None) -> str:
+    """The rig this calibration is a head of (its rig version's relative orientations, with
+    sigmas, and every head's calibration version); empty for a single camera."""
+    if rig is None:
+        return ""
+    e = html.escape
+
+    def three(v, fmt):
+        return ", ".join(format(x, fmt) for x in v)
+
+    rows = []
+    for r in content.rig_rows(rig):
+        me = " (this calibration)" if r["version"] == cal.version else ""
+        ref = r["role"] == "reference"
+        rows.append([f"<td>{e(r['camera_id'])}{e(me)}</td>", f"<td><code>{e(r['version'])}</code></td>",
+                     f"<td>{e(r['role'])}</td>", e(three(r["opk_deg"], ".5f")),
+                     "&mdash;" if ref else e(three(r["sigma_rotation_arcsec"], ".2g")),
+                     e(three(r["t_mm"], ".2f")), "&mdash;" if ref else e(three(r["sigma_t_mm"], ".2g")),
+                     _num(r["rmse_px"], ".3g")])
+    return (f'<h2 id="rig">The rig</h2><p>This camera is a head of rig <b>{e(str(rig["rig_id"]))}</b>, '
+            f"calibrated together with its other heads (rig version <code>{e(str(rig['version']))}</code>, "
+            f"session {e(str(rig['session_id']))}, reference head {e(str(rig['reference']))}, "
+            f"{rig['stats'].get('n_exposures')} exposures). Relative orientation of each head to the "
+            "reference: <code>R_camera_to_rig</code> as ω, φ, κ (R = Rz(κ) Ry(φ) Rx(ω)) with the sigmas "
+            "of a small rotation about the rig frame's x, y, z axes, and the lever arm "
+            "<code>t_camera_in_rig</code> (docs/conventions.md).</p>"
+            + table(["head", "calibration version", "role", "ω, φ, κ [deg]", "σ rotation x, y, z [arcsec]",
+                     "lever arm x, y, z [mm]", "σ lever arm [mm]", "rmse [px]"], rows, table_id="rig"))

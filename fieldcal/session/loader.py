@@ -39,12 +39,14 @@ import os
 import posixpath
 import stat
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
+import numpy as np
+
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField
+from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
 from fieldcal.session.fingerprint import sha256_file
@@ -65,7 +67,7 @@ from fieldcal.session.tables import (
 __all__ = [
     "Session", "load_session", "safe_path", "default_session_id", "check_distinct_files",
     "read_targets_csv", "read_observations_csv", "read_marks_csv", "field_data_from_observations",
-    "parse_acquired", "read_manifest", "check_acquired_not_ahead", "ACQUIRED_AHEAD",
+    "parse_acquired", "read_manifest", "check_acquired_not_ahead", "ACQUIRED_AHEAD", "with_field_normal",
 ]
 
 MANIFEST = "session.json"
@@ -110,6 +112,7 @@ class Session:
     target_diameter_mm: float | None = None
     target_polarity: str = "dark"
     coded: dict | None = None
+    target_normal: tuple[float, float, float] | None = None
     extras: dict = field(default_factory=dict)
     check_points: tuple[str, ...] = ()
     store: SessionStore | None = None
@@ -123,7 +126,7 @@ class Session:
         if self.targets_path is None:
             raise InputError("not a field-method session (no targets.csv)", str(self.folder / MANIFEST))
         if "targets" not in self._read:
-            self._read["targets"] = read_targets_csv(self.targets_path)
+            self._read["targets"] = with_field_normal(read_targets_csv(self.targets_path), self.target_normal)
         return copy.deepcopy(self._read["targets"])
 
     def marks(self, targets: TargetField | None = None) -> dict:
@@ -205,6 +208,17 @@ def check_acquired_not_ahead(acquired: datetime, now: datetime, where: str) -> N
         raise InputError(f"'acquired' {acquired.isoformat().replace('+00:00', 'Z')} is after now "
                          f"({now.replace(microsecond=0).isoformat().replace('+00:00', 'Z')}) plus "
                          f"{ACQUIRED_AHEAD.days} day: a typo? (at /acquired)", where)
+
+
+def with_field_normal(targets: TargetField, normal) -> TargetField:
+    """``targets`` with the session's ``field.target_normal`` for every target whose normal
+    targets.csv does not give (per-target normals take precedence, docs/conventions.md section 3)."""
+    if normal is None:
+        return targets
+    N = np.full((len(targets), 3), np.nan) if targets.normals is None else targets.normals.copy()
+    unknown = ~np.isfinite(N).all(axis=1)
+    N[unknown] = np.asarray(normal, float)
+    return replace(targets, normals=N)
 
 
 def parse_acquired(text: str, where: str) -> datetime:
@@ -528,6 +542,11 @@ def load_session(folder, store: SessionStore | None = None) -> Session:
         sess.target_diameter_mm = fld.get("target_diameter_mm")
         sess.target_polarity = fld.get("target_polarity", "dark")
         sess.coded = fld.get("coded")
+        if fld.get("target_normal") is not None:
+            if (why := normal_problem(fld["target_normal"])) is not None:
+                raise InputError(f"field.target_normal {why} (at /field/target_normal)", where)
+            n = np.asarray(fld["target_normal"], float)
+            sess.target_normal = tuple(float(x) for x in n / np.linalg.norm(n))
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
         sess.strict_targets = bool(fld.get("strict_targets", False))
         sess.datum = str(fld.get("datum", "auto"))

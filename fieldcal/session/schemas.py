@@ -48,7 +48,22 @@ def validate_json(document, name: str, where: str) -> None:
         if err.validator == "oneOf" and err.context:   # the alternative of the value's type
             err = _closest(err.context)
         pointer = "/" + "/".join(str(p) for p in err.absolute_path)
-        raise InputError(f"{_message(err)} (at {pointer})", where)
+        missing = _missing_here(errors, err)
+        message = (f"required properties {', '.join(map(repr, missing))} are missing" if len(missing) > 1
+                   else _message(err))
+        raise InputError(f"{message} (at {pointer})", where)
+
+
+def _missing_here(errors, first) -> list[str]:
+    """Every required property missing at ``first``'s place (one message names them all)."""
+    if first.validator != "required":
+        return []
+    names: list[str] = []
+    for e in errors:
+        if e.validator == "required" and list(e.absolute_path) == list(first.absolute_path) \
+                and isinstance(e.instance, dict):
+            names += [n for n in e.validator_value if n not in e.instance and n not in names]
+    return names
 
 
 def _closest(errors):

@@ -53,7 +53,14 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_TARGET_SIGMA_MM, FieldImage, FieldObservations, ScaleBars, TargetField
+from fieldcal.field.data import (
+    DEFAULT_TARGET_SIGMA_MM,
+    FieldImage,
+    FieldObservations,
+    ScaleBars,
+    TargetField,
+    normal_problem,
+)
 from fieldcal.model.camera import Sensor
 from fieldcal.session.names import check_name, first_invalid, normal_file_name
 from fieldcal.session.schemas import shown
@@ -373,7 +380,7 @@ def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
     names of the kind ``label`` (:mod:`fieldcal.session.names`), unique; codes unique.
     ``tokeniser``: see :func:`read_csv_table`.
     """
-    t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code"), kind="targets.csv",
+    t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code") + NORMAL_COLUMNS, kind="targets.csv",
                        tokeniser=tokeniser)
     ids = t.text("id")
     if (k := first_invalid(ids, "label")) is not None:
@@ -389,7 +396,35 @@ def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
         raise InputError("X, Y, Z must all be given (a surveyed target) or all be empty (an "
                          "unsurveyed one)", t.where(k))
     sigma = _positive(t, _numbers(t, "sigma_mm", default=DEFAULT_TARGET_SIGMA_MM), "sigma_mm")
-    return TargetField(np.array(ids, dtype=str), xyz, sigma, _codes(t))
+    return TargetField(np.array(ids, dtype=str), xyz, sigma, _codes(t), _normals(t))
+
+
+NORMAL_COLUMNS = ("nx", "ny", "nz")
+"""targets.csv's optional columns of a target's unit normal (docs/conventions.md section 3)."""
+
+
+def _normals(t: CsvTable) -> np.ndarray | None:
+    """The ``nx,ny,nz`` columns: (n, 3) unit normals, NaN rows where empty; None without the columns."""
+    present = [c for c in NORMAL_COLUMNS if c in t.columns]
+    if not present:
+        return None
+    if len(present) < 3:
+        missing = [c for c in NORMAL_COLUMNS if c not in t.columns]
+        raise InputError(f"the normal columns nx,ny,nz come together: {','.join(present)} without "
+                         f"{','.join(missing)}", t.path)
+    N = np.column_stack([_numbers(t, c, default=np.nan) for c in NORMAL_COLUMNS])
+    given = np.isfinite(N)
+    if (k := _first(given.any(axis=1) & ~given.all(axis=1))) is not None:
+        raise InputError("nx, ny, nz must be given together (all three, or all empty for an unknown normal)",
+                         t.where(k))
+    for k in np.flatnonzero(given.all(axis=1)):
+        if (why := normal_problem(N[k])) is not None:
+            raise InputError(f"the normal nx,ny,nz {why}", t.where(int(k)))
+    if not given.any():
+        return None
+    rows = given.all(axis=1)
+    N[rows] /= np.linalg.norm(N[rows], axis=1, keepdims=True)
+    return N
 
 
 def _image_index(t: CsvTable, images: list[FieldImage], allow_new: bool, what: str) -> np.ndarray:

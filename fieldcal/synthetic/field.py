@@ -30,7 +30,7 @@ from fieldcal.field.data import FieldData, FieldImage, FieldObservations, Target
 from fieldcal.model.camera import Camera, Sensor
 
 __all__ = [
-    "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field",
+    "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field", "faceted_field",
     "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
     "MIN_SHARED_TARGETS", "check_point_ids",
 ]
@@ -266,6 +266,55 @@ def wide_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: f
                      survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=15.0,
                      target_diameter_mm=20.0, marker_size_mm=120.0, nominal_focal_mm=24.0,
                      settings={"scenario": "wide"})
+
+
+def faceted_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 5.0,
+                  camera: Camera | None = None, yaws_deg=(30.0, -20.0, 35.0, -30.0, 15.0),
+                  columns: int = 6, spacing_m: float = 0.35) -> SyntheticField:
+    """The wide-angle camera of :func:`wide_field` in front of a folded wall: vertical panels
+    ``columns * spacing_m`` wide, each turned about the vertical by its ``yaws_deg`` (a zig-zag:
+    each panel starts where the previous one ends), 4 m high, targets on a ``spacing_m`` grid
+    in every panel (the first and last column half a spacing from the folds), plane normals
+    of the panels (facing the cameras, south). 8 stations x 3 rolls = 24 convergent images
+    from 5-7 m. Targets face several directions: the normals are not one vector."""
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(6000, 4000, 3.9), WIDE_ANGLE)
+    width = columns * spacing_m
+    yaw = np.radians(np.asarray(yaws_deg, float))
+    along = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1)     # in-plane, horizontal
+    starts = np.vstack([[0.0, 0.0, 0.0], np.cumsum(width * along, axis=0)[:-1]])
+    starts -= [0.5 * width * along[:, 0].sum(), 0.0, 0.0]
+    a = (np.arange(columns) + 0.5) * spacing_m
+    z = np.arange(0.2, 4.05, spacing_m)
+    xyz, normals = [], []
+    for p in range(len(yaw)):
+        aa, zz = np.meshgrid(a, z)
+        pts = starts[p] + aa.ravel()[:, None] * along[p] + zz.ravel()[:, None] * [0.0, 0.0, 1.0]
+        xyz.append(pts)
+        normals.append(np.tile(np.cross(along[p], [0.0, 0.0, 1.0]), (len(pts), 1)))   # towards -Y
+    xyz, normals = np.vstack(xyz), np.vstack(normals)
+    per = columns * len(z)
+    k = np.arange(len(xyz)) % per
+    coded = ((k // len(z)) % 3 == 1) & ((k % len(z)) % 3 == 1)
+    codes = np.full(len(xyz), -1, np.int64)
+    codes[coded] = np.arange(coded.sum())
+    ids = np.array([f"F{i + 1:04d}" for i in range(len(xyz))])
+    targets = TargetField(ids, xyz, 0.0, codes, normals)
+    poses, names = [], []
+    station_xy = [(-4.0, -5.5), (-1.5, -6.5), (1.5, -6.5), (4.0, -5.5),
+                  (-3.0, -5.0), (0.0, -5.5), (3.0, -5.0), (0.0, -7.0)]
+    heights = [0.8, 2.0, 3.2, 1.2, 3.0, 1.0, 2.5, 2.0]
+    cy = float(np.mean(xyz[:, 1]))
+    for s, ((x, y), h) in enumerate(zip(station_xy, heights, strict=True)):
+        C = np.array([x, y + cy, h])
+        for roll_deg in (0.0, 90.0, 270.0):
+            aim = np.array([0.35 * x + rng.normal(0, 0.4), cy, 2.0 + rng.normal(0, 0.3)])
+            poses.append((look_at(C, aim, np.radians(roll_deg + rng.normal(0, 3.0))), C))
+            names.append(f"S{s + 1}")
+    return _simulate("faceted", cam, targets, poses, names, image_noise_px=image_noise_px,
+                     survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=15.0,
+                     target_diameter_mm=20.0, marker_size_mm=120.0, nominal_focal_mm=24.0,
+                     settings={"scenario": "faceted"})
 
 
 MIN_SHARED_TARGETS = 30

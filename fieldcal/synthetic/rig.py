@@ -32,7 +32,8 @@ from fieldcal.rig.data import RigData, RigHead
 from fieldcal.rig.poses import head_pose
 from fieldcal.synthetic.field import WIDE_ANGLE, look_at, wide_field
 
-__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "rig_visible", "write_rig_session"]
+__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "rig_visible", "write_rig_session", "head_field",
+           "write_rig_image_session"]
 
 SECOND_HEAD = {"f_mm": 20.0, "xp_mm": -0.04, "yp_mm": 0.06, "k1": 6.0e-5, "k2": -8.0e-8, "k3": 3.0e-11,
                "p1": -6.0e-6, "p2": 9.0e-6, "a1": 0.0, "a2": -3.0e-5}
@@ -245,3 +246,79 @@ def write_rig_session(folder, sr: SyntheticRig, *, session_id: str | None = None
         w.writerow(["image", "target_id", "u", "v", "sigma_px"])
         w.writerows(obs_rows)
     return folder
+
+
+def head_field(sr: SyntheticRig, h: int, exposures=None):
+    """Head ``h`` of a synthetic rig as a single camera's
+    :class:`~fieldcal.synthetic.field.SyntheticField` (the renderer's input): the head's true
+    camera and exterior orientations (the rig poses composed with its relative orientation) at
+    ``exposures`` (indices; default every exposure), and the exact images of the targets it
+    sees. Its images are named ``images/<exposure>_<head>.tif`` as in :func:`write_rig_session`."""
+    from fieldcal.synthetic.field import SyntheticField
+
+    e = np.arange(len(sr.R_world_to_rig)) if exposures is None else np.asarray(list(exposures), np.int64)
+    cam = sr.cameras[h]
+    R, C = head_pose(sr.R_world_to_rig[e], sr.C_rig_m[e], sr.R_camera_to_rig[h], sr.t_camera_in_rig_m[h])
+    img, tgt, uv = rig_visible(cam, R, C, sr.targets_true.xyz_m, sr.targets_true.normals, margin_px=15.0)
+    head = sr.data.heads[h].camera_id.rsplit("-", 1)[-1]
+    images = [FieldImage(f"images/{sr.data.exposures[k]}_{head}.tif", None) for k in e]
+    data = FieldData(sensor=cam.sensor, targets=sr.data.targets, images=images,
+                     obs=FieldObservations(img, tgt, uv, np.full(len(img), 0.1)),
+                     nominal_focal_mm=sr.data.heads[h].nominal_focal_mm, default_sigma_px=0.1)
+    return SyntheticField(f"{sr.name}-{head}", cam, sr.targets_true, R, C, uv, data, sr.target_diameter_mm,
+                          sr.marker_size_mm, dict(sr.settings))
+
+
+def write_rig_image_session(folder, sr: SyntheticRig, *, scale: float = 0.2, exposures=None, plain=(),
+                            session_id: str | None = None, acquired: str = "2026-11-20T09:00:00Z",
+                            seed: int = 0, psf_sigma_px: float = 0.8) -> dict:
+    """A rig session of rendered images (no observations.csv; CONTRACT section 3, "Rig sessions").
+
+    Every head is rendered (:func:`fieldcal.synthetic.render.render_image`) on a sensor of
+    ``scale`` times its pixels (the same field of view, :func:`~fieldcal.synthetic.render.scaled_field`:
+    the discs grow so that they keep their size in pixels; the markers as far as their quiet
+    zones allow, the same for every head), at ``exposures`` (indices; default all). ``plain``:
+    ``(head index, exposure index)`` pairs whose image shows its coded targets as plain discs (an
+    image with no code to start its identification from). ``targets.csv`` holds the surveyed
+    coordinates and the codes (the targets' plane normals, for the eccentricity correction, are
+    ``sr.targets_true.normals``). Returns ``{"folder", "images", "scaled"}`` (``scaled``: per head
+    the scaled :class:`~fieldcal.synthetic.field.SyntheticField`, its truth).
+    """
+    import json
+
+    import tifffile
+
+    from fieldcal.synthetic.render import ARUCO_DICTIONARY, render_image, scaled_field
+
+    folder = Path(folder)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    d = sr.data
+    e = np.arange(len(sr.R_world_to_rig)) if exposures is None else np.asarray(list(exposures), np.int64)
+    fields = [scaled_field(head_field(sr, h, e), scale) for h in range(d.n_heads)]
+    marker_mm = min(f.marker_size_mm for f in fields)
+    fields = [scaled_field(head_field(sr, h, e), scale, marker_size_mm=marker_mm) for h in range(d.n_heads)]
+    plain = {(int(h), int(x)) for h, x in plain}
+    images, cameras = [], []
+    for h, sf in enumerate(fields):
+        cameras.append({"camera_id": d.heads[h].camera_id, "sensor": sf.camera.sensor.to_dict(),
+                        "lens": {"nominal_focal_mm": d.heads[h].nominal_focal_mm}})
+        for i, k in enumerate(e):
+            r = render_image(sf, i, seed=seed, coded=(h, int(k)) not in plain, psf_sigma_px=psf_sigma_px)
+            tifffile.imwrite(folder / sf.data.images[i].file, r.pixels)
+            images.append({"file": sf.data.images[i].file, "camera": d.heads[h].camera_id,
+                           "exposure": d.exposures[k]})
+    manifest = {"schema": "fieldcal.session/1", "method": "field", "session_id": session_id or folder.name,
+                "acquired": acquired,
+                "rig": {"rig_id": d.rig_id, "reference": d.heads[d.reference].camera_id, "cameras": cameras},
+                "field": {"targets": "targets.csv", "target_diameter_mm": float(fields[0].target_diameter_mm),
+                          "target_polarity": "dark",
+                          "coded": {"type": "aruco", "dictionary": ARUCO_DICTIONARY,
+                                    "marker_size_mm": round(marker_mm, 6)}},
+                "images": images}
+    (folder / "session.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    t = d.targets
+    rows = ["id,X,Y,Z,sigma_mm,code"] + [
+        f"{t.ids[k]},{t.xyz_m[k, 0]:.6f},{t.xyz_m[k, 1]:.6f},{t.xyz_m[k, 2]:.6f},{t.sigma_mm[k]:.3f},"
+        f"{int(t.codes[k]) if t.codes[k] >= 0 else ''}" for k in range(len(t))]
+    (folder / "targets.csv").write_text("\n".join(rows) + "\n")
+    return {"folder": str(folder), "images": [im["file"] for im in images], "scaled": fields}

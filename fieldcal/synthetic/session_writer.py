@@ -83,7 +83,7 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
                         session_id: str | None = None, acquired: str = "2026-11-20T09:30:00Z",
                         nominal_focal_mm: float | None = None, marks_error_px: float = 0.5,
                         marks_per_image: tuple[int, int] = (4, 6), marks_images=None,
-                        check_points=None, **render_kw) -> dict:
+                        check_points=None, normals: str | None = None, **render_kw) -> dict:
     """Write a complete field session (docs/conventions.md section 3) of a synthetic problem.
 
     Parameters
@@ -121,6 +121,9 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
     check_points : sequence of str, optional
         Target ids the manifest names as independent check points (``check_points``; e.g.
         :func:`fieldcal.synthetic.field.check_point_ids`).
+    normals : {None, "columns", "session"}
+        Write the targets' true normals: targets.csv's ``nx,ny,nz`` columns, or the manifest's
+        ``field.target_normal`` (every target must face the same way); None writes none.
 
     Returns
     -------
@@ -141,8 +144,15 @@ def write_field_session(folder, sf: SyntheticField, *, images: bool = True,
     session = _manifest(folder, sf, idx, coded, polarity, camera_id, session_id, acquired, nominal_focal_mm)
     if check_points:
         session["check_points"] = [str(t) for t in check_points]
+    if normals not in (None, "columns", "session"):
+        raise InputError(f"normals must be None, 'columns' or 'session', got {normals!r}")
+    N = sf.targets_true.normals
+    if normals == "session":
+        if N is None or not np.allclose(N, N[0], atol=1e-12):
+            raise InputError("normals='session' needs every target to face the same way")
+        session["field"]["target_normal"] = [float(x) for x in N[0]]
     (folder / "session.json").write_text(json.dumps(session, indent=2) + "\n")
-    _write_tables(folder, sf, idx, coded, observations_csv)
+    _write_tables(folder, sf, idx, coded, observations_csv, normals == "columns")
     marks = None
     if marks_csv:
         in_marks = idx if marks_images is None else np.asarray(list(marks_images), np.int64)
@@ -193,12 +203,16 @@ def _manifest(folder, sf, idx, coded, polarity, camera_id, session_id, acquired,
     return session
 
 
-def _write_tables(folder, sf, idx, coded, observations_csv) -> None:
-    """targets.csv (the surveyed coordinates) and, when asked, observations.csv."""
+def _write_tables(folder, sf, idx, coded, observations_csv, normal_columns=False) -> None:
+    """targets.csv (the surveyed coordinates, the true normals with ``normal_columns``) and,
+    when asked, observations.csv."""
     t = sf.data.targets
-    _write_csv(folder / "targets.csv", ["id", "X", "Y", "Z", "sigma_mm", "code"],
+    N = sf.targets_true.normals
+    _write_csv(folder / "targets.csv", ["id", "X", "Y", "Z", "sigma_mm", "code"]
+               + (["nx", "ny", "nz"] if normal_columns else []),
                [[t.ids[k], _fmt(t.xyz_m[k, 0], 6), _fmt(t.xyz_m[k, 1], 6), _fmt(t.xyz_m[k, 2], 6),
                  _fmt(t.sigma_mm[k], 3), str(int(t.codes[k])) if coded and t.codes[k] >= 0 else ""]
+                + ([_fmt(N[k, j], 6) for j in range(3)] if normal_columns else [])
                 for k in range(len(t))])
     if observations_csv:
         obs = sf.data.obs

@@ -154,8 +154,8 @@ def test_pipeline_solve_serves_image_sessions(run):
     out = solve(run["prepared"], run["measurements"], fingerprint_="sha256:" + "0" * 64, left_out=run["bad"])
     doc = out.document
     assert doc["stats"]["n_images"] == len(IMAGES)
-    # the pipeline knows no target normals in a 3-D field: no eccentricity correction (~0.01 px
-    # here), so f moves by a fraction of its sigma
+    # the session gives no target normals: the pipeline estimates them (local planes, the
+    # ellipses' shapes), so f agrees with the fixture's (true normals) to a fraction of its sigma
     assert abs(doc["parameters"]["f_mm"] - run["result"].params[0]) < run["result"].sigma["f_mm"]
     # 10 %: each run estimates its own floor of the image sigmas (variance components); here the
     # fixture's residuals ask for 0.0017 px (re-weighted, sigma f +6 %), the pipeline's for less

@@ -70,12 +70,13 @@ def test_four_control_points_and_unsurveyed_targets_give_the_surveyed_cases_came
 
 def test_interior_orientation_does_not_depend_on_the_datum(results):
     free = results["free"]
-    for label in ("free, 1 bar", "free, 2 bars"):
+    for label in ("free, 1 bar",):       # two bars are one length more: tests/field/test_scale_bars.py
         res = results[label]
         for name in CORE:
             j = INDEX[name]
-            # round-off: 1e-6 of a sigma (the same image points, another datum)
-            assert abs(res.params[j] - free.params[j]) < 1e-6 * free.sigma[name], (label, name)
+            # the same image points, another datum (a minimal scale): another solve, which stops
+            # within sigma_tol (1e-3) of a sigma of the optimum; the sigmas to 1e-6
+            assert abs(res.params[j] - free.params[j]) < 1e-3 * free.sigma[name], (label, name)
             assert res.sigma[name] == pytest.approx(free.sigma[name], rel=1e-6), (label, name)
     control = results["control"]
     for name in CORE:
@@ -298,7 +299,8 @@ def test_intersection_of_exact_rays_is_the_truth(field):
 
 def test_dbat_sheet_with_four_control_points_is_datum_invariant():
     """The real DBAT sheet (PhotoModeler's marks): 1001-1004 surveyed (0.001 units), 96 targets
-    unsurveyed; the free network scaled by two sides gives the same camera."""
+    unsurveyed; the free network scaled by one side gives the same camera; two sides are one
+    length more, which the photographs agree with (not rejected)."""
     from tests.realdata import dbat_field_data
 
     pm = dbat_field_data()
@@ -309,13 +311,16 @@ def test_dbat_sheet_with_four_control_points_is_datum_invariant():
     k = data.targets.index()
     bars = ScaleBars([k["1001"], k["1003"]], [k["1002"], k["1001"]], [1000.0, 1000.0], [0.1, 0.1])
     control = adjust_field(data)
-    free = adjust_field(replace(data, scale_bars=bars), AdjustmentOptions(datum="free"))
+    one = ScaleBars(bars.from_target[:1], bars.to_target[:1], bars.length_mm[:1], bars.sigma_mm[:1])
+    free = adjust_field(replace(data, scale_bars=one), AdjustmentOptions(datum="free"))
+    two = adjust_field(replace(data, scale_bars=bars), AdjustmentOptions(datum="free"))
     assert control.stats()["n_unsurveyed_targets"] == 96
     for name in CORE:
         assert abs(control.params[INDEX[name]] - free.params[INDEX[name]]) < 0.05 * free.sigma[name], name
         assert control.sigma[name] == pytest.approx(free.sigma[name], rel=0.02), name
     assert control.sigma["f_mm"] < 0.002                  # mm: 0.6 px of 3.19 um
-    for bar in free.stats()["datum"]["scale_bars"]:
+    assert two.stats()["datum"]["rejected_scale_bars"] == []
+    for bar in two.stats()["datum"]["scale_bars"]:
         assert abs(bar["adjusted_mm"] - bar["length_mm"]) < 4 * np.hypot(bar["sigma_mm"], bar["sigma_adjusted_mm"])
 
 

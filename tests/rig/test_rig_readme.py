@@ -24,7 +24,8 @@ def test_the_rig_section_of_the_readme_runs_as_written(tmp_path, capsys):
               "RIG.json": tmp_path / "rig.json"}
     versions = []
     lines = rig_lines()
-    assert [shlex.split(ln)[1] for ln in lines] == ["synth", "synth", "run", "run", "compare"]
+    assert [shlex.split(ln)[1] for ln in lines] == ["synth", "synth", "run", "run", "compare", "history"]
+    outputs = {}
     for line in lines:
         values.update(RIG_V1=versions[0] if versions else "", RIG_V2=versions[-1] if versions else "")
         argv = [str(values.get(a, a)) for a in shlex.split(line, comments=True)[1:]]
@@ -33,6 +34,9 @@ def test_the_rig_section_of_the_readme_runs_as_written(tmp_path, capsys):
         assert status == 0, f"{line}\n{out.err}"
         if argv[0] == "run":
             versions.append(out.out.strip())
+        outputs[argv[0]] = out.out
     assert json.loads((tmp_path / "rig.json").read_text())["version"] == versions[0]
-    result = json.loads(out.out)
+    result = json.loads(outputs["compare"])
     assert result["kind"] == "rig" and result["flagged"] is False
+    rows = outputs["history"].splitlines()[2:]                   # the header and its rule first
+    assert [r.split()[2] for r in rows] == ["bar2-right", "bar2-right"]

@@ -167,6 +167,13 @@ SCHEMA = [
     ("coded_dictionary", ("obs", ("field", "coded"), {"type": "aruco", "dictionary": "DICT_9X9_7",
                                                       "marker_size_mm": 100}),
      r"unknown ArUco dictionary 'DICT_9X9_7' .*\(at /field/coded/dictionary\)"),
+    ("normal_short", ("obs", ("field", "target_normal"), [0.0, -1.0]), r"is too short \(at /field/target_normal\)"),
+    ("normal_text", ("obs", ("field", "target_normal"), [0.0, "-1", 0.0]),
+     r"'-1' is not of type 'number' \(at /field/target_normal/1\)"),
+    ("normal_not_unit", ("obs", ("field", "target_normal"), [0.0, -2.0, 0.0]),
+     r"field\.target_normal must be a unit vector, got \[0\.0, -2\.0, 0\.0\] of length 2 \(at /field/target_normal\)"),
+    ("normal_zero", ("obs", ("field", "target_normal"), [0, 0, 0]),
+     r"field\.target_normal must be a unit vector, got \[0\.0, 0\.0, 0\.0\] of length 0"),
     ("estimate_unknown", ("obs", ("estimate",), ["f_mm", "zoom"]), r"'zoom' is not one of .* \(at /estimate/1\)"),
     ("estimate_twice", ("obs", ("estimate",), ["f_mm", "f_mm"]), r"has non-unique elements \(at /estimate\)"),
     ("session_id", ("obs", ("session_id",), "../elsewhere"), r"\(at /session_id\)"),
@@ -288,8 +295,27 @@ def _append_copy(k):
     return lambda text: text + text.splitlines()[k] + "\n"
 
 
+def _with_normals(k, normal):
+    """targets.csv with columns nx,ny,nz (every target facing -Y), line ``k``'s set to ``normal``."""
+    def change(text):
+        lines = text.splitlines()
+        lines = [lines[0] + ",nx,ny,nz"] + [r + ",0,-1,0" for r in lines[1:]]
+        lines[k] = ",".join(lines[k].split(",")[:-3] + normal.split(","))
+        return "\n".join(lines) + "\n"
+    return change
+
+
 TABLES = [
     # (id, template, file, change(text) -> text, named as, message)
+    ("normals_not_unit", "obs", "targets.csv", _with_normals(3, "0,-1.5,0"), "targets.csv:4",
+     r"the normal nx,ny,nz must be a unit vector, got \[0\.0, -1\.5, 0\.0\] of length 1\.5"),
+    ("normals_partial", "obs", "targets.csv", _with_normals(2, "0,,0"), "targets.csv:3",
+     r"nx, ny, nz must be given together"),
+    ("normals_text", "obs", "targets.csv", _with_normals(5, "0,south,0"), "targets.csv:6",
+     r"'ny' is not a number: 'south'"),
+    ("normals_nan", "obs", "targets.csv", _with_normals(5, "nan,0,1"), "targets.csv:6", r"'nx' is not finite: 'nan'"),
+    ("normals_no_nz", "obs", "targets.csv", lambda t: _with_normals(1, "0,-1,0")(t).replace(",nz\n", ",n\n", 1),
+     "targets.csv", r"the normal columns nx,ny,nz come together: nx,ny without nz"),
     ("targets_zero_bytes", "obs", "targets.csv", lambda t: "", "targets.csv", r"empty file \(expected a header line"),
     ("targets_no_X", "obs", "targets.csv", _edit_line(0, lambda h: h.replace(",X,", ",x,")), "targets.csv",
      r"missing column\(s\) \['X'\]"),

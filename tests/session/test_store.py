@@ -113,7 +113,7 @@ def test_a_remote_field_session_keeps_its_marks_and_names_bad_input_by_its_url(s
 
     (folder / "session.json").write_text('{"schema": "fieldcal.session/1"}')
     url = upload(s3_server, folder, "stores/cam-m/broken")
-    with pytest.raises(InputError, match=f"^{url}/session.json: .*required property"):
+    with pytest.raises(InputError, match=f"^{url}/session.json: .*required propert"):
         pipeline.prepare(url, storage_options=s3_server.storage_options)
     with pytest.raises(InputError, match="session folder not found"):
         pipeline.prepare(s3_server.url("stores/nothing-here"), storage_options=s3_server.storage_options)
