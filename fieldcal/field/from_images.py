@@ -344,14 +344,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
     if referencing is not None:
         data, result = _referenced(run, data, result, second, keep2, referencing)
-    bound = data.meta.get("eccentricity_bound_px")
-    if bound is not None and len(bound) == len(result.data.obs) and np.any(bound > 0):
-        result, moves = with_bias_bounds(result, eccentricity_bias_bounds(
-            result, bound > 0, run.session.target_diameter_mm / 2000.0))
-        ecc_summary["bias_bound"] = moves
-        run.say("the uncorrected discs can move f by up to "
-                f"{1000 * moves.get('f_mm', float('nan')):.3g} um: added in quadrature to its sigma "
-                f"(now {1000 * result.sigma['f_mm']:.3g} um)")
+    result = _with_eccentricity_bound(run, data, result, ecc_summary)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
     if ecc_max:
@@ -364,6 +357,21 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
             " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
     return data, result, report
+
+
+def _with_eccentricity_bound(run, data: FieldData, result: FieldResult, ecc_summary: dict) -> FieldResult:
+    """``result`` with what the uncorrected discs' eccentricity can do added in quadrature to
+    the sigmas (:mod:`fieldcal.field.sensitivity`; recorded in ``ecc_summary["bias_bound"]``)."""
+    bound = data.meta.get("eccentricity_bound_px")
+    if bound is None or len(bound) != len(result.data.obs) or not np.any(bound > 0):
+        return result
+    result, moves = with_bias_bounds(result, eccentricity_bias_bounds(
+        result, bound > 0, run.session.target_diameter_mm / 2000.0))
+    ecc_summary["bias_bound"] = moves
+    run.say("the uncorrected discs can move f by up to "
+            f"{1000 * moves.get('f_mm', float('nan')):.3g} um: added in quadrature to its sigma "
+            f"(now {1000 * result.sigma['f_mm']:.3g} um)")
+    return result
 
 
 REASON_MISFIT = "does not fit the other images"
