@@ -27,6 +27,9 @@ when the document, the residual table or an array is bad). Then:
    draws another id);
 2. the Zarr group, with the SHA-256 of every array in its attributes;
 3. the version's residual rows are appended to ``residuals``;
+   then every part is read back and verified (:func:`fieldcal.lake.check.read_back`: the
+   document byte for byte, each array against its SHA-256, the residual rows counted): a
+   part lost meanwhile fails the commit, no row ever points to nothing (issue 24);
 4. the catalog row is committed to ``catalog``: **the commit point**. Readers see a
    version only through its catalog row; the residuals view of :mod:`fieldcal.lake.history`
    keeps only rows of versions in the catalog (as of the same time), so rows of a version
@@ -34,7 +37,9 @@ when the document, the residual table or an array is bad). Then:
 
 One version per fingerprint: a commit appends its catalog row with a Delta transaction
 identifier naming the fingerprint (:meth:`fieldcal.lake.tables.Tables.append` ``once=``),
-unless the catalog's log has that identifier already. Delta's conflict check fails the
+unless the catalog's log has that identifier already. When the versions of the fingerprint
+do not read back whole (a folder removed), the identifier is the fingerprint *after* the
+latest of them, so a rerun makes one new version (:meth:`Lake.committed_whole`). Delta's conflict check fails the
 second of two concurrent commits of one fingerprint; it then finds the first's row, removes
 its own parts and returns the first's version (``Committed.new`` False). The check reads
 the log only, not the catalog's rows: a catalog from before (rows without identifiers)
