@@ -123,6 +123,9 @@ class SessionPlan:
         The inputs' fingerprint when every image's hash is known, else None.
     unchanged : str or None
         The committed version made from this fingerprint (the run is a no-op), else None.
+    not_whole : dict
+        ``{version: reason}`` of committed versions of this fingerprint that do not read
+        back whole (:meth:`Lake.committed_whole`): the run calibrates again (issue 24).
     """
 
     hashes: dict[str, str]
@@ -132,6 +135,7 @@ class SessionPlan:
     todo: list[str] = field(default_factory=list)
     fingerprint: str | None = None
     unchanged: str | None = None
+    not_whole: dict[str, str] = field(default_factory=dict)
 
 
 def missing_images(prepared: pipeline.Prepared, known: dict[str, str] | None = None) -> dict[str, str]:
@@ -201,6 +205,7 @@ def plan_session(prepared: pipeline.Prepared, lake, known: dict[str, str] | None
     plan = SessionPlan(hashes=hashes, missing=missing)
     if len(hashes) == len(prepared.to_measure):
         plan.fingerprint, found = unchanged_version(prepared, lake, hashes)
+        plan.not_whole = dict(lake.not_whole)
         if not force:
             plan.unchanged = found
     if plan.unchanged is not None or not find_cached:

@@ -6,6 +6,8 @@ image) in one line, so the CLI can print ``str(err)`` and exit non-zero.
 
 from __future__ import annotations
 
+import re
+
 
 class FieldcalError(Exception):
     """Base class of every error fieldcal raises on purpose."""
@@ -44,13 +46,21 @@ class LakeError(FieldcalError):
     """The lake cannot be read or written consistently."""
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")
+_ARROW = re.compile(r"\s*↳\s*")
+_BACKTRACE = re.compile(r"\s*(Stack backtrace:\s*)?\b0: (<unknown>|\S+( at \S+)?)\s+1: .*$", re.S)
+
+
 def one_line(error) -> str:
     """One line describing an exception (its text, else its class name) or a text.
 
-    White space, newlines included, is folded to single spaces.
+    White space, newlines included, is folded to single spaces. Terminal colour codes and a
+    Rust backtrace (delta-rs appends ``0: <unknown> 1: ...`` frames to some errors) are
+    dropped, and delta-rs's ``↳`` between causes becomes ``:`` (issue 24, goal 3).
     """
     if isinstance(error, BaseException):
         text = str(error) or type(error).__name__
     else:
         text = str(error)
+    text = _ARROW.sub(": ", _BACKTRACE.sub("", _ANSI.sub("", text)))
     return " ".join(text.split())

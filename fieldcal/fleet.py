@@ -46,7 +46,9 @@ class FoundSession:
 
     ``has_images`` is False for a field session with ``observations.csv`` (nothing to
     measure); ``error`` is the one-line reason it does not load (then the ids are None);
-    ``version`` is its latest committed version once :func:`select_sessions` has looked.
+    ``version`` is its latest committed version once :func:`select_sessions` has looked;
+    ``note`` why a session with a committed version is calibrated again (that version does
+    not read back whole: its folder removed, a partial restore; issue 24).
     A rig session has ``rig`` True, ``camera_id`` the rig's id, ``heads`` its heads' camera
     ids and, once committed, ``head_versions`` their calibrations' versions (of the rig version).
     """
@@ -61,6 +63,7 @@ class FoundSession:
     rig: bool = False
     heads: list | None = None
     head_versions: list | None = None
+    note: str | None = None
 
 
 def root_filesystem(root: str, storage_options: dict | None = None):
@@ -157,18 +160,20 @@ def scan_sessions(root: str, storage_options: dict | None = None) -> list[FoundS
 
 
 def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
-    """The sessions without a committed calibration; sets ``version`` of the others (latest).
+    """The sessions without a committed calibration that reads back whole; sets ``version``
+    of the others (latest).
 
     ``lake`` is a :class:`fieldcal.lake.store.Lake`; sessions that did not load are neither
     selected nor given a version. A session is its camera, ``session_id`` and acquisition
     time (:func:`fieldcal.lake.order.session_key`): ``ROOT/2026-01/wall`` and
-    ``ROOT/2026-02/wall`` (no ``session_id``) are two.
+    ``ROOT/2026-02/wall`` (no ``session_id``) are two. A session whose latest version does
+    not read back whole (:meth:`Lake.whole`) is selected, with the reason in its ``note``.
     """
     rows: dict = {}
-    for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS]).to_pylist():
+    for r in lake.catalog().select(["camera_id", *order.ROW_COLUMNS, "document_path", "zarr_path"]).to_pylist():
         rows.setdefault((r["camera_id"], *order.session_key(r)), []).append(r)
     rigs = {(r["rig_id"], r["session_id"]): r for r in lake.rig_catalog().to_pylist()}   # oldest first
-    todo = []
+    todo, calibrated = [], []
     for s in found:
         if s.error:
             continue
@@ -182,10 +187,19 @@ def select_sessions(found: list[FoundSession], lake) -> list[FoundSession]:
         # same-named folders: told apart by acquisition (a version without one: by its name)
         mine = rows.get((s.camera_id, s.session_id, s.acquired)) or rows.get((s.camera_id, s.session_id, None))
         if mine:
-            s.version = order.latest(mine)
+            latest = order.latest(mine)
+            calibrated.append((s, next(r for r in mine if r["version"] == latest)))
         else:
             todo.append(s)
-    return todo
+    for s, row in calibrated:
+        why = lake.whole(row["version"], row)
+        if why is None:
+            s.version = row["version"]
+        else:
+            s.note = f"version {row['version']} does not read back whole ({why}): calibrated again"
+            todo.append(s)
+    pos = {id(s): i for i, s in enumerate(found)}
+    return sorted(todo, key=lambda s: pos[id(s)])                 # in the order found
 
 
 def entry(s: FoundSession, status: str | None = None, reason: str | None = None) -> dict:
@@ -235,7 +249,10 @@ def summarize(lake: str, root: str, found: list[FoundSession], results: dict | N
     def status(s):
         return "failed" if s.error else "calibrated already" if s.version else "to calibrate"
 
-    entries = [results.get(id(s)) or entry(s, status(s), s.error) for s in found]
+    entries = [results.get(id(s)) or entry(s, status(s), s.error or s.note) for s in found]
+    for s in found:
+        if s.note and id(s) in results and not results[id(s)].get("reason"):
+            results[id(s)]["reason"] = s.note
     return {
         "lake": str(lake), "root": str(root), "sessions": entries, "n_found": len(entries),
         "n_committed": sum(r["status"] == "committed" for r in entries),

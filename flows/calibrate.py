@@ -284,9 +284,12 @@ def commit_version(lake: str, storage_options: dict | None, outcome: pipeline.Ou
     """Commit the outcome as one immutable version; returns ``(version, new)``."""
     from prefect.runtime import flow_run
 
-    v = Lake(lake, storage_options).commit(outcome.document, outcome.arrays, outcome.residuals,
-                                           force=force, array_attrs=outcome.array_attrs,
-                                           info={"flow_run_id": flow_run.id, "flow": flow_run.flow_name})
+    store = Lake(lake, storage_options)
+    v = store.commit(outcome.document, outcome.arrays, outcome.residuals,
+                     force=force, array_attrs=outcome.array_attrs,
+                     info={"flow_run_id": flow_run.id, "flow": flow_run.flow_name})
+    for p in dict.fromkeys(str(p) for p in store.problems):      # damage met and stepped over (issue 24)
+        get_run_logger().warning(f"lake: {p} (see `fieldcal lake check` and `fieldcal lake repair`)")
     return str(v), bool(v.new)
 
 
@@ -590,7 +593,7 @@ def _solve_and_commit(run: _Run, fp: str, force: bool) -> dict:
     run.logger.info(f"{'committed' if new else 'unchanged'}: version {version}")
     out = dict(run.base(), version=version, new=new, status="committed" if new else "unchanged", fingerprint=fp,
                images=run.counts, left_out=left, summary=list(outcome.summary), measure=run.measured,
-               timings=run.timings, published=None)
+               timings=run.timings, published=None, not_whole=dict(run.plan.not_whole))
     if new:
         t = time.perf_counter()
         try:
@@ -695,7 +698,13 @@ def calibrate_session(session: str, lake: str, storage_options: dict | None = No
         return _unchanged(run, run.plan.unchanged, run.plan.fingerprint)
     if run.plan.todo:
         _measure(run, dask_address, n_workers, cluster_kwargs, batch_size)
-    fp, existing = batch.unchanged_version(run.prepared, Lake(lake, storage_options), run.plan.hashes)
+    probe = Lake(lake, storage_options)
+    fp, existing = batch.unchanged_version(run.prepared, probe, run.plan.hashes)
     if existing is not None and not force:
         return _unchanged(run, existing, fp)
+    run.plan.not_whole.update(probe.not_whole)
+    for version, why in run.plan.not_whole.items():
+        run.logger.warning(f"version {version} of these inputs does not read back whole ({why}): "
+                           "calibrating again")
+        progress.emit("note", text=f"version {version} of these inputs does not read back whole: calibrating again")
     return _solve_and_commit(run, fp, force)

@@ -115,6 +115,9 @@ def _report_run(result: dict, args, human: bool) -> None:
     err = sys.stderr
     for item in result["left_out"]:
         print(f"fieldcal run: left out {item.get('image')}: {one_line(item.get('reason'))}", file=err)
+    for version, why in (result.get("not_whole") or {}).items():
+        print(f"fieldcal run: version {version} of these inputs does not read back whole ({one_line(why)}): "
+              "calibrated again", file=err)
     if human:
         for line in result["summary"]:
             print(line, file=err)
@@ -750,7 +753,9 @@ def main(argv=None) -> int:
             if not verbose:
                 warnings.simplefilter("ignore")
             server.prepare_environment()
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        common.report_skipped(f"fieldcal {args.command}")      # what the readers skipped (issue 24)
+        return status
     except KeyboardInterrupt:
         print(f"fieldcal {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -765,6 +770,8 @@ def main(argv=None) -> int:
         line, status = common.error_line(args.command, e, verbose=verbose)
         print(line, file=sys.stderr)
         return status
+    finally:
+        common.forget_opened()
 
 
 def console() -> None:

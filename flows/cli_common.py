@@ -30,7 +30,8 @@ from fieldcal.errors import FieldcalError, InputError, one_line
 from fieldcal.lake import secrets
 
 __all__ = ["UsageError", "LAKE_ENV", "OPTIONS_ENV", "EXIT_ERROR", "EXIT_USAGE", "add_lake_arguments",
-           "lake_arguments", "flow_options", "open_lake", "require_lake", "known_cameras", "require_camera",
+           "lake_arguments", "flow_options", "open_lake", "report_skipped", "forget_opened", "require_lake",
+           "known_cameras", "require_camera",
            "resolve_version", "check_output_file", "add_overwrite_argument", "write_output", "check_input_file",
            "is_tty", "progress_sink", "describe", "error_line", "shown_columns", "check_lake_target"]
 
@@ -142,15 +143,45 @@ def require_lake(lake) -> None:
     _refuse_other_folder(lake, names)
 
 
+_OPENED: list = []
+_REPORTED: set = set()
+
+
 def open_lake(args, *, must_exist: bool = True):
-    """The :class:`fieldcal.lake.store.Lake` of the arguments; by default it must exist."""
+    """The :class:`fieldcal.lake.store.Lake` of the arguments; by default it must exist.
+
+    The lake is remembered: :func:`report_skipped` names what its readers skipped."""
     from fieldcal.lake.store import Lake
 
     url, options = lake_arguments(args)
     lake = Lake(url, options)
     if must_exist:
         require_lake(lake)
+    _OPENED.append(lake)
     return lake
+
+
+def forget_opened() -> None:
+    """Forget the lakes :func:`open_lake` opened and what was reported (a command ended)."""
+    _OPENED.clear()
+    _REPORTED.clear()
+
+
+def report_skipped(name: str, lakes=None, stream=None) -> None:
+    """One line per damaged object the readers of a command skipped, once each (issue 24,
+    goal 3: ``show``, ``history --fleet``, ``export``... say what they left out; the command
+    still succeeds). ``lakes``: these (default: every lake :func:`open_lake` opened)."""
+    import sys
+
+    stream = stream or sys.stderr
+    for lake in (_OPENED if lakes is None else lakes):
+        for p in getattr(lake, "problems", []):
+            text = str(p)
+            if text not in _REPORTED:
+                _REPORTED.add(text)
+                print(f"{name}: skipped {text} (see `fieldcal lake check`)", file=stream)
+    if lakes is None:
+        _OPENED.clear()
 
 
 def _closest(name: str, candidates, what: str) -> str:

@@ -1,4 +1,4 @@
-"""Lake commands of the ``fieldcal`` CLI: ``lake log|optimize|vacuum|check|migrate`` and ``gc``.
+"""Lake commands of the ``fieldcal`` CLI: ``lake log|optimize|vacuum|check|repair|migrate`` and ``gc``.
 
 ``fieldcal lake log [--table T] [--limit N]``
     The commits of the lake's Delta tables, newest first: time, table, operation, and
@@ -13,6 +13,13 @@
     travel (``--as-of``) to before the retention then fails. A dry run unless ``--apply``.
 ``fieldcal lake check``
     Every damaged object and what depends on it; exit status 1 when there is any.
+``fieldcal lake repair [--apply]``
+    Restore consistency (:mod:`fieldcal.lake.repair`): damaged or missing table files and
+    log entries are quarantined (moved to ``LAKE/quarantine/``, never deleted) and taken out
+    of their table, a lost document is written again from its Zarr group, a version that
+    cannot be restored leaves the catalog (kept in the quarantine), and the rows of whole
+    versions that damage hid are restored. A dry run unless ``--apply``; exit status 1 when
+    ``lake check`` still finds damage afterwards.
 ``fieldcal lake migrate OLD --lake NEW``
     Bring a lake of the first layout (one Parquet file per version) into NEW and verify it
     row for row.
@@ -48,9 +55,9 @@ def _open(args):
 
 def report_problems(lake, name: str, stream=None) -> None:
     """One line per damaged object a reader skipped (the command still succeeds)."""
-    stream = stream or sys.stderr
-    for p in dict.fromkeys(str(p) for p in getattr(lake, "problems", [])):
-        print(f"{name}: skipped {p} (see `fieldcal lake check`)", file=stream)
+    from flows.cli_common import report_skipped
+
+    report_skipped(name, [lake], stream)
 
 
 def _run(fn):
@@ -134,6 +141,7 @@ def _check(args) -> int:
 
     lake = _open(args)
     damage = check(lake)
+    lake.problems.clear()                       # listed as damage, not as skipped
     for d in damage:
         print(str(d))
     if damage:
@@ -141,6 +149,27 @@ def _check(args) -> int:
         return 1
     print(f"{lake.url}: no damage found")
     return 0
+
+
+@_run
+def _repair(args) -> int:
+    from fieldcal.lake.check import check
+    from fieldcal.lake.repair import repair
+
+    lake = _open(args)
+    done = repair(lake, apply=args.apply)
+    lake.problems.clear()                       # listed as repairs, not as skipped
+    for r in done:
+        print(str(r))
+    if not args.apply:
+        print(f"{len(done)} repair(s) to make in {lake.url}" + (" (dry run: --apply to make them)" if done else ""))
+        return 0
+    left = check(type(lake)(lake.url, lake.storage.storage_options))
+    for d in left:
+        print(f"fieldcal lake repair: still damaged: {d}", file=sys.stderr)
+    rest = "no damage left" if not left else f"{len(left)} damaged object(s) left"
+    print(f"{len(done)} repair(s) made in {lake.url}; {rest}")
+    return 1 if left else 0
 
 
 @_run
@@ -206,7 +235,8 @@ def add_commands(subparsers) -> None:
     """Register ``lake`` (log, optimize, vacuum, check, migrate) and ``gc``."""
     from fieldcal.lake.history import FORMATS
 
-    lake_p = subparsers.add_parser("lake", help="the lake's tables: log, optimize, vacuum, check, migrate, fill")
+    lake_p = subparsers.add_parser("lake", help="the lake's tables: log, optimize, vacuum, check, repair, migrate, "
+                                   "fill")
     sub = lake_p.add_subparsers(dest="lake_command", metavar="ACTION", required=True)
 
     p = sub.add_parser("log", help="the commits of the lake's tables, newest first (who, what, when)")
@@ -232,6 +262,11 @@ def add_commands(subparsers) -> None:
     p = sub.add_parser("check", help="list every damaged object and what depends on it")
     _add_lake(p)
     p.set_defaults(func=_check)
+
+    p = sub.add_parser("repair", help="quarantine damaged files, restore what can be restored (dry run)")
+    _add_lake(p)
+    p.add_argument("--apply", action="store_true", help="repair (default: only list)")
+    p.set_defaults(func=_repair)
 
     p = sub.add_parser("migrate", help="bring a lake of the first layout into --lake and verify it")
     p.add_argument("old", help="the lake of the first layout (path or URL)")

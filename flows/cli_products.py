@@ -457,7 +457,8 @@ def _history(args) -> int:
     lake = open_lake(args)
     if args.fleet:
         table = fleet_summary(lake, tolerance_um=args.tolerance_um, alpha=args.alpha,
-                              start=getattr(args, "start", None), end=getattr(args, "end", None))
+                              start=getattr(args, "start", None), end=getattr(args, "end", None),
+                              as_of=getattr(args, "as_of", None))
         fmt = getattr(args, "format", None) or "text"
         from flows.cli_common import shown_columns
 

@@ -27,7 +27,7 @@ from fieldcal.errors import LakeError
 from fieldcal.lake.parts import array_digest, reason
 from fieldcal.lake.tables import TABLES
 
-__all__ = ["check", "verify_group", "Damage"]
+__all__ = ["check", "verify_group", "read_back", "open_group", "unreadable_files", "Damage"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +70,82 @@ def verify_group(lake, rel: str, group, version: str) -> None:
                             + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
         raise LakeError(f"version {version}: array {rel}/{name} does not match the SHA-256 "
                         "recorded at its commit (damaged chunk)")
+
+
+def open_group(lake, rel: str, version: str):
+    """A version's Zarr group, read-only (LakeError in one line when it cannot be opened)."""
+    import zarr
+
+    try:
+        return zarr.open_group(store=lake.storage.zarr_store(rel, read_only=True), mode="r")
+    except (OSError, FileNotFoundError, ValueError, KeyError) as e:
+        raise LakeError(f"version {version}: cannot open {lake.uri(rel)}: {reason(e)}") from None
+
+
+def read_back(lake, version: str, document_path: str, zarr_path: str, *, document: bytes | None = None,
+              residuals: tuple[str, int] | None = None) -> str | None:
+    """Why a version's parts do not read back whole, or None when they do (issue 24, goal 1).
+
+    The document must exist, parse and name ``version`` (with ``document``: be exactly those
+    bytes); the Zarr group must open, record a SHA-256 for each of its arrays and every array
+    must match it (:func:`verify_group`); with ``residuals`` (``(camera_id, n_rows)``, at the
+    commit) the residuals table must hold exactly ``n_rows`` readable rows of the version.
+    A commit runs this before its catalog row (the commit point), a rerun before it answers
+    "unchanged" with an existing version.
+    """
+    try:
+        data = lake.storage.read(document_path)
+    except FileNotFoundError:
+        return f"its document {document_path} is missing"
+    except OSError as e:
+        return f"its document {document_path} cannot be read: {reason(e)}"
+    if document is not None and data != document:
+        return f"its document {document_path} does not read back as written"
+    try:
+        doc = json.loads(data)
+    except ValueError as e:
+        return f"its document {document_path} is not JSON: {reason(e)}"
+    if not isinstance(doc, dict) or doc.get("version") != version:
+        return f"{document_path} is not its document"
+    try:
+        group = open_group(lake, zarr_path, version)
+        digests = group.attrs.get("digests")
+        if document is not None and (not isinstance(digests, dict)
+                                     or set(digests) != set(group.attrs.get("arrays") or [])):
+            return f"its Zarr group {zarr_path} does not record the SHA-256 of each array"
+        verify_group(lake, zarr_path, group, version)
+    except LakeError as e:
+        return str(e).removeprefix(f"version {version}: ")
+    if residuals is not None:
+        return _residuals_back(lake, version, *residuals)
+    return None
+
+
+def _residuals_back(lake, version: str, camera_id: str, n_rows: int) -> str | None:
+    import pyarrow.dataset as ds
+
+    before = len(lake.problems)
+    t = lake.tables.scan("residuals", filter=ds.field("version") == version, columns=["version"],
+                         partition={"camera_id": camera_id}, equal={"version": version})
+    if len(lake.problems) > before:
+        return f"its residual rows cannot be read back: {lake.problems[-1]}"
+    if t.num_rows != n_rows:
+        return f"{t.num_rows} of its {n_rows} residual row(s) read back"
+    return None
+
+
+def unreadable_files(lake, name: str) -> list[tuple[str, str]]:
+    """``(lake-relative path, reason)`` of the table's live data files that cannot be read."""
+    if lake.tables.open(name) is None:
+        return []
+    fs = lake.tables.open(name).to_pyarrow_dataset().filesystem
+    out = []
+    for add in lake.tables.files(name):
+        try:
+            lake.tables.read_file(name, add, fs)
+        except (OSError, pa.ArrowException) as e:
+            out.append((f"{name}/{add['path']}", reason(e)))
+    return out
 
 
 def _table_damage(lake, name: str) -> list[Damage]:
@@ -125,6 +201,19 @@ def _version_damage(lake, row: dict) -> list[Damage]:
     return out
 
 
+def _hidden_versions(lake, catalogued: set[str]) -> list[Damage]:
+    """Versions the catalog's log names as committed whose document is there but whose row
+    is not (a damaged file or a quarantined commit took it): ``lake repair`` restores them."""
+    from fieldcal.lake.gc import logged_versions, walk_calibrations
+
+    named = logged_versions(lake) - catalogued
+    if not named:
+        return []
+    return [Damage(rel, "committed (the catalog's log names it) but the catalog has no row for it",
+                   f"version {stem} is hidden from every reader (`fieldcal lake repair --apply` restores it)")
+            for rel, _, stem in walk_calibrations(lake) if stem in named and rel.endswith(".json")]
+
+
 def _rig_damage(lake, row: dict, catalogued: set) -> list[Damage]:
     """A rig version's document (readable, this version's, listing the row's heads) and its
     heads' calibration versions (catalogued)."""
@@ -155,6 +244,7 @@ def check(lake) -> list[Damage]:
     for row in catalog:
         out += _version_damage(lake, row)
     catalogued = {row["version"] for row in catalog}
+    out += _hidden_versions(lake, catalogued)
     for row in lake.rig_catalog().to_pylist():
         out += _rig_damage(lake, row, catalogued)
     seen, unique = set(), []

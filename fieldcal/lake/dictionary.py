@@ -222,6 +222,8 @@ def data_dictionary() -> str:
            "calibrations/C/S/V.json     the calibration document of version V (CONTRACT section 4)",
            "calibrations/C/S/V.zarr     Zarr v3 group: parameters, sigma, covariance, correlation,",
            "                            exterior/*, correction_field, grid_u_px, grid_v_px",
+           "quarantine/                 damaged files moved aside by fieldcal (never read; see",
+           "                            `fieldcal lake repair`)",
            "```", "", _READING, _RESIDUALS, "## Tables", ""]
     for name in TABLES:
         part = ", ".join(PARTITIONS[name]) or "not partitioned"

@@ -10,19 +10,26 @@ removes those older than a grace period (which must exceed the longest commit in
 It lists folders one level at a time and never uses a path as a glob pattern, so a lake at
 ``x/lake[ab]`` cannot touch ``x/lakea``. Delta's own unreferenced files are
 :func:`fieldcal.lake.maintenance.vacuum`'s.
+
+Age by the store's clock (issue 24, goal 1): a part's age is the store's time now (the
+modification time of a probe file gc writes, :meth:`Storage.now`) minus the newest
+modification time of anything of that version (its document, every file of its Zarr
+group), both as the store records them. The time in a version id is the *writer's* clock
+and is never used: a writer whose clock is a day behind makes ids that look a day old.
+A version named committed by the catalog's own log (its commits record the version) is
+never collected, even when a damaged catalog file hides its row (``fieldcal lake repair``
+restores the row).
 """
 
 from __future__ import annotations
 
-import time
-
-import pyarrow.compute as pc
+import re
 
 from fieldcal.errors import InputError, LakeError
-from fieldcal.lake.ids import ID_PATTERN, VERSION_PATTERN, utcnow, version_time
+from fieldcal.lake.ids import ID_PATTERN, VERSION_PATTERN
 from fieldcal.lake.parts import reason
 
-__all__ = ["gc", "version_parts", "walk_calibrations", "walk_rigs"]
+__all__ = ["gc", "version_parts", "walk_calibrations", "walk_rigs", "logged_versions"]
 
 
 def _walk(lake, top: str):
@@ -49,17 +56,23 @@ def walk_rigs(lake):
     yield from _walk(lake, "rigs")
 
 
-def _doomed(lake, walk, committed: set, grace_s: float, now, cutoff: float) -> list[str]:
-    """The entries of ``walk`` of versions not in ``committed`` and old temporary files."""
+def _doomed(lake, walk, committed: set, cutoff: float) -> list[str]:
+    """The entries of ``walk`` of versions not in ``committed`` none of whose files was
+    modified after ``cutoff`` (the store's clock), and temporary files older than it."""
+    parts: dict[str, list[str]] = {}
     out = []
     for rel, name, stem in walk:
         if stem is not None and VERSION_PATTERN.fullmatch(stem):
-            if stem not in committed and _old(stem, grace_s, now):
-                out.append(rel)
+            if stem not in committed:
+                parts.setdefault(stem, []).append(rel)
         elif name.startswith(".") and name.endswith(".tmp"):
             mtime = lake.storage.mtime(rel)
-            if mtime is not None and mtime < cutoff:
+            if mtime is not None and mtime <= cutoff:
                 out.append(rel)
+    for rels in parts.values():
+        newest = _newest(lake, rels)
+        if newest is not None and newest <= cutoff:
+            out += rels
     return out
 
 
@@ -68,8 +81,42 @@ def version_parts(lake, versions: set[str]) -> list[str]:
     return [rel for rel, _, stem in walk_calibrations(lake) if stem in versions]
 
 
-def _old(version: str, grace_s: float, now) -> bool:
-    return (now - version_time(version)).total_seconds() > grace_s
+def logged_versions(lake) -> set[str]:
+    """Versions the catalog's commit log names as committed (``fieldcal.version`` of its
+    commit and migrate commits), and those named by catalog commit files moved to the
+    quarantine (even truncated ones): their rows may be hidden by damage, never gone."""
+    try:
+        entries = lake.tables.commits("catalog")
+    except Exception:  # noqa: BLE001 - a log that cannot be read: the catalog rows decide
+        entries = []
+    return {e["version"] for e in entries if e.get("action") in ("commit", "migrate")
+            and isinstance(e.get("version"), str)} | _quarantined_versions(lake)
+
+
+_LOGGED_VERSION = re.compile(r'"fieldcal\.version":"(\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4})"')
+
+
+def _quarantined_versions(lake) -> set[str]:
+    """Versions named by quarantined catalog commit files (a regular expression over the
+    text: a truncated file still names them)."""
+    from fieldcal.lake.tables import QUARANTINE
+
+    out = set()
+    store = lake.storage
+    for stamp in store.listdir(QUARANTINE):
+        log = f"{QUARANTINE}/{stamp}/catalog/_delta_log"
+        for name in store.listdir(log):
+            if name.endswith(".json"):
+                try:
+                    out |= set(_LOGGED_VERSION.findall(store.read(f"{log}/{name}").decode("utf-8", "replace")))
+                except OSError:
+                    continue
+    return out
+
+
+def _newest(lake, rels: list[str]) -> float | None:
+    times = [t for t in (lake.storage.newest_mtime(r) for r in rels) if t is not None]
+    return max(times) if times else None
 
 
 def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
@@ -79,8 +126,9 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
     ----------
     lake : fieldcal.lake.store.Lake
     grace_s : float
-        Only parts of versions whose id (commit time) is older than this are removed, and
-        temporary files older than this [s]; must exceed the longest commit in progress.
+        Only parts of versions none of whose files was modified in the last ``grace_s``
+        seconds (by the store's clock, module docstring) are removed, and temporary files
+        older than this [s]; must exceed the longest commit in progress.
     dry_run : bool
         Only list what would be removed.
 
@@ -93,18 +141,16 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
     """
     if not (grace_s >= 0):
         raise InputError(f"grace_s must be >= 0, got {grace_s}", "gc")
-    now = utcnow()
     committed = set(lake.tables.scan("catalog", columns=["version"])["version"].to_pylist())
     rigs = set(lake.tables.scan("rigs", columns=["version"])["version"].to_pylist())
     if lake.problems:
         raise LakeError(f"gc stops: the catalog or the rigs table of {lake.url} is damaged "
                         f"({lake.problems[0]}); run `fieldcal lake check`")
-    cutoff = time.time() - grace_s
-    doomed = (_doomed(lake, walk_calibrations(lake), committed, grace_s, now, cutoff)
-              + _doomed(lake, walk_rigs(lake), rigs, grace_s, now, cutoff))
-    res = lake.tables.scan("residuals", columns=["version"])
-    stray = sorted(v for v in pc.unique(res["version"]).to_pylist()
-                   if v not in committed and VERSION_PATTERN.fullmatch(v) and _old(v, grace_s, now))
+    committed |= logged_versions(lake)
+    cutoff = lake.storage.now() - grace_s
+    doomed = (_doomed(lake, walk_calibrations(lake), committed, cutoff)
+              + _doomed(lake, walk_rigs(lake), rigs, cutoff))
+    stray = _stray_residuals(lake, committed, cutoff)
     if dry_run:
         return doomed + [f"residuals: version={v}" for v in stray]
     for rel in doomed:
@@ -118,3 +164,22 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
         values = ", ".join("'" + v + "'" for v in stray)
         lake.tables.delete("residuals", f"version IN ({values})", {"action": "gc"})
     return doomed + [f"residuals: version={v}" for v in stray]
+
+
+def _stray_residuals(lake, committed: set[str], cutoff: float) -> list[str]:
+    """Uncommitted versions with residual rows whose parts are gone or older than the cutoff.
+
+    A commit creates its document before its residual rows, so a version in progress has
+    a document; it is looked for now (after the residuals were read), not in the earlier
+    listing, and its age comes from the store."""
+    res = lake.tables.scan("residuals", columns=["camera_id", "session_id", "version"])
+    keys = {}
+    for c, s, v in zip(*(res[k].to_pylist() for k in ("camera_id", "session_id", "version")), strict=True):
+        if v not in committed and VERSION_PATTERN.fullmatch(v):
+            keys.setdefault(v, (c, s))
+    out = []
+    for v, (c, s) in sorted(keys.items()):
+        newest = _newest(lake, [f"calibrations/{c}/{s}/{v}.json", f"calibrations/{c}/{s}/{v}.zarr"])
+        if newest is None or newest <= cutoff:
+            out.append(v)
+    return out

@@ -20,7 +20,7 @@ from collections.abc import Mapping
 import numpy as np
 import pyarrow as pa
 
-from fieldcal.errors import InputError
+from fieldcal.errors import InputError, one_line
 from fieldcal.lake.ids import parse_time, plain_json
 from fieldcal.model.camera import PARAM_NAMES, Sensor
 from fieldcal.products.correction import correction_grid
@@ -67,7 +67,7 @@ def reason(e: BaseException) -> str:
         text = e.strerror
     else:
         text = str(e) or type(e).__name__
-    return " ".join(text.split())
+    return one_line(text)
 
 
 def array_digest(arr: np.ndarray) -> str:

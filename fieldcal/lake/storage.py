@@ -4,7 +4,9 @@
 (the Zarr groups, the JSON documents, ``README.md``): atomic writes, exclusive creation,
 listing one folder (never a glob pattern: a lake may live at ``x/lake[ab]``), removal.
 Local writes go to a temporary file and are renamed into place; an exclusive write
-hard-links a complete temporary file (it fails if the name exists). fsspec writes are
+hard-links a complete temporary file (it fails if the name exists). Every file gets the
+mode the process's umask gives a new file (``0666 & ~umask``), like the Delta and Zarr
+files beside it, so that whoever may read the lake reads all of it (issue 24). fsspec writes are
 single PUTs, exclusive ones conditional (``If-None-Match: *`` on S3).
 
 :func:`delta_options` turns fsspec's S3 options into those of delta-rs (object_store):
@@ -20,7 +22,7 @@ import posixpath
 import shutil
 import tempfile
 
-__all__ = ["Storage", "delta_options", "check_root", "UNSAFE_PATH_CHARACTERS"]
+__all__ = ["Storage", "delta_options", "check_root", "process_umask", "UNSAFE_PATH_CHARACTERS"]
 
 UNSAFE_PATH_CHARACTERS = "[]^|#?%\\"
 """Characters a lake's path may not contain: delta-rs 1.6 parses a local path as a URL, so
@@ -62,6 +64,39 @@ def delta_options(storage_options: dict | None) -> dict[str, str]:
                    or "us-east-1")
     out.setdefault("conditional_put", "etag")
     return out
+
+
+def process_umask() -> int:
+    """The process's file mode creation mask, read without changing it (Linux
+    ``/proc/self/status``; elsewhere set and restored at once)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _info_time(info: dict) -> float | None:
+    """A modification time [s] from an fsspec ``info`` (local ``mtime``, S3 ``LastModified``)."""
+    import datetime as dt
+
+    for key in ("LastModified", "last_modified", "mtime", "modified", "updated"):
+        v = info.get(key)
+        if isinstance(v, dt.datetime):
+            return (v if v.tzinfo else v.replace(tzinfo=dt.UTC)).timestamp()
+        if isinstance(v, (int, float)):
+            return float(v)
+        if isinstance(v, str):
+            try:
+                return dt.datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
+            except ValueError:
+                continue
+    return None
 
 
 class Storage:
@@ -110,6 +145,7 @@ class Storage:
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(final)}.", suffix=".tmp", dir=folder)
         try:
+            os.fchmod(fd, 0o666 & ~process_umask())   # mkstemp makes 0600: the umask decides (issue 24)
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
                 f.flush()
@@ -137,6 +173,23 @@ class Storage:
                 return f.read()
         return self.fs.cat_file(self.path(rel))
 
+    def read_many(self, rels: list[str]) -> dict[str, bytes]:
+        """``{rel: bytes}`` of several files (concurrent requests on an object store); files
+        that do not exist are left out."""
+        if self.local:
+            out = {}
+            for rel in rels:
+                try:
+                    out[rel] = self.read(rel)
+                except FileNotFoundError:
+                    continue
+            return out
+        if not rels:
+            return {}
+        got = self.fs.cat([self.path(r) for r in rels], on_error="omit")
+        by_path = {self.path(r): r for r in rels}
+        return {by_path[p]: data for p, data in got.items() if p in by_path and isinstance(data, bytes)}
+
     def exists(self, rel: str) -> bool:
         if self.local:
             return os.path.exists(self.path(rel))
@@ -158,13 +211,64 @@ class Storage:
             return []
 
     def mtime(self, rel: str) -> float | None:
-        """Last modification time [s since the epoch] of a local file; None remotely."""
-        if not self.local:
-            return None
+        """Last modification time [s since the epoch] of a file as the store records it (the
+        file system's, or the object store's ``LastModified``); None when it does not exist."""
+        if self.local:
+            try:
+                return os.path.getmtime(self.path(rel))
+            except OSError:
+                return None
         try:
-            return os.path.getmtime(self.path(rel))
-        except OSError:
+            self.fs.invalidate_cache(self.path(rel))
+            return _info_time(self.fs.info(self.path(rel)))
+        except (OSError, ValueError):
             return None
+
+    def newest_mtime(self, rel: str) -> float | None:
+        """The latest modification time [s] of a file, or of a folder and anything in it, by
+        the store's clock; None when nothing is there."""
+        p = self.path(rel)
+        if self.local:
+            times = []
+            for folder, _, names in os.walk(p):
+                times.append(os.path.getmtime(folder))
+                times += [os.path.getmtime(os.path.join(folder, n)) for n in names
+                          if os.path.lexists(os.path.join(folder, n))]
+            return max(times) if times else self.mtime(rel)
+        self.fs.invalidate_cache(p)
+        try:
+            found = self.fs.find(p, detail=True)
+        except (OSError, ValueError):
+            found = {}
+        times = [t for t in (_info_time(i) for i in found.values()) if t is not None]
+        return max(times) if times else self.mtime(rel)
+
+    def now(self) -> float:
+        """The store's own clock [s since the epoch]: the modification time of a probe file
+        written now (so that gc never compares a writer's clock with its own; issue 24). A
+        store that cannot be written (a dry run on a read-only lake) gives this host's clock."""
+        import secrets
+        import time
+
+        rel = f".fieldcal-clock-{secrets.token_hex(4)}.tmp"
+        if self.local and not os.path.isdir(self.root):
+            return time.time()
+        try:
+            self.write(rel, b"")
+            t = self.mtime(rel)
+            self.remove(rel)
+        except OSError:
+            t = None
+        return time.time() if t is None else t
+
+    def move(self, rel: str, dest: str) -> None:
+        """Move a file or folder within the lake (``dest``'s folders are made)."""
+        if self.local:
+            os.makedirs(os.path.dirname(self.path(dest)), exist_ok=True)
+            os.replace(self.path(rel), self.path(dest))
+            return
+        self.fs.invalidate_cache(self.path(rel))
+        self.fs.mv(self.path(rel), self.path(dest), recursive=True)
 
     def remove(self, rel: str) -> None:
         p = self.path(rel)

@@ -27,6 +27,9 @@ when the document, the residual table or an array is bad). Then:
    draws another id);
 2. the Zarr group, with the SHA-256 of every array in its attributes;
 3. the version's residual rows are appended to ``residuals``;
+   then every part is read back and verified (:func:`fieldcal.lake.check.read_back`: the
+   document byte for byte, each array against its SHA-256, the residual rows counted): a
+   part lost meanwhile fails the commit, no row ever points to nothing (issue 24);
 4. the catalog row is committed to ``catalog``: **the commit point**. Readers see a
    version only through its catalog row; the residuals view of :mod:`fieldcal.lake.history`
    keeps only rows of versions in the catalog (as of the same time), so rows of a version
@@ -34,7 +37,9 @@ when the document, the residual table or an array is bad). Then:
 
 One version per fingerprint: a commit appends its catalog row with a Delta transaction
 identifier naming the fingerprint (:meth:`fieldcal.lake.tables.Tables.append` ``once=``),
-unless the catalog's log has that identifier already. Delta's conflict check fails the
+unless the catalog's log has that identifier already. When the versions of the fingerprint
+do not read back whole (a folder removed), the identifier is the fingerprint *after* the
+latest of them, so a rerun makes one new version (:meth:`Lake.committed_whole`). Delta's conflict check fails the
 second of two concurrent commits of one fingerprint; it then finds the first's row, removes
 its own parts and returns the first's version (``Committed.new`` False). The check reads
 the log only, not the catalog's rows: a catalog from before (rows without identifiers)
@@ -165,6 +170,8 @@ class Lake:
         self.tables = Tables(self._store, maintain_every)
         self.url = self._store.uri("")
         self._obs_cache: dict[tuple, dict] = {}
+        self.not_whole: dict[str, str] = {}
+        """``{version: reason}`` of committed versions found not to read back whole."""
         _refuse_first_layout(self._store, self.url)
 
     def __repr__(self) -> str:
@@ -269,16 +276,18 @@ class Lake:
                     return Committed(doc["version"], new=False)
                 return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
                                            original)
+            broken: dict[str, str] = {}
             if not force:
-                existing = self._committed_before(fp)
+                existing, broken = self._committed_before(fp)
                 if existing is not None:
                     return Committed(existing, new=False)
-            return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where)
+            return self._write_version(doc, explicit, res, zarr_arrays, force, meta, where,
+                                       broken=broken)
         except OSError as e:
             raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
 
     def _write_version(self, doc, explicit, res, zarr_arrays, force, meta, where,
-                       original=None) -> Committed:
+                       original=None, broken: Mapping[str, str] | None = None) -> Committed:
         written: list[str] = []
         residuals_of = None
         done = False
@@ -292,10 +301,11 @@ class Lake:
             if res.num_rows:
                 residuals_of = version
                 self.tables.append("residuals", _with_keys(res, doc), dict(meta, action="residuals"))
+            self._read_back(doc, paths, res.num_rows)
             row = catalog_row(doc, utcnow() if original is None else original["committed"], force,
                               paths, where)
             meta["action"] = "commit" if original is None else "migrate"
-            inserted = self._insert_catalog(row, doc["inputs"]["fingerprint"], force, meta, original)
+            inserted = self._insert_catalog(row, doc, force, meta, original, broken or {})
             if inserted:
                 done = True
                 self._write_dictionary()
@@ -312,29 +322,58 @@ class Lake:
             if not done:
                 self._discard(written, residuals_of)
 
+    def _read_back(self, doc: dict, paths: dict, n_residuals: int) -> None:
+        """Every part of the version read back and verified before its catalog row (issue 24,
+        goal 1): a part that a concurrent ``gc``, an operator or the storage lost makes the
+        commit fail (its parts removed) instead of committing a row that points to nothing."""
+        from fieldcal.lake.check import read_back
+
+        why = read_back(self, doc["version"], paths["document"], paths["zarr"],
+                        document=json.dumps(doc, indent=2).encode("utf-8"),
+                        residuals=(doc["camera_id"], n_residuals) if n_residuals else None)
+        if why is not None:
+            raise LakeError(f"version {doc['version']} not committed to {self.url}: {why} when "
+                            "read back before the commit")
+
     CATALOG_BY_MERGE = False
     """The commit path before issue 28 (a MERGE after a scan of the catalog), kept for
     ``bench/bench_commit.py``'s before/after."""
 
-    def _committed_before(self, fp: str) -> str | None:
-        """The version of this fingerprint committed already, or None: the catalog's log says
-        whether it has one (:meth:`~fieldcal.lake.tables.Tables.has_key`), its rows say which
-        (read only then, and for a catalog from before the identifiers)."""
-        if not self.CATALOG_BY_MERGE and self.tables.has_key("catalog", fp) is False:
-            return None
-        return self.find_committed(fp)
+    def _committed_before(self, fp: str) -> tuple[str | None, dict[str, str]]:
+        """``(version, broken)``: the version of this fingerprint committed already that reads
+        back whole, or None, and the committed ones that do not (:meth:`committed_whole`): the
+        catalog's log says whether it has one (:meth:`~fieldcal.lake.tables.Tables.has_key`),
+        its rows say which (read only then, and for a catalog from before the identifiers)."""
+        keyed = self.tables.has_key("catalog", fp)
+        if not self.CATALOG_BY_MERGE and keyed is False:
+            return None, {}
+        version, broken = self.committed_whole(fp)
+        if version is None and not broken and keyed:
+            # committed once (the log has its key) but no row: taken out by `lake repair`, or
+            # hidden by a damaged file; the log names the versions
+            broken = {e["version"]: "its catalog row is missing" for e in self.tables.commits("catalog")
+                      if e.get("fingerprint") == fp and e.get("action") in ("commit", "migrate")
+                      and isinstance(e.get("version"), str)}
+        return version, broken
 
-    def _insert_catalog(self, row, fp: str, force: bool, meta: dict, original) -> bool:
+    def _insert_catalog(self, row, doc: dict, force: bool, meta: dict, original,
+                        broken: Mapping[str, str]) -> bool:
         """The commit point: the catalog row, once per fingerprint unless forced (module
-        docstring); True when inserted."""
+        docstring); True when inserted. When the committed versions of the fingerprint do not
+        read back whole (``broken``), the key is the fingerprint *after* the latest of them:
+        once per fingerprint and generation, so that two reruns replacing one lost version
+        still make one (issue 24)."""
+        fp, version = doc["inputs"]["fingerprint"], doc["version"]
         if original is not None:
-            return self.tables.insert_unless("catalog", row, "t.version = s.version", meta, keys=(fp,))
+            return self.tables.insert_unless("catalog", row, "t.version = s.version", meta, keys=(fp,),
+                                             exists=lambda: self._is_committed(version))
         if self.CATALOG_BY_MERGE and not force:
             return self.tables.insert_unless(
                 "catalog", row, "t.fingerprint = s.fingerprint OR t.version = s.version", meta)
         if not force and not self.tables.every_key_once("catalog") and self.find_committed(fp) is not None:
             return False                      # a catalog from before: its rows without identifiers
-        return self.tables.append_once("catalog", row, fp, meta, exclusive=not force)
+        key = f"{fp}+after+{max(broken)}" if broken and not force else fp
+        return self.tables.append_once("catalog", row, key, meta, exclusive=not force)
 
     def _reserve(self, doc: dict, explicit: bool, written: list) -> str:
         """Create the version's document exclusively (the version id's reservation)."""
@@ -627,9 +666,37 @@ class Lake:
         if not is_fingerprint(fingerprint):
             raise InputError(f"fingerprint must be 'sha256:' and 64 hex digits, got "
                              f"{fingerprint!r}", "find_committed")
+        return self.committed_whole(fingerprint)[0]
+
+    def committed_whole(self, fingerprint: str) -> tuple[str | None, dict[str, str]]:
+        """``(version, broken)``: the latest committed version of these inputs whose parts read
+        back whole (:func:`fieldcal.lake.check.read_back`), or None, and ``{version: reason}``
+        of the later ones that do not (a folder removed, a partial restore). A rerun answers
+        "unchanged" only with a whole version; otherwise it calibrates again and says why
+        (the reasons are also kept in :attr:`not_whole`)."""
+        from fieldcal.lake.check import read_back
+
+        if not is_fingerprint(fingerprint):
+            raise InputError(f"fingerprint must be 'sha256:' and 64 hex digits, got "
+                             f"{fingerprint!r}", "find_committed")
         hits = self.catalog(filter=ds.field("fingerprint") == fingerprint,
-                            equal={"fingerprint": fingerprint})["version"].to_pylist()
-        return hits[-1] if hits else None
+                            equal={"fingerprint": fingerprint}).to_pylist()
+        broken: dict[str, str] = {}
+        for row in reversed(hits):
+            why = read_back(self, row["version"], row["document_path"], row["zarr_path"])
+            if why is None:
+                return row["version"], broken
+            broken[row["version"]] = why
+            self.not_whole[row["version"]] = why
+        return None, broken
+
+    def whole(self, version: str, row: Mapping | None = None) -> str | None:
+        """Why a committed version does not read back whole, or None when it does (``row``:
+        its catalog row, when the caller has read it: ``document_path`` and ``zarr_path``)."""
+        from fieldcal.lake.check import read_back
+
+        row = row if row is not None else self.row(version)
+        return read_back(self, version, row["document_path"], row["zarr_path"])
 
     def latest(self, camera_id: str, session_id: str | None = None) -> str | None:
         """A camera's latest version (of its sessions named ``session_id``), or None.

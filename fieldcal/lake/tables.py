@@ -55,6 +55,8 @@ TABLES = ("catalog", "residuals", "observations_field", "observations_goniometer
           "rigs")
 PARTITIONS = {"catalog": [], "residuals": ["camera_id"], "observations_field": ["camera_id"],
               "observations_goniometer": ["camera_id"], "comparisons": [], "assessments": [], "rigs": []}
+QUARANTINE = "quarantine"
+"""The lake's folder of damaged files moved out of the way (by a writer or ``lake repair``)."""
 DEFAULT_MAINTAIN_EVERY = 100
 """Commits of a table between compactions."""
 CHECKPOINT_EVERY = 10
@@ -174,6 +176,7 @@ class Tables:
         self.checkpoint_every = min(self.maintain_every, CHECKPOINT_EVERY)
         self.problems: list[Problem] = []
         self._current: dict = {}  # name -> DeltaTable kept current with update_incremental
+        self._commit_times: dict = {}  # (name, commit) -> commitInfo.timestamp [ms]
         self._every_key_once: set[str] = set()   # tables known to carry EVERY_KEY_ONCE
 
     # -- opening ------------------------------------------------------------------------
@@ -189,6 +192,95 @@ class Tables:
 
     def exists(self, name: str) -> bool:
         return bool(self.storage.listdir(f"{name}/_delta_log"))
+
+    def quarantine(self, rel: str, why: str) -> str:
+        """Move a damaged file of the lake to ``quarantine/<time>/<rel>`` (never deleted: the
+        user decides); returns where it went, and records it in :attr:`problems`."""
+        import secrets
+
+        stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(2)
+        dest = f"{QUARANTINE}/{stamp}/{rel}"
+        self.storage.move(rel, dest)
+        self._commit_times.clear()
+        self.problems.append(Problem(rel.split("/", 1)[0], rel, f"{why}; moved to {dest}"))
+        return dest
+
+    def heal_log(self, name: str, error: Exception) -> bool:
+        """Make a table whose log cannot be loaded writable again (issue 24, goal 3): a
+        ``_last_checkpoint`` hint naming a missing checkpoint, or commit files after the last
+        loadable commit that are not JSON (truncated), are moved to the quarantine. The rows
+        of a quarantined commit are out of the table; ``fieldcal lake repair`` brings back the
+        catalog rows of whole versions. True when something was moved."""
+        log = f"{name}/_delta_log"
+        names = self.storage.listdir(log)
+        if "_last_checkpoint" in names and "checkpoint" in reason(error).lower():
+            self.quarantine(f"{log}/_last_checkpoint", f"names a checkpoint that cannot be read ({reason(error)})")
+            return True
+        commits = sorted(int(n[:20]) for n in names if n.endswith(".json") and n[:20].isdigit())
+        good = next((v for v in reversed(commits[:-1]) if self._loads(name, v)), None)
+        if good is None:
+            return False                         # nothing loads: no commit is moved
+        later = [v for v in commits if v > good]
+        bad = next((v for v in later if _parses(self.storage, f"{log}/{v:020d}.json") is False), None)
+        if bad is None:
+            return False                         # every later commit is JSON: not this damage
+        for v in (v for v in later if v >= bad):
+            self.quarantine(f"{log}/{v:020d}.json", f"commit {v} of {name} cannot be read"
+                            f" ({reason(error)}); the table continues from commit {bad - 1}")
+        return True
+
+    def _loads(self, name: str, version: int) -> bool:
+        try:
+            self._load(name, version=version)
+            return True
+        except Exception:  # noqa: BLE001 - any failure: not loadable
+            return False
+
+    def fsck(self, name: str, paths: list[str], info: dict | None = None) -> int:
+        """Take data files (``add`` paths, relative to the table) out of the table: one Delta
+        commit of ``remove`` actions (operation ``FSCK``, as delta-rs's ``repair`` writes),
+        created exclusively as the next commit (a conditional PUT on S3; a concurrent commit
+        makes it try the next number). Written here because ``DeltaTable.repair`` lists the
+        whole table first, which never answered on moto S3 (180 s timeouts). Returns the
+        commit number."""
+        import json
+
+        for _ in range(COMMIT_RETRIES):
+            target = self.load_for_write(name)
+            live = {a["path"] for a in pa.table(target.get_add_actions(flatten=True)).to_pylist()}
+            gone = [p for p in paths if p in live]
+            if not gone:
+                return target.version()
+            now_ms = int(time.time() * 1000)
+            lines = [{"commitInfo": {"timestamp": now_ms, "operation": "FSCK", "operationParameters": {},
+                                     "readVersion": target.version(), "clientVersion": "fieldcal",
+                                     **{f"fieldcal.{k}": str(v) for k, v in (info or {}).items()}}}]
+            lines += [{"remove": {"path": p, "deletionTimestamp": now_ms, "dataChange": True}} for p in gone]
+            number = target.version() + 1
+            try:
+                self.storage.write(f"{name}/_delta_log/{number:020d}.json",
+                                   "\n".join(json.dumps(line) for line in lines).encode("utf-8") + b"\n",
+                                   exclusive=True)
+            except FileExistsError:
+                continue
+            self._current.pop(name, None)
+            return number
+        raise LakeError(f"could not commit to {self.uri(name)}: {COMMIT_RETRIES} concurrent commits in a row")
+
+    def load_latest(self, name: str):
+        """The table at its latest commit (delta-rs's error when the log cannot be loaded)."""
+        return self._load(name)
+
+    def load_for_write(self, name: str):
+        """The table at its latest commit for a write; a damaged log is healed first
+        (:meth:`heal_log`), else a :class:`LakeError` in one line."""
+        try:
+            return self._load(name)
+        except Exception as e:  # noqa: BLE001 - delta-rs raises several types for a bad log
+            if self.heal_log(name, e):
+                self._current.pop(name, None)
+                return self._load(name)
+            raise LakeError(f"cannot write {self.uri(name)}: {reason(e)} (see `fieldcal lake check`)") from None
 
     def open(self, name: str, *, as_of=None):
         """The table (a ``deltalake.DeltaTable``), as of a time if given; None if it has none.
@@ -215,15 +307,59 @@ class Tables:
             table = self._load_last_good(name, e)
         if as_of is None:
             self._current[name] = table
-        else:
-            try:
-                table.load_as_version(as_of)
-            except Exception as e:  # noqa: BLE001 - before the table's first commit, or vacuumed
-                if "earliest" in str(e).lower() or "before" in str(e).lower() or \
-                        table.history(1) and _first_commit_after(table, as_of):
-                    return None
-                raise LakeError(f"cannot read {self.uri(name)} as of {as_of}: {reason(e)}") from None
+            return table
+        version = as_of if isinstance(as_of, int) else self.version_at(name, as_of)
+        if version is None:
+            return None                          # before the table's first commit
+        if version > table.version():
+            return table                         # a commit the log holds but could not be loaded
+        try:
+            table.load_as_version(version)
+        except Exception as e:  # noqa: BLE001 - vacuumed, or a damaged log
+            raise LakeError(f"cannot read {self.uri(name)} as of {as_of}: {reason(e)}") from None
         return table
+
+    def version_at(self, name: str, when) -> int | None:
+        """The table's last commit made at or before ``when`` by the commit timestamps its log
+        records (``commitInfo.timestamp``), or None before its first commit (issue 24, goal 5).
+
+        Not the commit files' modification times, which delta-rs's own time travel uses: a
+        copy (``cp -r``), a sync or a restore gives every file the time of the copy. The
+        timestamps are taken to grow with the version (each writer's clock; the Delta spec
+        assumes as much); a binary search reads about log2(n) commit files.
+        """
+        t = when if isinstance(when, dt.datetime) else dt.datetime.fromisoformat(str(when))
+        if t.tzinfo is None:
+            t = t.replace(tzinfo=dt.UTC)
+        t_ms = t.timestamp() * 1000.0
+        log = f"{name}/_delta_log"
+        commits = sorted(int(n[:20]) for n in self.storage.listdir(log) if n.endswith(".json") and n[:20].isdigit())
+        lo, hi = 0, len(commits)
+        while lo < hi:                           # the first commit later than ``when``
+            mid = (lo + hi) // 2
+            ts = self._commit_ms(name, commits[mid])
+            if ts is not None and ts <= t_ms:
+                lo = mid + 1
+            else:
+                hi = mid
+        return commits[lo - 1] if lo else None
+
+    def _commit_ms(self, name: str, version: int) -> float | None:
+        """A commit's ``commitInfo.timestamp`` [ms] (commits are immutable: remembered)."""
+        import json
+
+        key = (name, version)
+        if key not in self._commit_times:
+            ts = None
+            try:
+                for line in self.storage.read(f"{name}/_delta_log/{version:020d}.json").decode("utf-8").splitlines():
+                    if '"commitInfo"' in line:
+                        ts = json.loads(line)["commitInfo"].get("timestamp")
+                        break
+            except (OSError, ValueError, KeyError):
+                ts = None                        # unreadable: treated as later than any time
+            self._commit_times[key] = float(ts) if isinstance(ts, (int, float)) else None
+        return self._commit_times[key]
 
     def _load_last_good(self, name: str, error: Exception):
         versions = sorted((int(n[:20]) for n in self.storage.listdir(f"{name}/_delta_log")
@@ -314,6 +450,8 @@ class Tables:
         from deltalake.exceptions import CommitFailedError
 
         target = self.create(name)
+        if any(p.table == name and p.path == f"{name}/_delta_log" for p in self.problems):
+            target = self.load_for_write(name)  # opened at an older commit: heal the log first
         schema = table_schema(name)
         keys = () if once is None else (once,) if isinstance(once, str) else tuple(once)
         for attempt in range(COMMIT_RETRIES):
@@ -330,7 +468,7 @@ class Tables:
                 # object store) or one of the same key: the data files are in no commit;
                 # look again on the new state
                 time.sleep(0.02 * (1 + random.random()) * min(attempt + 1, 10))
-                target = self._load(name)
+                target = self.load_for_write(name)
                 self._current[name] = target
                 continue
             self._maintain(name, target)
@@ -362,7 +500,7 @@ class Tables:
         return len(keys)
 
     def insert_unless(self, name: str, row: pa.Table, match: str, info: dict | None = None,
-                      *, poll_s: float = 0.02, keys: tuple[str, ...] = ()) -> bool:
+                      *, poll_s: float = 0.02, keys: tuple[str, ...] = (), exists=None) -> bool:
         """Insert ``row`` unless a row matching ``match`` exists; True when inserted.
         ``keys``: transaction identifiers the commit carries (:meth:`append`).
 
@@ -370,12 +508,19 @@ class Tables:
         ``t.fingerprint = s.fingerprint``. Two processes inserting rows that match each
         other: the MERGE's conflict check fails the second commit, which then sees the
         first's row and inserts nothing.
+
+        ``exists`` (a callable, True when a matching row is readable): when the MERGE cannot
+        read one of the table's data files (zero bytes, garbage, deleted), the row is
+        appended unless ``exists()``, which reads the table skipping that file, and the file
+        is named in :attr:`problems` (issue 24, goal 3: one damaged file never stops the
+        commits; ``fieldcal lake repair`` quarantines it). Without ``exists`` the error is a
+        :class:`LakeError` in one line.
         """
         from deltalake.exceptions import CommitFailedError
 
         self.create(name)
         for attempt in range(COMMIT_RETRIES):
-            target = self._load(name)
+            target = self.load_for_write(name)
             try:
                 metrics = (target.merge(row.cast(table_schema(name)), match, source_alias="s",
                                         target_alias="t",
@@ -384,6 +529,16 @@ class Tables:
             except CommitFailedError:
                 time.sleep(poll_s * (1 + random.random()) * min(attempt + 1, 10))
                 continue
+            except Exception as e:  # noqa: BLE001 - delta-rs: a data file it cannot read
+                damaged = _damaged_file(name, e)
+                if damaged is None or exists is None:
+                    raise LakeError(f"cannot commit to {self.uri(name)}: {reason(e)}") from None
+                self.problems.append(Problem(name, damaged, f"cannot be read ({reason(e)}); the "
+                                             "row was appended after a read that skips it"))
+                if exists():
+                    return False
+                self.append(name, row, info, once=keys or None, exclusive=False)
+                return True
             inserted = int(metrics.get("num_target_rows_inserted", 0)) > 0
             if inserted:
                 self._maintain(name, target)
@@ -570,6 +725,36 @@ class Tables:
                                   enforce_retention_duration=False,
                                   commit_properties=self._commit_properties(info)))
 
+    def commits(self, name: str) -> list[dict]:
+        """Every readable commit of the table, oldest first, read from its commit files:
+        ``commit``, ``time`` (the ``commitInfo`` timestamp), ``operation`` and the fieldcal
+        metadata (``version``, ``action``, ...). Unlike ``DeltaTable.history`` it reads each
+        file once, concurrently on an object store (delta-rs's history took 180 s for two
+        commits on moto S3)."""
+        import json
+
+        log = f"{name}/_delta_log"
+        rels = [f"{log}/{n}" for n in self.storage.listdir(log) if n.endswith(".json") and n[:20].isdigit()]
+        out = []
+        for rel, data in sorted(self.storage.read_many(rels).items()):
+            info = None
+            for line in data.decode("utf-8", "replace").splitlines():
+                if '"commitInfo"' in line:
+                    try:
+                        info = json.loads(line)["commitInfo"]
+                    except (ValueError, KeyError, TypeError):
+                        info = None
+                    break
+            if not isinstance(info, dict):
+                continue
+            ts = info.get("timestamp")
+            when = dt.datetime.fromtimestamp(ts / 1000.0, dt.UTC) if isinstance(ts, (int, float)) else None
+            out.append({"table": name, "commit": int(rel[-25:-5]), "time": when,
+                        "operation": info.get("operation"),
+                        **{k[len("fieldcal."):]: v for k, v in info.items()
+                           if isinstance(k, str) and k.startswith("fieldcal.")}})
+        return out
+
     def log(self, name: str, limit: int | None = None) -> list[dict]:
         """The table's commits, newest first: version, time, operation, fieldcal metadata."""
         target = self.open(name)
@@ -586,20 +771,34 @@ class Tables:
         return out
 
 
-def _first_commit_after(table, when) -> bool:
-    """True when the table's first commit is later than ``when``."""
+def _parses(storage, rel: str) -> bool | None:
+    """Whether a commit file is whole JSON lines; None when it cannot be read now (a file
+    that could not be read is never taken for a damaged one)."""
+    import json
+
     try:
-        hist = table.history()
-    except Exception:  # noqa: BLE001
+        data = storage.read(rel)
+    except OSError:
+        return None
+    try:
+        for line in data.decode("utf-8").splitlines():
+            if line.strip():
+                json.loads(line)
+        return True
+    except ValueError:
         return False
-    first = min((h.get("timestamp") for h in hist if isinstance(h.get("timestamp"), (int, float))),
-                default=None)
-    if first is None:
-        return False
-    t = when if isinstance(when, dt.datetime) else dt.datetime.fromisoformat(str(when))
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.UTC)
-    return first / 1000.0 > t.timestamp()
+
+
+def _damaged_file(name: str, error: Exception) -> str | None:
+    """The table's data file a delta-rs error names (``NAME/part-....parquet``), or None
+    when the error is not about reading one of its data files."""
+    import re
+
+    text = str(error)
+    if "parquet" not in text.lower() and "not found" not in text.lower():
+        return None
+    m = re.search(rf"{re.escape(name)}/([^\s:]+\.parquet)", text)
+    return f"{name}/{m.group(1)}" if m else None
 
 
 def _filter_columns(expr, schema: pa.Schema) -> list[str]:

@@ -679,8 +679,11 @@ def _fleet_columns(record: dict, tolerance_um: float, alpha: float) -> dict:
 
 
 def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: float = DEFAULT_ALPHA,
-                  start=None, end=None) -> pa.Table:
+                  start=None, end=None, as_of=None) -> pa.Table:
     """Every camera's latest calibration against its previous one, flagged when it moved.
+
+    ``as_of`` (a time): the catalog as it was then (:func:`fieldcal.lake.history.fleet_pairs`;
+    issue 24: ``history --fleet --as-of`` answered with today's catalog).
 
     For each camera, the latest calibration acquired in ``[start, end]`` and the previous
     one (:mod:`fieldcal.lake.order`) come from one read of the catalog
@@ -701,7 +704,7 @@ def fleet_summary(lake, *, tolerance_um: float = DEFAULT_TOLERANCE_UM, alpha: fl
     from fieldcal.products import status
 
     check_level(tolerance_um, alpha)                     # bad settings: refused before any work
-    pairs = history.fleet_pairs(lake, start, end).to_pylist()
+    pairs = history.fleet_pairs(lake, start, end, as_of=as_of).to_pylist()
     records = status.changes(lake, [(r["previous_version"], r["version"]) for r in pairs
                                     if r["previous_version"] is not None])
     rows = []

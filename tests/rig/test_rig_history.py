@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 
 import numpy as np
 import pytest
@@ -121,6 +122,8 @@ def test_gc_removes_an_orphaned_rig_document_and_keeps_committed_ones(rig_lake, 
         rel = lake.rig_path("bar2", doc["session_id"], v)
         (copy / rel).write_text(json.dumps(dict(doc, version=v)))
     orphan = lake.rig_path("bar2", doc["session_id"], old)
+    two_days_ago = dt.datetime.now(dt.UTC).timestamp() - 2 * 86400   # gc goes by the files' times (issue 24)
+    os.utime(copy / orphan, (two_days_ago, two_days_ago))
     assert gc(lake, dry_run=True) == [orphan] and (copy / orphan).exists()
     assert gc(lake) == [orphan]
     assert not (copy / orphan).exists() and (copy / lake.rig_path("bar2", doc["session_id"], recent)).exists()
