@@ -1,0 +1,71 @@
+"""This round's session formats through ``fieldcal run`` on a session folder (CONTRACT section 3):
+unsurveyed targets with ``scale_bars.csv`` and a free datum (issue 26), target normals in
+``targets.csv`` (issue 23). The library paths are tested against truth in tests/field; here the
+command line a user types reads them, calibrates and commits what the document says.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from fieldcal import pipeline
+from fieldcal.lake.store import Lake
+from fieldcal.synthetic.field import faceted_field, wide_field
+from fieldcal.synthetic.render import scaled_field
+from fieldcal.synthetic.session_writer import write_field_session
+from tests.flows.test_cli import env_for, fieldcal
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_server")]
+
+
+def _run(folder, tmp_path, prefect_server):
+    lake, out = tmp_path / "lake", tmp_path / "doc.json"
+    proc = fieldcal("run", folder, "--lake", lake, "--json", out, env=env_for(prefect_server, tmp_path),
+                    cwd=tmp_path, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc == Lake(lake).load_document(proc.stdout.strip())
+    return doc
+
+
+def test_run_calibrates_a_free_network_of_unsurveyed_targets_scaled_by_a_bar(tmp_path, prefect_server):
+    sf = wide_field(seed=5)
+    folder = tmp_path / "free"
+    write_field_session(folder, sf, images=False, observations_csv=True, coded=False, camera_id="cam-free")
+    X, t = sf.targets_true.xyz_m, sf.data.targets
+    ends = [int(np.argmin(np.hypot(X[:, 0] - a, X[:, 2] - 2.0))) for a in (-1.5, 1.5)]
+    rows = [f"{t.ids[j]},,,,," for j in ends]            # listed, unsurveyed; every other id unlisted
+    (folder / "targets.csv").write_text("id,X,Y,Z,sigma_mm,code\n" + "\n".join(rows) + "\n")
+    length_mm = np.linalg.norm(X[ends[1]] - X[ends[0]]) * 1e3
+    (folder / "scale_bars.csv").write_text(
+        f"from_id,to_id,length_mm,sigma_mm\n{t.ids[ends[0]]},{t.ids[ends[1]]},{length_mm:.4f},0.02\n")
+
+    doc = _run(folder, tmp_path, prefect_server)
+    stats = doc["stats"]
+    assert stats["datum"]["type"] == "free network"
+    assert stats["n_unlisted_targets"] > 200
+    for name in ("f_mm", "xp_mm", "yp_mm"):
+        assert abs(doc["parameters"][name] - sf.camera.to_dict()[name]) < 4 * doc["sigma"][name], name
+
+
+def test_run_corrects_eccentricity_with_the_normals_targets_csv_gives(tmp_path, prefect_server):
+    sf = scaled_field(faceted_field(seed=0), 0.2)
+    folder = tmp_path / "faceted"
+    info = write_field_session(folder, sf, image_indices=list(range(0, 24, 3)) + [1, 7, 13, 19], coded=True,
+                               psf_sigma_px=1.5, illumination_gradient=0.5, noise=True, compression_mix=False,
+                               normals="columns", camera_id="cam-facets")
+    header = (folder / "targets.csv").read_text().splitlines()[0]
+    assert header.endswith(",nx,ny,nz")
+    assert all(tifffile.imread(folder / n).size for n in info["images"])
+
+    doc = _run(folder, tmp_path, prefect_server)
+    prepared = pipeline.prepare(folder)                     # the same session through the library
+    meas = {n: pipeline.measure(prepared, n) for n in prepared.to_measure}
+    library = pipeline.solve(prepared, meas, fingerprint_=pipeline.input_fingerprint(prepared, {})).document
+    assert doc["parameters"] == library["parameters"] and doc["sigma"] == library["sigma"]
+    ecc = doc["stats"]["eccentricity"]
+    assert ecc["normals"] == "given" and ecc["max_px"] > 0.0
+    z = (doc["parameters"]["f_mm"] - sf.camera.f_mm) / doc["sigma"]["f_mm"]
+    assert abs(z) < 1.5, z
