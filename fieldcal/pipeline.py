@@ -284,8 +284,12 @@ def _field_result(prepared, measurements, progress, left_out):
         left_out.extend(left)
         return data, adjust_field(data, options, progress=progress)
     from fieldcal.field.from_images import calibrate_from_measurements
+    from fieldcal.field.referencing import ReferencingOptions
 
-    data, result, report = calibrate_from_measurements(sess, dict(measurements), options, progress=progress)
+    targets = sess.targets()        # unsurveyed plain targets listed: their discs by automatic referencing
+    plain_unsurveyed = bool(np.any(~targets.surveyed & (targets.codes < 0)))
+    data, result, report = calibrate_from_measurements(sess, dict(measurements), options, progress=progress,
+                                                       referencing=ReferencingOptions() if plain_unsurveyed else None)
     known = {r.get("image") for r in left_out}
     left_out.extend(r for r in report if r.get("status") != "ok" and r.get("image") not in known)
     return data, result
@@ -306,6 +310,9 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
     if "identification" in data.meta:
         stats["identification"] = data.meta["identification"]
     stats["eccentricity"] = data.meta.get("eccentricity", ECCENTRICITY_OBSERVATIONS)
+    for key in ("referenced_targets", "coded_unsurveyed_targets"):       # from photographs (issue 26)
+        if key in data.meta:
+            stats[key] = data.meta[key]
     if prepared.settings.cross_validate:
         from fieldcal.field.cross_validation import cross_validate_by_station
 

@@ -85,8 +85,9 @@ class TargetField:
         """(n,) bool: the targets with surveyed coordinates (the others are unsurveyed)."""
         return np.isfinite(self.xyz_m).all(axis=1)
 
-    def with_unsurveyed(self, ids) -> TargetField:
-        """These targets and the unsurveyed, plain targets ``ids`` appended (NaN coordinates)."""
+    def with_unsurveyed(self, ids, codes=-1) -> TargetField:
+        """These targets and the unsurveyed targets ``ids`` appended (NaN coordinates; ``codes``
+        their ArUco ids, -1: plain)."""
         ids = np.asarray(list(ids), dtype=str)
         if not len(ids):
             return self
@@ -95,7 +96,8 @@ class TargetField:
         return replace(self, ids=np.concatenate([self.ids, ids]),
                        xyz_m=np.vstack([self.xyz_m, np.full((n, 3), np.nan)]),
                        sigma_mm=np.concatenate([self.sigma_mm, np.full(n, DEFAULT_TARGET_SIGMA_MM)]),
-                       codes=np.concatenate([self.codes, np.full(n, -1, np.int64)]), normals=normals)
+                       codes=np.concatenate([self.codes, np.broadcast_to(np.asarray(codes, np.int64), (n,))]),
+                       normals=normals)
 
     def index(self) -> dict[str, int]:
         """``{id: row}``."""

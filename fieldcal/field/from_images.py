@@ -51,6 +51,11 @@ calibration (:func:`calibrate_from_measurements`):
    have: the initialisers' outliers that were never readmitted and the gross errors), so it
    reaches the same optimum without the initial values and with fewer rounds.
 
+6b. **Unsurveyed coded targets** (targets.csv rows with a code and empty ``X, Y, Z``): their
+   markers in the adjusted images are identified by code, intersected from the adjusted poses
+   and the adjustment is repeated (warm) with them as unsurveyed targets (:func:`_coded_unsurveyed`).
+   The images are oriented from the surveyed targets only.
+
 7. **Automatic referencing** (optional, ``referencing``; :mod:`fieldcal.field.referencing`):
    the discs no target names are matched across the adjusted images, become unsurveyed
    targets (``AR0001``, ...) and the adjustment is repeated from step 6's (warm).
@@ -86,6 +91,7 @@ from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
+from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
 from fieldcal.field.referencing import ReferencingOptions, reference_discs
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
@@ -342,6 +348,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
                       single_view=not run.options.targets_adjusted)
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
+    data, result = _coded_unsurveyed(run, data, result, keep2, factor)
     if referencing is not None:
         data, result = _referenced(run, data, result, second, keep2, referencing)
     result = _with_eccentricity_bound(run, data, result, ecc_summary)
@@ -466,16 +473,63 @@ def _referenced(run, data: FieldData, result: FieldResult, second, keep, options
     new = FieldObservations(tracks.image, first + tracks.track,
                             np.stack([uv[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]),
                             np.array([sig[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]))
+    data = replace(data, targets=data.targets.with_unsurveyed(ids))
+    return _adjust_with(run, data, result, new, tracks.X_m, "the automatic referencing")
+
+
+def _adjust_with(run, data: FieldData, result: FieldResult, new: FieldObservations, X_new_m, what: str):
+    """``data`` (its targets already extended by the new, unsurveyed ones) with the observations
+    ``new`` appended, adjusted again from ``result`` (warm: its camera, poses and targets; the
+    new targets at ``X_new_m``, NaN: not placed)."""
     old = data.obs
     obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
                             np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
-    data = replace(data, targets=data.targets.with_unsurveyed(ids), obs=obs)
+    data = replace(data, obs=obs)
     init = InitialValues(np.asarray(result.params, float).copy(), result.R_world_to_camera, result.center_m,
-                         np.concatenate([~result.obs_used, np.zeros(len(new), bool)]), np.full(len(keep), np.nan),
-                         "the adjustment before the automatic referencing (warm start)", lm_tau=result.lsq.mu,
-                         targets_m=np.vstack([result.targets_m, tracks.X_m]))
+                         np.concatenate([~result.obs_used, np.zeros(len(new), bool)]),
+                         np.full(len(data.images), np.nan), f"the adjustment before {what} (warm start)",
+                         lm_tau=result.lsq.mu, targets_m=np.vstack([result.targets_m, X_new_m]))
     result = adjust_field(data, run.options, progress=run.progress, initial=init)
     return data, result
+
+
+def _coded_unsurveyed(run, data: FieldData, result: FieldResult, keep, marker_factor: float):
+    """6b: the coded targets targets.csv lists without coordinates (CONTRACT section 3). Their
+    markers in the adjusted images ``keep`` (``data``'s images, in order) are identified by
+    their code, as a surveyed coded target's are; each such target is intersected from the
+    adjusted poses (:func:`fieldcal.field.intersection.intersect_targets`) and joins the
+    adjustment as an unsurveyed target (its own id), which is repeated from ``result`` (warm).
+    ``data.meta["coded_unsurveyed_targets"]``: how many were seen."""
+    full = run.all_targets
+    uns = np.flatnonzero(~full.surveyed & (full.codes >= 0))
+    if not len(uns):
+        return data, result
+    slot = {int(full.codes[j]): n for n, j in enumerate(uns)}
+    first = len(data.targets)
+    img, tgt, uv, sig = [], [], [], []
+    for n, i in enumerate(keep):
+        table = run.measurements[run.names[i]]
+        kind, code, uv_all, usable = measured_points(table)
+        rows = np.flatnonzero((kind == "aruco") & usable & np.isin(code, list(slot)))
+        rows = rows[np.unique(code[rows], return_index=True)[1]]     # one point per code and image
+        img.append(np.full(len(rows), n))
+        tgt.append(first + np.array([slot[int(c)] for c in code[rows]], np.int64))
+        uv.append(uv_all[rows])
+        sig.append(_sigma(table, rows, run.session.default_sigma_px) * marker_factor)
+    new = FieldObservations(np.concatenate(img), np.concatenate(tgt).astype(np.int64), np.concatenate(uv),
+                            np.concatenate(sig))
+    seen = np.unique(new.target) - first
+    data.meta["coded_unsurveyed_targets"] = int(len(seen))
+    run.say(f"{len(seen)} of {len(uns)} unsurveyed coded target(s) of targets.csv seen in the adjusted images "
+            f"({len(new)} points): they join the adjustment")
+    if not len(seen):
+        return data, result
+    ids, codes = full.ids[uns], full.codes[uns]
+    data = replace(data, targets=data.targets.with_unsurveyed(ids, codes))
+    probe = replace(data, obs=new)
+    X, _ = intersect_targets(probe, result.params, result.R_world_to_camera, result.center_m,
+                             np.ones(len(new), bool))
+    return _adjust_with(run, data, result, new, X[first:], "the unsurveyed coded targets")
 
 
 def _final_adjustment(run, state, build, keep, probation, second):
@@ -527,7 +581,8 @@ class _Run:
         self.identify = identify
         self.priors = priors
         self.nominal = nominal_camera(session)
-        self.targets, marks_targets, keep = _surveyed_only(session.targets(), say)
+        self.targets, self.all_targets, keep = _surveyed_only(session.targets(), say)
+        marks_targets = self.all_targets
         self.surveyed = keep
         self.images = list(session.images)
         self.names = [im.file for im in self.images]
@@ -540,15 +595,18 @@ class _Run:
 
 def _surveyed_only(targets, say):
     """From photographs, targets are identified by their surveyed coordinates: unsurveyed rows of
-    targets.csv are left out, with a line saying so (they enter with observations.csv, or
-    their discs through automatic referencing, step 7, under ids of its own).
+    targets.csv are left out of the identification, with a line saying so (coded ones join
+    after the final adjustment by their code, step 6b; plain ones' discs through automatic
+    referencing, step 7, under ids of its own).
     Returns ``(surveyed targets, all targets, mask)``."""
     keep = targets.surveyed
     if keep.all():
         return targets, targets, keep
     if say is not None:
-        say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv left out: from photographs only "
-            "surveyed targets are identified (observations.csv may carry unsurveyed ones)")
+        coded = int(np.sum(~keep & (targets.codes >= 0)))
+        say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv: the images are oriented from the "
+            f"surveyed ones; the {coded} coded one(s) join by their code, the plain ones through automatic "
+            "referencing (when on: fieldcal run turns it on for them)")
     normals = None if targets.normals is None else targets.normals[keep]
     sub = replace(targets, ids=targets.ids[keep], xyz_m=targets.xyz_m[keep], sigma_mm=targets.sigma_mm[keep],
                   codes=targets.codes[keep], normals=normals)
