@@ -485,6 +485,9 @@ def _adjust_with(run, data: FieldData, result: FieldResult, new: FieldObservatio
     obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
                             np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
     data = replace(data, obs=obs)
+    bound = data.meta.get("eccentricity_bound_px")
+    if bound is not None and len(bound) == len(old):        # the new points: markers and discs with no bound
+        data.meta["eccentricity_bound_px"] = np.concatenate([bound, np.zeros(len(new))])
     init = InitialValues(np.asarray(result.params, float).copy(), result.R_world_to_camera, result.center_m,
                          np.concatenate([~result.obs_used, np.zeros(len(new), bool)]),
                          np.full(len(data.images), np.nan), f"the adjustment before {what} (warm start)",
@@ -499,7 +502,8 @@ def _coded_unsurveyed(run, data: FieldData, result: FieldResult, keep, marker_fa
     their code, as a surveyed coded target's are; each such target is intersected from the
     adjusted poses (:func:`fieldcal.field.intersection.intersect_targets`) and joins the
     adjustment as an unsurveyed target (its own id), which is repeated from ``result`` (warm).
-    ``data.meta["coded_unsurveyed_targets"]``: how many were seen."""
+    Only targets seen in two or more of the images join (one view neither places a target nor
+    checks its point). ``data.meta["coded_unsurveyed_targets"]``: how many joined."""
     full = run.all_targets
     uns = np.flatnonzero(~full.surveyed & (full.codes >= 0))
     if not len(uns):
@@ -518,10 +522,12 @@ def _coded_unsurveyed(run, data: FieldData, result: FieldResult, keep, marker_fa
         sig.append(_sigma(table, rows, run.session.default_sigma_px) * marker_factor)
     new = FieldObservations(np.concatenate(img), np.concatenate(tgt).astype(np.int64), np.concatenate(uv),
                             np.concatenate(sig))
+    views = np.bincount(new.target - first, minlength=len(uns))
+    new = new.take(views[new.target - first] >= 2)               # one view: no intersection, no redundancy
     seen = np.unique(new.target) - first
     data.meta["coded_unsurveyed_targets"] = int(len(seen))
-    run.say(f"{len(seen)} of {len(uns)} unsurveyed coded target(s) of targets.csv seen in the adjusted images "
-            f"({len(new)} points): they join the adjustment")
+    run.say(f"{len(seen)} of {len(uns)} unsurveyed coded target(s) of targets.csv seen in two or more adjusted "
+            f"images ({len(new)} points): they join the adjustment")
     if not len(seen):
         return data, result
     ids, codes = full.ids[uns], full.codes[uns]
