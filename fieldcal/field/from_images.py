@@ -503,7 +503,8 @@ def _coded_unsurveyed(run, data: FieldData, result: FieldResult, keep, marker_fa
     adjusted poses (:func:`fieldcal.field.intersection.intersect_targets`) and joins the
     adjustment as an unsurveyed target (its own id), which is repeated from ``result`` (warm).
     Only targets seen in two or more of the images join (one view neither places a target nor
-    checks its point). ``data.meta["coded_unsurveyed_targets"]``: how many joined."""
+    checks its point). ``data.meta["coded_unsurveyed_targets"]``: how many were intersected
+    (joined with coordinates)."""
     full = run.all_targets
     uns = np.flatnonzero(~full.surveyed & (full.codes >= 0))
     if not len(uns):
@@ -524,17 +525,18 @@ def _coded_unsurveyed(run, data: FieldData, result: FieldResult, keep, marker_fa
                             np.concatenate(sig))
     views = np.bincount(new.target - first, minlength=len(uns))
     new = new.take(views[new.target - first] >= 2)               # one view: no intersection, no redundancy
-    seen = np.unique(new.target) - first
-    data.meta["coded_unsurveyed_targets"] = int(len(seen))
-    run.say(f"{len(seen)} of {len(uns)} unsurveyed coded target(s) of targets.csv seen in two or more adjusted "
-            f"images ({len(new)} points): they join the adjustment")
-    if not len(seen):
+    data.meta["coded_unsurveyed_targets"] = 0
+    if not len(new):
+        run.say(f"none of the {len(uns)} unsurveyed coded target(s) of targets.csv is seen in two adjusted images")
         return data, result
     ids, codes = full.ids[uns], full.codes[uns]
     data = replace(data, targets=data.targets.with_unsurveyed(ids, codes))
-    probe = replace(data, obs=new)
-    X, _ = intersect_targets(probe, result.params, result.R_world_to_camera, result.center_m,
+    X, _ = intersect_targets(replace(data, obs=new), result.params, result.R_world_to_camera, result.center_m,
                              np.ones(len(new), bool))
+    placed = np.isfinite(X[first:]).all(axis=1)        # the others: their points left out (adjustment.UNPLACED)
+    data.meta["coded_unsurveyed_targets"] = int(placed.sum())
+    run.say(f"{int(placed.sum())} of {len(uns)} unsurveyed coded target(s) of targets.csv intersected from the "
+            f"adjusted images ({int(np.sum(placed[new.target - first]))} points): they join the adjustment")
     return _adjust_with(run, data, result, new, X[first:], "the unsurveyed coded targets")
 
 
