@@ -9,10 +9,11 @@ import json
 import numpy as np
 import pytest
 import tifffile
+from scipy.spatial import cKDTree
 
 from fieldcal import pipeline
 from fieldcal.lake.store import Lake
-from fieldcal.synthetic.field import faceted_field, wide_field
+from fieldcal.synthetic.field import faceted_field, paper_field, wide_field
 from fieldcal.synthetic.render import scaled_field
 from fieldcal.synthetic.session_writer import write_field_session
 from tests.flows.test_cli import env_for, fieldcal
@@ -69,3 +70,56 @@ def test_run_corrects_eccentricity_with_the_normals_targets_csv_gives(tmp_path, 
     assert ecc["normals"] == "given" and ecc["max_px"] > 0.0
     z = (doc["parameters"]["f_mm"] - sf.camera.f_mm) / doc["sigma"]["f_mm"]
     assert abs(z) < 1.5, z
+
+
+def _blank(folder, coded_every: int, plain_every: int):
+    """Empty X, Y, Z and sigma of every ``coded_every``-th coded and every ``plain_every``-th
+    plain row of targets.csv (unsurveyed, CONTRACT section 3); returns their ids (coded, plain)."""
+    lines = (folder / "targets.csv").read_text().splitlines()
+    out, blank = [lines[0]], {True: [], False: []}
+    count = {True: 0, False: 0}
+    for line in lines[1:]:
+        f = line.split(",")
+        coded = bool(f[5].strip())
+        count[coded] += 1
+        if count[coded] % (coded_every if coded else plain_every) == 0:
+            blank[coded].append(f[0])
+            f[1:5] = ["", "", "", ""]
+        out.append(",".join(f))
+    (folder / "targets.csv").write_text("\n".join(out) + "\n")
+    return blank[True], blank[False]
+
+
+def test_run_on_photographs_adjusts_the_unsurveyed_coded_and_plain_targets_of_targets_csv(tmp_path, prefect_server):
+    """Issue 26 from photographs: half the coded targets and a quarter of the plain ones have no
+    coordinates in targets.csv. The images are oriented from the surveyed ones; the coded ones
+    join by their code, the plain ones' discs by automatic referencing (on because targets.csv
+    lists unsurveyed plain targets); all are adjusted, near their truth."""
+    sf = scaled_field(paper_field(), 0.25)
+    folder = tmp_path / "unsurveyed"
+    write_field_session(folder, sf, coded=True, image_indices=[12 * s + a for s in range(6)
+                                                              for a in (s % 4, 4 + (s + 1) % 4)],
+                        camera_id="cam-unsurveyed")
+    coded, plain = _blank(folder, 2, 4)
+
+    doc = _run(folder, tmp_path, prefect_server)
+    stats, truth = doc["stats"], sf.targets_true
+    rows = {r["id"]: r for r in stats["unsurveyed_targets"]}
+    index = truth.index()
+    # the coded ones: under their own ids, within 4 sigma of the truth
+    got = [c for c in coded if c in rows]
+    assert stats["coded_unsurveyed_targets"] == len(got) >= 5
+    z = [np.abs(np.array(rows[c]["xyz_m"]) - truth.xyz_m[index[c]]) / (np.array(rows[c]["sigma_mm"]) / 1e3)
+         for c in got]
+    assert np.max(z) < 4.0
+    # the plain ones: found by referencing (AR...), each a distinct unsurveyed plain target of the truth
+    ar = [r for k, r in rows.items() if k.startswith("AR")]
+    assert stats["referenced_targets"] == len(ar) > 20
+    X = np.array([r["xyz_m"] for r in ar])
+    _, j = cKDTree(truth.xyz_m).query(X)
+    assert len(set(j)) == len(j) and set(truth.ids[j]) <= set(plain)
+    z = np.abs(X - truth.xyz_m[j]) / (np.array([r["sigma_mm"] for r in ar]) / 1e3)
+    assert np.mean(z.max(axis=1) < 4.0) > 0.95
+    # the interior orientation within 4 sigma of the truth
+    for name in ("f_mm", "xp_mm", "yp_mm", "k1"):
+        assert abs(doc["parameters"][name] - sf.camera.to_dict()[name]) < 4 * doc["sigma"][name], name
