@@ -125,8 +125,18 @@ def _report_run(result: dict, args, human: bool) -> None:
         print(f"{result['camera_id']} / {result['session_id']}: {state}", file=err)
 
 
-def _write_document(lake, version: str, path) -> None:
-    common.write_output(path, json.dumps(lake.load_document(version), indent=2) + "\n")
+def _finish_run(version: str, json_path, document) -> None:
+    """A run's last words: with ``--json`` the committed ``document()`` written there, then
+    the version on standard output. A failed copy still prints the version (it is committed),
+    then says why the copy failed."""
+    if json_path:
+        try:
+            common.write_output(json_path, json.dumps(document(), indent=2) + "\n")
+        except OSError as e:
+            print(version)
+            raise FieldcalError(f"committed {version}, but --json {json_path}: {e.strerror}") from None
+    print(version)
+    sys.stdout.flush()
 
 
 def _keep_frame_memory(args) -> bool:
@@ -175,14 +185,7 @@ def cmd_run(args) -> int:
         result = _with_api(args, lambda: _run_flow(args, lake_url, options))
         _report_run(result, args, human)
         version = result["version"]
-    if args.json:
-        try:
-            _write_document(lake, version, args.json)
-        except OSError as e:                 # committed: say which version, then why the copy failed
-            print(version)
-            raise FieldcalError(f"committed {version}, but --json {args.json}: {e.strerror}") from None
-    print(version)
-    sys.stdout.flush()
+    _finish_run(version, args.json, lambda: lake.load_document(version))
     return 0
 
 
@@ -204,14 +207,7 @@ def _run_rig(args, lake_url: str, options) -> int:
                                                                  "--force for a new version)"]):
             print(line, file=sys.stderr)
         print(f"head versions: {', '.join(heads)}", file=sys.stderr)
-    if args.json:
-        try:
-            common.write_output(args.json, json.dumps(lake.load_rig_document(version), indent=2) + "\n")
-        except OSError as e:                 # committed: say which version, then why the copy failed
-            print(version)
-            raise FieldcalError(f"committed {version}, but --json {args.json}: {e.strerror}") from None
-    print(version)
-    sys.stdout.flush()
+    _finish_run(version, args.json, lambda: lake.load_rig_document(version))
     return 0
 
 

@@ -267,20 +267,30 @@ def _fit_shapes(camera, views, X, radius_m, towards, todo):
         return np.zeros((0, 3)), np.zeros(0)
     n_all = len(X)
     ray = _unit(np.asarray(towards, float)[todo] - X[todo])
-    ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
-    b = np.cross(ray, a)
-    H = hemisphere(192)
-    H = H[H[:, 2] >= np.cos(np.radians(80.0))]
 
     def sse_of(M):                                   # M (k, m, 3) -> (k, m)
         full = np.full((n_all, M.shape[1], 3), np.nan)
         full[todo] = M
         return _shape_sse(camera, views, X, full, radius_m)[0][todo]
 
+    best, top = _search_directions(ray, lambda M: -sse_of(M), np.cos(np.radians(80.0)), cone_on_rings=False)
+    return best, -top
+
+
+def _search_directions(ray, score, cos_min: float, *, cone_on_rings: bool):
+    """The unit vectors (n, 3) that maximise ``score(M (n, m, 3)) -> (n, m)`` near each ray
+    (n, 3), and their scores (n,): a lattice of 192 directions of the half sphere about the ray
+    (those within ``arccos(cos_min)`` of it), then three rounds of 8 around the best at 3, 1
+    and 0.3 degrees (``cone_on_rings``: a ring's directions outside the cone score 0)."""
+    n = len(ray)
+    ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
+    b = np.cross(ray, a)
+    H = hemisphere(192)
+    H = H[H[:, 2] >= cos_min]
     M = H[None, :, 0:1] * a[:, None] + H[None, :, 1:2] * b[:, None] + H[None, :, 2:3] * ray[:, None]
-    e = sse_of(M)
-    best, top = M[np.arange(k), np.argmin(e, axis=1)], e.min(axis=1)
+    e = score(M)
+    best, top = M[np.arange(n), np.argmax(e, axis=1)], e.max(axis=1)
     ring = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
     for step_deg in (3.0, 1.0, 0.3):
         u = _unit(np.cross(best, a))
@@ -288,10 +298,12 @@ def _fit_shapes(camera, views, X, radius_m, towards, todo):
         d = np.tan(np.radians(step_deg))
         M = _unit(best[:, None] + d * (np.cos(ring)[None, :, None] * u[:, None]
                                        + np.sin(ring)[None, :, None] * w[:, None]))
-        e = sse_of(M)
-        better = e.min(axis=1) < top
-        best = np.where(better[:, None], M[np.arange(k), np.argmin(e, axis=1)], best)
-        top = np.minimum(top, e.min(axis=1))
+        e = score(M)
+        if cone_on_rings:
+            e = np.where(np.einsum("nmc,nc->nm", M, ray) >= cos_min, e, 0.0)
+        better = e.max(axis=1) > top
+        best = np.where(better[:, None], M[np.arange(n), np.argmax(e, axis=1)], best)
+        top = np.maximum(top, e.max(axis=1))
     return best, top
 
 
@@ -390,28 +402,8 @@ def eccentricity_bound_px(camera: Camera, R_world_to_camera, center_m, centers_m
         return np.zeros(0)
     R, C = np.asarray(R_world_to_camera, float), np.asarray(center_m, float)
     ray = _unit(C[None, :] - X)                                              # towards the camera
-    ref = np.where((np.abs(ray[:, 0]) > 0.9)[:, None], [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    a = _unit(ref - np.sum(ref * ray, axis=1, keepdims=True) * ray)
-    b = np.cross(ray, a)
-    cos_max = np.cos(np.radians(max_incidence_deg))
-    H = hemisphere(192)
-    H = H[H[:, 2] >= cos_max]
-    N = H[None, :, 0:1] * a[:, None] + H[None, :, 1:2] * b[:, None] + H[None, :, 2:3] * ray[:, None]
-    mag = _ecc_norm(camera, R, C, X, N, radius_m)
-    best = N[np.arange(len(X)), np.argmax(mag, axis=1)]
-    top = mag.max(axis=1)
-    ring = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
-    for step_deg in (3.0, 1.0, 0.3):
-        u = _unit(np.cross(best, a))
-        w = np.cross(best, u)
-        d = np.tan(np.radians(step_deg))
-        M = _unit(best[:, None] + d * (np.cos(ring)[None, :, None] * u[:, None]
-                                       + np.sin(ring)[None, :, None] * w[:, None]))
-        inside = np.einsum("nmc,nc->nm", M, ray) >= cos_max
-        m2 = np.where(inside, _ecc_norm(camera, R, C, X, M, radius_m), 0.0)
-        better = m2.max(axis=1) > top
-        best = np.where(better[:, None], M[np.arange(len(X)), np.argmax(m2, axis=1)], best)
-        top = np.maximum(top, m2.max(axis=1))
+    _, top = _search_directions(ray, lambda N: _ecc_norm(camera, R, C, X, N, radius_m),
+                                np.cos(np.radians(max_incidence_deg)), cone_on_rings=True)
     return top
 
 

@@ -32,7 +32,7 @@ from fieldcal.model.camera import Camera, Sensor
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field", "faceted_field",
     "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
-    "MIN_SHARED_TARGETS", "check_point_ids",
+    "MIN_SHARED_TARGETS", "check_point_ids", "with_control_points",
 ]
 
 IXU150_TABLE1 = {
@@ -514,3 +514,15 @@ def _marker_corners(sf: SyntheticField, i: int, t: int, sigma_px: float, rng) ->
     P = tt.xyz_m[t] + h * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]]) @ np.stack([e1[0], e2[0]])
     uv = sf.camera.project(P, sf.R_world_to_camera[i], sf.center_m[i])
     return (uv + rng.normal(0.0, sigma_px, uv.shape)).reshape(-1)
+
+
+def with_control_points(sf: SyntheticField, spots_m=((-1.5, 1.0), (1.5, 1.0), (-1.5, 3.0), (1.5, 3.0))):
+    """``sf``'s observations with only a few control points surveyed (issue 26): the targets
+    nearest each ``(X, Z)`` spot [m] on the wall keep their (noisy) survey, every other target's
+    coordinates are unknown (NaN, unsurveyed). Returns ``(data, control)``: the FieldData and
+    the control points' target indices."""
+    X = sf.data.targets.xyz_m
+    control = [int(np.argmin(np.hypot(X[:, 0] - a, X[:, 2] - b))) for a, b in spots_m]
+    xyz = np.full_like(X, np.nan)
+    xyz[control] = X[control]
+    return replace(sf.data, targets=replace(sf.data.targets, xyz_m=xyz)), control

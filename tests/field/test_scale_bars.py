@@ -17,7 +17,7 @@ from fieldcal.field.bundle import BundleModel
 from fieldcal.field.data import ScaleBars
 from fieldcal.field.scale_bars import BarObservations, bar_ends, usable
 from fieldcal.model.camera import INDEX
-from fieldcal.synthetic.field import wide_field
+from fieldcal.synthetic.field import wide_field, with_control_points
 
 CORE = ("f_mm", "xp_mm", "yp_mm", "k1")
 
@@ -25,12 +25,7 @@ CORE = ("f_mm", "xp_mm", "yp_mm", "k1")
 @pytest.fixture(scope="module")
 def field():
     sf = wide_field(seed=3)
-    X = sf.data.targets.xyz_m
-    spots = [(-1.5, 1.0), (1.5, 1.0), (-1.5, 3.0), (1.5, 3.0)]
-    control = [int(np.argmin(np.hypot(X[:, 0] - a, X[:, 2] - b))) for a, b in spots]
-    xyz = np.full_like(X, np.nan)
-    xyz[control] = X[control]
-    data = replace(sf.data, targets=replace(sf.data.targets, xyz_m=xyz))
+    data, control = with_control_points(sf)
     return sf, data, control
 
 
