@@ -349,8 +349,7 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
 
     data, result, keep2 = _final_adjustment(run, state, build, keep2, state.probation, second)
     data, result = _coded_unsurveyed(run, data, result, keep2, factor)
-    if referencing is not None:
-        data, result = _referenced(run, data, result, second, keep2, referencing)
+    data, result = _referenced(run, data, result, second, keep2, referencing)
     result = _with_eccentricity_bound(run, data, result, ecc_summary)
     data.meta["marker_sigma_factor"] = factor
     data.meta["identifications"] = {run.names[i]: second[i] for i in second}
@@ -443,12 +442,15 @@ REFERENCED_PREFIX = "AR"
 """Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
 
 
-def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions):
+def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions | None):
     """7: automatic referencing (:mod:`fieldcal.field.referencing`). The usable discs of the
     images ``keep`` (``data``'s images, in order) that the identification ``second`` left
     unnamed are matched across the adjusted images; each track becomes an unsurveyed target
     (``AR0001``, ...; ``data.meta["referenced_targets"]``) and the adjustment is repeated from
-    this one (its camera, poses and targets; the tracks at their intersections)."""
+    this one (its camera, poses and targets; the tracks at their intersections). ``options``
+    None: off (``data``, ``result`` unchanged)."""
+    if options is None:
+        return data, result
     uv, sig = [], []
     for i in keep:
         table = run.measurements[run.names[i]]
