@@ -64,6 +64,10 @@ def isolation_problem(hide) -> str | None:
         return "unshare(1) is not installed (util-linux)"
     if os.geteuid() != 0:
         return "not root: unshare --mount needs CAP_SYS_ADMIN"
+    for what, path in (("the project", ROOT), ("the Python environment", sys.prefix)):
+        inside = [h for h in hidden_folders(hide) if os.path.realpath(path).startswith(h.rstrip("/") + "/")]
+        if inside:
+            return f"{what} ({path}) lies under {inside[0]}, which the workers must not see: run from elsewhere"
     probe = _isolated(["ls", "-A", *hidden_folders(hide)], hidden_folders(hide))
     out = subprocess.run(probe, capture_output=True, text=True, timeout=30)
     if out.returncode != 0:
