@@ -86,7 +86,7 @@ from fieldcal.solver.blocksparse import (
 from fieldcal.solver.lsq import LsqResult, solve
 
 __all__ = ["AdjustmentOptions", "FieldProblem", "FieldResult", "InitialValues", "initial_values",
-           "adjust_field", "validate_field_data", "CORE_PARAMS", "centred"]
+           "adjust_field", "validate_field_data", "CORE_PARAMS", "centred", "snooping_statistic", "snooped"]
 
 # CORE_PARAMS (f, xp, yp; fieldcal.field.initial) are never held fixed by the automatic
 # selection: a degenerate one is a diagnosis, not a fix.
@@ -744,19 +744,15 @@ def _snooping(problem, result, flags: _Flags, o, bar_active=None):
     sigma0 = max(result.sigma0, 1e-12)
     n = 0
     Qg_img, Qg_sur, qg_bar = problem.group_covariances(ne)
-    Qi = np.eye(2) - Qg_img
-    flags.red_img[model.k] = Qi[:, 0, 0] + Qi[:, 1, 1]
     ri = result.r[: model.n_rows_image].reshape(-1, 2)
-    Ti = _quadratic_form(Qi, ri) / sigma0**2
+    Ti, flags.red_img[model.k] = snooping_statistic(Qg_img, ri, sigma0)
     test[model.k] = Ti
     lim2 = chdtri(2, o.snoop_alpha)
     bars_worse = _snoop_bars(problem, result, qg_bar, Ti.max() / lim2, bar_active, sigma0, o)
     if bars_worse is not None:
         return bars_worse
-    bad = Ti > lim2
-    if bad.any():
-        # reject the clearly worst ones only: a blunder inflates its neighbours' statistics
-        worst = bad & (Ti > 0.25 * Ti.max())
+    worst = snooped(Ti, o.snoop_alpha)
+    if worst.any():
         k = model.k[worst]
         obs_active[k] = False
         reason[k] = "blunder"
@@ -796,6 +792,39 @@ def _snoop_bars(problem, result, qg_bar, worst_image, bar_active, sigma0, o) -> 
         bar_active[bars.index[k]] = False
         return 1
     return 0
+
+
+def snooping_statistic(Qg, r, sigma0: float):
+    """Data snooping's test statistic and redundancy of 2-D image points (module docstring, step 3).
+
+    Parameters
+    ----------
+    Qg : (k, 2, 2) ndarray
+        ``J_g N^-1 J_g^T`` of each point's unit-weight residual rows.
+    r : (k, 2) ndarray
+        The unit-weight residuals.
+    sigma0 : float
+        The fit's a-posteriori factor.
+
+    Returns
+    -------
+    T : (k,) ndarray
+        ``v^T Q_vv^+ v / sigma0^2`` with ``Q_vv = I - Qg`` (chi-square, 2 degrees of freedom).
+    redundancy : (k,) ndarray
+        The trace of ``Q_vv`` (the point's two redundancy numbers summed).
+    """
+    Qv = np.eye(2) - Qg
+    return _quadratic_form(Qv, r) / max(sigma0, 1e-12) ** 2, Qv[:, 0, 0] + Qv[:, 1, 1]
+
+
+def snooped(T, alpha: float) -> np.ndarray:
+    """(k,) bool: the 2-D points data snooping rejects this round: above the chi-square(2) quantile
+    of ``alpha`` and, since a blunder inflates its neighbours' statistics, the clearly worst
+    ones only (above a quarter of the largest statistic)."""
+    T = np.asarray(T, float)
+    if not len(T):
+        return np.zeros(0, bool)
+    return (T > chdtri(2, alpha)) & (T > 0.25 * T.max())
 
 
 def _quadratic_form(Q, r, rcond: float = 1e-8):

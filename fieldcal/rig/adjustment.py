@@ -46,8 +46,21 @@ Procedure
    exposure with at least :data:`MIN_EXPOSURE_POINTS` points over all heads): an image in
    which its head saw too few targets to be oriented alone still enters, through the rig
    pose the other heads determine.
-3. Blunders: points whose normalised residual exceeds ``robust_k`` robust sigmas are
-   rejected, and the adjustment repeated, until none is.
+3. Blunders, as the single camera's (:mod:`fieldcal.field.adjustment`, step 3): points whose
+   normalised residual exceeds ``robust_k`` robust sigmas are rejected; when none is, data
+   snooping on every head's image points (``T = v^T Q_vv^-1 v / sigma0^2`` from the rig's normal
+   equations, :func:`~fieldcal.field.adjustment.snooping_statistic`) rejects the clearly worst
+   above the chi-square quantile of ``snoop_alpha``; the adjustment is repeated until nothing is.
+3b. Variance components (``variance_components``, with adjusted targets, as the single camera's
+   step 4b): at a clean solution every head's image floor ``phi_h`` is estimated from its points'
+   residuals and redundancy numbers (:func:`fieldcal.field.variance_components.image_floor_px`),
+   its points re-weighted with ``sqrt(sigma^2 + phi_h^2)`` and the adjustment repeated (warm)
+   until no weight moves by more than :data:`~fieldcal.field.variance_components.WEIGHT_TOLERANCE`.
+   ``stats.variance_components`` records per head the floor and the image factor (the
+   a-posteriori over the session's a-priori sigmas, :func:`~fieldcal.field.variance_components.group_factor`
+   of the residuals in the session's sigmas over the head's redundancy): a head whose points are
+   3x noisier than stated has a factor near 3 and no longer pulls the others with a weight it
+   does not deserve. ``stats.sigma0`` is the last solve's, in the re-weighted sigmas.
 4. The covariance (a-posteriori, scaled by ``sigma0^2``) of interiors, relative orientations
    and rig poses from the normal equations at the solution, its reference rotations rebased
    so that the rotation increments are the rig-frame small rotations.
@@ -56,12 +69,14 @@ Procedure
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field
+from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field, snooped, snooping_statistic
+from fieldcal.field.variance_components import (MIN_GROUP_REDUNDANCY, WEIGHT_TOLERANCE, group_factor,
+                                                image_floor_px, weight_change)
 from fieldcal.field.bundle import BundleModel
 from fieldcal.model.camera import FIELD_PARAMS
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3, skew
@@ -76,6 +91,8 @@ __all__ = ["RigOptions", "RigResult", "RigProblem", "adjust_rig", "initial_rig",
 
 MIN_SOLO_POINTS = 6
 """An image enters its head's own calibration (the initial values) with at least this many points."""
+MAX_COMPONENT_ROUNDS = 4
+"""At most this many re-weightings by the variance components (as the single camera's)."""
 MIN_EXPOSURE_POINTS = 6
 """An exposure enters the rig adjustment with at least this many points over all its heads."""
 ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
@@ -98,8 +115,12 @@ class RigOptions:
         Of :func:`fieldcal.solver.lsq.solve` (as :class:`~fieldcal.field.adjustment.AdjustmentOptions`).
     robust_k : float
         Rejection threshold in robust sigmas of the normalised residual norm.
+    snoop_alpha : float
+        Significance level of data snooping (per image point).
+    variance_components : bool
+        Estimate every head's image floor and re-weight (module docstring, step 3b).
     max_rounds : int
-        At most this many rejection rounds.
+        At most this many rounds of rejection and re-weighting.
     """
 
     targets_adjusted: bool = True
@@ -111,13 +132,16 @@ class RigOptions:
     ftol: float = 1e-12
     sigma_tol: float = 1e-3
     robust_k: float = 8.0
-    max_rounds: int = 10
+    snoop_alpha: float = 1e-6
+    variance_components: bool = True
+    max_rounds: int = 14
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
                 "estimate": list(self.estimate) if self.estimate is not None else None,
                 "method": self.method, "max_iter": self.max_iter, "tau": self.tau, "eps2": self.eps2,
                 "ftol": self.ftol, "sigma_tol": self.sigma_tol, "robust_k": self.robust_k,
+                "snoop_alpha": self.snoop_alpha, "variance_components": self.variance_components,
                 "max_rounds": self.max_rounds}
 
     def head_options(self) -> AdjustmentOptions:
@@ -197,6 +221,7 @@ class RigResult:
     lsq: LsqResult
     iterations_total: int
     rounds: list = field(default_factory=list)
+    variance_components: dict = field(default_factory=dict)
 
     def relative_names(self) -> list[str]:
         """Names of the relative-orientation parameters, as in ``covariance_names``."""
@@ -227,6 +252,7 @@ class RigResult:
                 "sigma0": float(self.sigma0), "iterations": int(self.lsq.iterations),
                 "iterations_total": int(self.iterations_total), "solver": self.options.method,
                 "targets_adjusted": bool(self.options.targets_adjusted),
+                "variance_components": self.variance_components,
                 "heads": {hd.camera_id: self.head_stats(h) for h, hd in enumerate(self.data.heads)}}
 
 
@@ -564,10 +590,13 @@ def _solo_blunders(res: FieldResult, d) -> np.ndarray:
 
 
 def _iterate(data, o: RigOptions, start, active, reason, exposure_used, progress) -> RigResult:
-    """Solve, reject, readmit, until nothing changes (module docstring, steps 2-3); the result."""
+    """Solve, reject, readmit, re-weight until nothing changes (module docstring, steps 2-3b)."""
     state, tau, total, rounds = start, o.tau, 0, []
+    floors = np.zeros(data.n_heads)
+    vc = {"rounds": 0}
+    weighted = data
     for rnd in range(o.max_rounds):
-        problem = RigProblem(data, state, active, exposure_used, targets_adjusted=o.targets_adjusted)
+        problem = RigProblem(weighted, state, active, exposure_used, targets_adjusted=o.targets_adjusted)
         x0 = problem.pack(state)
         try:
             result = solve(problem, x0, method=o.method, max_iter=o.max_iter, tau=tau, eps2=o.eps2,
@@ -585,9 +614,23 @@ def _iterate(data, o: RigOptions, start, active, reason, exposure_used, progress
         if progress:
             progress(f"rig adjustment {rnd + 1}: {result.iterations} iterations, sigma0 {result.sigma0:.3f}")
         res_px = problem.residuals_px(state)
-        if not _reject(data, res_px, active, reason, o, max(result.sigma0, 1.0)):
+        if _reject(weighted, res_px, active, reason, o, max(result.sigma0, 1.0)):
+            continue
+        redundancy = _snoop(problem, result, active, reason, o)
+        if redundancy is None:
+            continue
+        new = _head_floors(data, problem, res_px, redundancy, floors, vc, o)
+        if new is None:
             break
-    return _result(data, o, problem, result, state, res_px, active, reason, exposure_used, total, rounds)
+        floors = new
+        weighted = _reweighted(data, floors)
+        vc["rounds"] += 1
+        if progress:
+            progress("re-weighting the heads' image points: floors "
+                     + ", ".join(f"{hd.camera_id} {f:.3f} px" for hd, f in zip(data.heads, floors, strict=True)))
+    out = _result(data, o, problem, result, state, res_px, active, reason, exposure_used, total, rounds)
+    out.variance_components = vc
+    return out
 
 
 def _reject(data, res_px, active, reason, o: RigOptions, sigma0) -> bool:
@@ -604,6 +647,63 @@ def _reject(data, res_px, active, reason, o: RigOptions, sigma0) -> bool:
         a[back], why[back] = True, ""
         changed |= bool(bad.any() or back.any())
     return changed
+
+
+def _snoop(problem: RigProblem, result, active, reason, o: RigOptions):
+    """Data snooping over every head's points (module docstring, step 3): rejects the clearly worst
+    beyond the chi-square limit; None when it did, else per head the points' redundancies (m_h,)
+    (NaN for points not in use)."""
+    ne = result.jac.normal_equations()
+    sigma0 = max(result.sigma0, 1e-12)
+    T, red, b = [], [], 0
+    for h, m in enumerate(problem.models):
+        r = result.r[problem.row_off[h]:problem.row_off[h + 1]].reshape(-1, 2)
+        if len(m.img):
+            t, rho = snooping_statistic(ne.group_covariance(b), r, sigma0)
+            b += 1
+        else:
+            t, rho = np.zeros(0), np.zeros(0)
+        T.append(t)
+        red.append(rho)
+    worst = np.split(snooped(np.concatenate(T), o.snoop_alpha), np.cumsum([len(t) for t in T])[:-1])
+    out = []
+    for h, m in enumerate(problem.models):
+        k = m.k[worst[h]]
+        active[h][k], reason[h][k] = False, "blunder"
+        rho = np.full(len(active[h]), np.nan)
+        rho[m.k] = red[h]
+        out.append(rho)
+    return None if any(w.any() for w in worst) else out
+
+
+def _head_floors(data, problem: RigProblem, res_px, redundancy, floors, vc: dict, o: RigOptions):
+    """Every head's image floor and factor at a clean solution (step 3b) into ``vc``; the new
+    floors when some weight moved by more than the tolerance (solve again), else None."""
+    if not (o.variance_components and o.targets_adjusted):
+        return None
+    new = floors.copy()
+    heads, change = {}, 0.0
+    for h, (d, m) in enumerate(zip(data.head_data, problem.models, strict=True)):
+        k = m.k
+        s0, v, rho = d.obs.sigma_px[k], res_px[h][k], redundancy[h][k]
+        red = float(np.sum(rho))
+        if red >= MIN_GROUP_REDUNDANCY and np.all(np.isfinite(rho)) and np.all(np.isfinite(v)):
+            new[h] = image_floor_px(v, s0, rho, floors[h])
+        factor = group_factor(v / s0[:, None], rho)
+        heads[data.heads[h].camera_id] = {"image_floor_px": float(floors[h]), "image_redundancy": red,
+                                          "image_factor": float(factor) if np.isfinite(factor) else None}
+        change = max(change, weight_change(s0, floors[h], new[h]))
+    vc["heads"] = heads
+    if change <= WEIGHT_TOLERANCE or vc["rounds"] >= MAX_COMPONENT_ROUNDS:
+        return None
+    return new
+
+
+def _reweighted(data: RigData, floors) -> RigData:
+    """``data`` with every head's image sigmas ``sqrt(sigma^2 + floor_h^2)``."""
+    heads = [d.with_obs(replace(d.obs, sigma_px=np.sqrt(d.obs.sigma_px**2 + f**2)))
+             for d, f in zip(data.head_data, floors, strict=True)]
+    return replace(data, head_data=heads)
 
 
 def _result(data, o, problem: RigProblem, result, state, res_px, active, reason, exposure_used, total, rounds):
