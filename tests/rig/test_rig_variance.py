@@ -9,7 +9,7 @@ import numpy as np
 
 from fieldcal.model.rotations import rotvec_from_R
 from fieldcal.rig import adjust_rig
-from fieldcal.rig.adjustment import ARCSEC_PER_RAD
+from fieldcal.rig.adjustment import ARCSEC_PER_RAD, RigOptions, initial_rig
 from fieldcal.synthetic.rig import two_head_rig
 
 
@@ -28,15 +28,20 @@ def _z_relative(sr, res, h=1):
 
 
 def test_moderate_blunders_only_snooping_can_see_are_rejected():
-    # 0.8 px on 0.1 px points: 8 sigma per coordinate, near the 8-robust-sigma gate of the norm,
-    # so most must be found by data snooping (T ~ 64 * redundancy against chdtri(2, 1e-6) = 27.6)
+    # 0.72 px on 0.1 px points: 7.2 sigma, under the 8-robust-sigma gate of the norm, so only data
+    # snooping can find them (T ~ 52 times the redundancy, against chdtri(2, 1e-6) = 27.6). The
+    # start is the clean session's initial values without the heads' own calibrations, so no
+    # head's solo snooping has marked them beforehand: the rig's snooping must find them.
     sr = two_head_rig(seed=11)
+    start = replace(initial_rig(sr.data), solo=[])
     d = sr.data.head_data[1]
     rng = np.random.default_rng(11)
     bad = rng.choice(len(d.obs), 6, replace=False)
     uv = d.obs.uv_px.copy()
-    uv[bad] += rng.choice([-1.0, 1.0], (6, 2)) * np.array([0.8, 0.5])
-    res = adjust_rig(_with_head_uv(sr, 1, uv))
+    uv[bad] += rng.choice([-1.0, 1.0], (6, 2)) * np.array([0.6, 0.4])
+    without = adjust_rig(_with_head_uv(sr, 1, uv), RigOptions(snoop_alpha=0.0), start=start)
+    assert not (without.obs_reason[1] == "blunder").any()          # the 8-sigma gate alone misses them
+    res = adjust_rig(_with_head_uv(sr, 1, uv), start=start)
     assert set(np.flatnonzero(res.obs_reason[1] == "blunder")) == set(bad.tolist())
     assert not (res.obs_reason[0] == "blunder").any()
     assert np.all(np.abs(_z_relative(sr, res)) < 4.0)
