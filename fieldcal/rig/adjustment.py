@@ -75,9 +75,14 @@ import numpy as np
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field, snooped, snooping_statistic
-from fieldcal.field.variance_components import (MIN_GROUP_REDUNDANCY, WEIGHT_TOLERANCE, group_factor,
-                                                image_floor_px, weight_change)
 from fieldcal.field.bundle import BundleModel
+from fieldcal.field.variance_components import (
+    MIN_GROUP_REDUNDANCY,
+    WEIGHT_TOLERANCE,
+    group_factor,
+    image_floor_px,
+    weight_change,
+)
 from fieldcal.model.camera import FIELD_PARAMS
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3, skew
 from fieldcal.rig.data import RigData
