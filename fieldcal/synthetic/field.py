@@ -32,7 +32,7 @@ from fieldcal.model.camera import Camera, Sensor
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field", "faceted_field",
     "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
-    "MIN_SHARED_TARGETS", "check_point_ids", "with_control_points",
+    "MIN_SHARED_TARGETS", "check_point_ids", "with_control_points", "visible_points",
 ]
 
 IXU150_TABLE1 = {
@@ -114,7 +114,7 @@ def look_at(center_m, aim_m, roll_rad=0.0, up=(0.0, 0.0, 1.0)):
     return roll @ R
 
 
-def _visible_all(camera: Camera, Rs, Cs, X, normals, margin_px, max_incidence_deg):
+def visible_points(camera: Camera, Rs, Cs, X, normals, margin_px: float = 15.0, max_incidence_deg: float = 70.0):
     """Which targets each image sees, and their exact image points (vectorised over images).
 
     Returns ``(image, target, uv_px)`` for the usable pairs: in front of the camera, inside
@@ -145,7 +145,7 @@ def _simulate(name, camera, targets, poses, stations, *, image_noise_px, survey_
     rng = np.random.default_rng(seed)
     Rs = np.stack([p[0] for p in poses])
     Cs = np.stack([p[1] for p in poses])
-    img, tgt, uv_true = _visible_all(camera, Rs, Cs, targets.xyz_m, targets.normals, margin_px,
+    img, tgt, uv_true = visible_points(camera, Rs, Cs, targets.xyz_m, targets.normals, margin_px,
                                      max_incidence_deg)
     uv_meas = uv_true + rng.normal(0.0, image_noise_px, uv_true.shape)
     surveyed = targets.xyz_m + rng.normal(0.0, survey_noise_mm / 1000.0, targets.xyz_m.shape)

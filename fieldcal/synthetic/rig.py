@@ -30,9 +30,9 @@ from fieldcal.model.camera import Camera, Sensor
 from fieldcal.model.rotations import R_from_rotvec
 from fieldcal.rig.data import RigData, RigHead
 from fieldcal.rig.poses import head_pose
-from fieldcal.synthetic.field import WIDE_ANGLE, look_at, wide_field
+from fieldcal.synthetic.field import WIDE_ANGLE, look_at, visible_points, wide_field
 
-__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "rig_visible", "write_rig_session", "head_field",
+__all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "write_rig_session", "head_field",
            "write_rig_image_session"]
 
 SECOND_HEAD = {"f_mm": 20.0, "xp_mm": -0.04, "yp_mm": 0.06, "k1": 6.0e-5, "k2": -8.0e-8, "k3": 3.0e-11,
@@ -77,26 +77,6 @@ class SyntheticRig:
     settings: dict = field(default_factory=dict)
 
 
-def rig_visible(camera: Camera, R_world_to_camera, center_m, X, normals, *, margin_px=15.0,
-                max_incidence_deg=70.0):
-    """``(image, target, uv_px)`` of every target each image sees: in front of the camera, on the
-    sensor by ``margin_px``, at less than ``max_incidence_deg`` from its normal (exact points)."""
-    s = camera.sensor
-    Rs, Cs = np.asarray(R_world_to_camera, float), np.asarray(center_m, float)
-    Xc = np.einsum("iab,ijb->ija", Rs, X[None] - Cs[:, None])
-    view = Cs[:, None] - X[None]
-    cos_inc = np.einsum("ijk,jk->ij", view, normals) / np.linalg.norm(view, axis=2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = -camera.f_mm * Xc[..., :2] / Xc[..., 2:3]
-    half = 0.55 * np.array([s.width_px, s.height_px]) * s.pixel_mm
-    cand = (Xc[..., 2] < 0) & (np.abs(q) < half).all(axis=-1) & (cos_inc > np.cos(np.radians(max_incidence_deg)))
-    img, tgt = np.nonzero(cand)
-    uv = s.mm_to_pixel(camera.distort(q[img, tgt], check=False))
-    inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= s.width_px - 1 - margin_px)
-              & (uv[:, 1] >= margin_px) & (uv[:, 1] <= s.height_px - 1 - margin_px))
-    return img[inside], tgt[inside], uv[inside]
-
-
 def _simulate(name, rig_id, head_names, cameras, R_cr, t, R_wr, C_r, targets, *, image_noise_px,
               survey_noise_mm, seed, margin_px, target_diameter_mm, marker_size_mm, settings) -> SyntheticRig:
     """Images of every head at every exposure, with noise drawn from ``seed``."""
@@ -109,7 +89,7 @@ def _simulate(name, rig_id, head_names, cameras, R_cr, t, R_wr, C_r, targets, *,
     heads, head_data, head_exp = [], [], []
     for h, cam in enumerate(cameras):
         R, C = head_pose(R_wr, C_r, R_cr[h], t[h])
-        img, tgt, uv = rig_visible(cam, R, C, targets.xyz_m, targets.normals, margin_px=margin_px)
+        img, tgt, uv = visible_points(cam, R, C, targets.xyz_m, targets.normals, margin_px)
         uv = uv + rng.normal(0.0, image_noise_px, uv.shape)
         seen = np.unique(img)                       # a head's image of an exposure it saw nothing in is not taken
         local = np.full(n_e, -1, np.int64)
@@ -259,7 +239,7 @@ def head_field(sr: SyntheticRig, h: int, exposures=None):
     e = np.arange(len(sr.R_world_to_rig)) if exposures is None else np.asarray(list(exposures), np.int64)
     cam = sr.cameras[h]
     R, C = head_pose(sr.R_world_to_rig[e], sr.C_rig_m[e], sr.R_camera_to_rig[h], sr.t_camera_in_rig_m[h])
-    img, tgt, uv = rig_visible(cam, R, C, sr.targets_true.xyz_m, sr.targets_true.normals, margin_px=15.0)
+    img, tgt, uv = visible_points(cam, R, C, sr.targets_true.xyz_m, sr.targets_true.normals, 15.0)
     head = sr.data.heads[h].camera_id.rsplit("-", 1)[-1]
     images = [FieldImage(f"images/{sr.data.exposures[k]}_{head}.tif", None) for k in e]
     data = FieldData(sensor=cam.sensor, targets=sr.data.targets, images=images,
