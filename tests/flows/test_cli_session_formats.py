@@ -16,7 +16,7 @@ from fieldcal.lake.store import Lake
 from fieldcal.synthetic.field import faceted_field, paper_field, wide_field
 from fieldcal.synthetic.render import scaled_field
 from fieldcal.synthetic.session_writer import write_field_session
-from tests.flows.test_cli import env_for, fieldcal
+from tests.flows.test_cli import UNREACHABLE, env_for, fieldcal
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_server")]
 
@@ -42,6 +42,10 @@ def test_run_calibrates_a_free_network_of_unsurveyed_targets_scaled_by_a_bar(tmp
     length_mm = np.linalg.norm(X[ends[1]] - X[ends[0]]) * 1e3
     (folder / "scale_bars.csv").write_text(
         f"from_id,to_id,length_mm,sigma_mm\n{t.ids[ends[0]]},{t.ids[ends[1]]},{length_mm:.4f},0.02\n")
+
+    manifest = json.loads((folder / "session.json").read_text())
+    manifest["field"]["datum"] = "free"                  # the session's own choice (auto would pick it too)
+    (folder / "session.json").write_text(json.dumps(manifest))
 
     doc = _run(folder, tmp_path, prefect_server)
     stats = doc["stats"]
@@ -123,3 +127,20 @@ def test_run_on_photographs_adjusts_the_unsurveyed_coded_and_plain_targets_of_ta
     # the interior orientation within 4 sigma of the truth
     for name in ("f_mm", "xp_mm", "yp_mm", "k1"):
         assert abs(doc["parameters"][name] - sf.camera.to_dict()[name]) < 4 * doc["sigma"][name], name
+
+
+def test_a_strict_session_refuses_an_unlisted_id_in_one_line_before_any_server(tmp_path):
+    folder = tmp_path / "strict"
+    write_field_session(folder, wide_field(seed=6), images=False, observations_csv=True, coded=False)
+    lines = (folder / "targets.csv").read_text().splitlines()
+    missing = lines.pop(5).split(",")[0]                 # a target the observations still name
+    (folder / "targets.csv").write_text("\n".join(lines) + "\n")
+    manifest = json.loads((folder / "session.json").read_text())
+    manifest["field"]["strict_targets"] = True
+    (folder / "session.json").write_text(json.dumps(manifest))
+    lake = tmp_path / "lake"
+    proc = fieldcal("run", folder, "--lake", lake, env=env_for(UNREACHABLE, tmp_path), cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert "observations.csv:" in proc.stderr and f"target_id '{missing}' is not in targets.csv" in proc.stderr
+    assert not lake.exists()
