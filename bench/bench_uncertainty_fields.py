@@ -41,10 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.errors import FieldcalError
 from fieldcal.field.adjustment import AdjustmentOptions
+from fieldcal.field.data import TargetField
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.model.camera import INDEX
-from fieldcal.field.data import TargetField
 from fieldcal.pipeline import measure, prepare
 from fieldcal.products.uncertainty import Calibration, coverage_fraction
 from fieldcal.synthetic.field import faceted_field, target_plane_axes, wide_field
@@ -105,7 +106,11 @@ def one_run(scene: str, k: int, args, root: Path):
     t_measure = time.process_time() - t0 - t_render
     for how in args.how:
         t1 = time.process_time()
-        data, res, _ = calibrate_from_measurements(sess, meas, options, **HOW[how])
+        try:
+            data, res, _ = calibrate_from_measurements(sess, meas, options, **HOW[how])
+        except FieldcalError as e:      # counted as a failed run in the table
+            yield {"scene": scene, "run": k, "how": how, "failed": str(e).splitlines()[0]}
+            continue
         ecc = data.meta.get("eccentricity", {})
         row = {"scene": scene, "run": k, "how": how, **measures(sf, res),
                "normals": ecc.get("normals"), "ecc_max_px": ecc.get("max_px"),
@@ -125,6 +130,8 @@ def table(paths) -> None:
     for scene in dict.fromkeys(r["scene"] for r in rows):
         for how in HOW:
             sel = [r for r in rows if r["scene"] == scene and r["how"] == how]
+            failed = sum("failed" in r for r in sel)
+            sel = [r for r in sel if "failed" not in r]
             if not sel:
                 continue
             z = np.array([r["z"] for r in sel])
@@ -132,7 +139,8 @@ def table(paths) -> None:
             cc = np.array([r["coverage_circle"] for r in sel])
             mean = ", ".join(f"{v:+.2f}" for v in z.mean(axis=0))
             rms = ", ".join(f"{v:.2f}" for v in np.sqrt(np.mean(z ** 2, axis=0)))
-            print(f"| {scene} | {how} | {len(sel)} | {mean} | {rms} | {np.median(ce):.2f} "
+            runs = f"{len(sel)}" + (f" (+{failed} failed)" if failed else "")
+            print(f"| {scene} | {how} | {runs} | {mean} | {rms} | {np.median(ce):.2f} "
                   f"| {np.mean(ce >= 0.9):.2f} | {np.mean(cc >= 0.9):.2f} |")
 
 
@@ -153,9 +161,12 @@ def main() -> None:
     root = Path(tempfile.mkdtemp(prefix=f"mc-{args.scene}-"))
     for k in range(args.first, args.first + args.runs):
         for row in one_run(args.scene, k, args, root):
-            print(f"{row['scene']} run {k} {row['how']:9s} z {np.round(row['z'], 2)} coverage "
-                  f"{row['coverage_ellipse']:.2f}/{row['coverage_circle']:.2f} {row['normals']} "
-                  f"max {row['ecc_max_px']} cpu {row['cpu_s']}", flush=True)
+            if "failed" in row:
+                print(f"{row['scene']} run {k} {row['how']:9s} failed: {row['failed']}", flush=True)
+            else:
+                print(f"{row['scene']} run {k} {row['how']:9s} z {np.round(row['z'], 2)} coverage "
+                      f"{row['coverage_ellipse']:.2f}/{row['coverage_circle']:.2f} {row['normals']} "
+                      f"max {row['ecc_max_px']} cpu {row['cpu_s']}", flush=True)
             if args.out:
                 with args.out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
