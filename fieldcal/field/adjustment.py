@@ -593,14 +593,23 @@ def _robust_scale(z):
     return max(float(robust_sigma(z)), 1e-12)
 
 
-def _drop_undetermined_targets(data, obs_active, survey_active, reason):
-    """Targets whose survey is rejected need two images; otherwise their points go too."""
+def _drop_undetermined_targets(data, obs_active, survey_active, reason, X=None, C=None):
+    """Targets whose survey is rejected need two images seen from directions at least
+    :data:`MIN_INTERSECTION_DEG` apart (two rolls from one station do not intersect);
+    otherwise their points go too. ``X`` (n_targets, 3) and ``C`` (n_images, 3) are the
+    current targets and camera centres [m]; without them two images suffice."""
     if survey_active.all():
         return 0
     n_img = len(data.images)
     pairs = np.unique(data.obs.target[obs_active] * n_img + data.obs.image[obs_active])
-    n_img_per_target = np.bincount(pairs // n_img, minlength=len(data.targets))
+    t_of, i_of = pairs // n_img, pairs % n_img
+    n_img_per_target = np.bincount(t_of, minlength=len(data.targets))
     weak = (~survey_active) & (n_img_per_target < 2)
+    if X is not None and C is not None:
+        for t in np.flatnonzero((~survey_active) & ~weak & (n_img_per_target > 0)):
+            d = C[i_of[t_of == t]] - X[t]
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            weak[t] = bool((d @ d.T).min() > np.cos(np.radians(MIN_INTERSECTION_DEG)))
     drop = obs_active & weak[data.obs.target]
     obs_active[drop] = False
     reason[drop] = "target undetermined after its survey was rejected"
@@ -1336,7 +1345,7 @@ def _solve_clean(solver, flags: _Flags, estimate, o, label):
     """Adjust, reject blunders, readmit what fits, adjust again until nothing changes."""
     data = solver.data
     for rnd in range(o.max_rounds):
-        _drop_undetermined_targets(data, flags.obs_active, flags.survey_active, flags.reason)
+        _drop_undetermined_targets(data, flags.obs_active, flags.survey_active, flags.reason, solver.X, solver.C)
         # before the very first solve: can this network determine f at all?
         check = (lambda m, x, J: _check_f_determinable(m, x, J, o)) if not solver.rounds else None
         model, result = solver.run(estimate, flags.obs_active, flags.survey_active, f"{label} {rnd + 1}",
