@@ -27,7 +27,8 @@ calibration it records ``z = (estimate - truth) / sigma`` of f, xp, yp and the c
 on a 21 x 15 grid: the fraction of grid points whose true landing error lies in the 95.45 %
 ellipse of their landing covariance, and in the circle of two semi-major axes the map draws).
 One JSON line per calibration goes to ``--out`` as soon as it is done; ``--table`` prints the
-Markdown table of bench/README_uncertainty.md from such files.
+Markdown table of bench/README_uncertainty.md from such files (a later row of the same scene,
+run and calibration replaces an earlier one: a rerun).
 """
 
 from __future__ import annotations
@@ -124,6 +125,7 @@ def one_run(scene: str, k: int, args, root: Path):
 
 def table(paths) -> None:
     rows = [json.loads(line) for p in paths for line in Path(p).read_text().splitlines() if line.strip()]
+    rows = list({(r["scene"], r["run"], r["how"]): r for r in rows}.values())    # a rerun replaces its row
     print("| scene | normals | runs | mean z f, xp, yp | RMS z f, xp, yp | median coverage (ellipse) "
           "| runs covered >= 90 % (ellipse) | runs covered >= 90 % (circle) |")
     print("|---|---|---|---|---|---|---|---|")
