@@ -152,11 +152,16 @@ class _Candidates:
     extent: np.ndarray   # (n,) upper bound of the blob's extent [px]
 
 
-def _component_sums(hat, thr, base):
+def _component_sums(hat, thr, base, mask=None, *, return_labels=False):
     """The 8-connected components of ``hat > thr`` (OpenCV) and their top-hat-weighted sums
     ``sum w, sum w c, sum w r, sum w^2``, then about the weighted mean ``sum w dc dc,
-    sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,)."""
-    binary = (hat > thr).view(np.uint8)
+    sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,).
+    ``mask``: only the samples where it is true; ``return_labels``: also the label image
+    (0 outside, component ``j`` labelled ``j + 1``)."""
+    above = hat > thr
+    if mask is not None:
+        above &= mask
+    binary = above.view(np.uint8)
     n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
     idx = np.flatnonzero(binary)
     lab = labels.ravel()[idx] - 1
@@ -171,7 +176,61 @@ def _component_sums(hat, thr, base):
     with np.errstate(invalid="ignore", divide="ignore"):
         sc, sr = total(hv * c), total(hv * r)
         dc, dr = c - (sc / sh)[lab], r - (sr / sh)[lab]
-        return sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr)
+        sums = (sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr))
+    return (sums, labels) if return_labels else sums
+
+
+def _moments(sums, step, off):
+    """Position, extent and span [px] of components from their sums (:func:`_component_sums`)."""
+    sh, sc, sr, shh, scc, srr, scr = sums
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mc, mr = sc / sh, sr / sh
+        vcc, vrr, vcr = scc / sh, srr / sh, scr / sh
+        peak = shh / sh
+        # samples' worth of full contrast -> the area, and the diameter of a disc of that area
+        d_est = 2.0 * step * np.sqrt(sh / peak / math.pi)
+        # extent along the longest axis: 4 sigma (a disc's diameter; 1.15 x a bar's length)
+        lam = 0.5 * (vcc + vrr) + np.sqrt(0.25 * (vcc - vrr) ** 2 + vcr**2)
+        span = 4.0 * step * np.sqrt(lam)
+    u, v = off + step * mc, off + step * mr
+    extent = np.maximum(1.1 * d_est, span + 2.0)
+    return u, v, extent, span
+
+
+MAX_SPLIT_LEVELS = 8
+"""How many times the candidate threshold is doubled to split a component too large for a disc."""
+
+
+def _split_large(hat, thr, base, step, off, max_span_px):
+    """Candidates inside the components of ``hat > thr`` too large for a disc.
+
+    A disc whose top-hat touches shading, a shadow's edge or clutter above the first
+    threshold joins them in one component, too large to be kept. Such components are
+    thresholded again at twice the height above ``base`` (``thr' = base + 2 (thr - base)``)
+    within their own samples, and again within the parts still too large, up to
+    :data:`MAX_SPLIT_LEVELS` times; every part of a disc's size found on the way is a
+    candidate (each sample belongs to at most one). Returns ``(u, v, extent)`` [px].
+    """
+    sums, labels = _component_sums(hat, thr, base, return_labels=True)
+    u, v, extent, span = _moments(sums, step, off)
+    found = []
+    level = float(thr)
+    top = float(hat.max())
+    for _ in range(MAX_SPLIT_LEVELS):
+        big = np.flatnonzero(~(span <= max_span_px)) + 1
+        if not big.size:
+            break
+        level = base + 2.0 * (level - base)
+        if level >= top:
+            break
+        mask = np.isin(labels, big)
+        sums, labels = _component_sums(hat, int(math.ceil(level)), base, mask, return_labels=True)
+        u, v, extent, span = _moments(sums, step, off)
+        ok = (span <= max_span_px) & np.isfinite(u) & np.isfinite(v)
+        found.append((u[ok], v[ok], extent[ok]))
+    if not found:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    return tuple(np.concatenate(c) for c in zip(*found, strict=True))
 
 
 def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contrast_dn, engine="numpy"):
@@ -195,23 +254,15 @@ def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contr
     thr = int(min(math.ceil(base + max(threshold_dn, 0.5 * min_contrast_dn)),
                   np.iinfo(img.dtype).max))
     if engine == "numba":
-        sums = disc_kernel.component_sums(hat, thr, base)
-        sh, sc, sr, shh, scc, srr, scr = sums.T
+        sums = tuple(disc_kernel.component_sums(hat, thr, base).T)
     else:
-        sh, sc, sr, shh, scc, srr, scr = _component_sums(hat, thr, base)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mc, mr = sc / sh, sr / sh
-        vcc, vrr, vcr = scc / sh, srr / sh, scr / sh
-        peak = shh / sh
-        # samples' worth of full contrast -> the area, and the diameter of a disc of that area
-        d_est = 2.0 * step * np.sqrt(sh / peak / math.pi)
-        # extent along the longest axis: 4 sigma (a disc's diameter; 1.15 x a bar's length)
-        lam = 0.5 * (vcc + vrr) + np.sqrt(0.25 * (vcc - vrr) ** 2 + vcr**2)
-        span = 4.0 * step * np.sqrt(lam)
-    u, v = off + step * mc, off + step * mr
-    extent = np.maximum(1.1 * d_est, span + 2.0)
-    keep = (span <= max_diameter_px + 2 * step) & np.isfinite(u) & np.isfinite(v)
-    cand = _Candidates(u[keep], v[keep], extent[keep])
+        sums = _component_sums(hat, thr, base)
+    u, v, extent, span = _moments(sums, step, off)
+    max_span = max_diameter_px + 2 * step
+    keep = (span <= max_span) & np.isfinite(u) & np.isfinite(v)
+    su, sv, sext = _split_large(hat, thr, base, step, off, max_span)
+    cand = _Candidates(np.concatenate([u[keep], su]), np.concatenate([v[keep], sv]),
+                       np.concatenate([extent[keep], sext]))
     return cand, min_contrast_dn
 
 
