@@ -199,17 +199,26 @@ def _moments(sums, step, off):
 
 MAX_SPLIT_LEVELS = 8
 """How many times the candidate threshold is doubled to split a component too large for a disc."""
+SPLIT_RISE = 1.5
+"""A part found by splitting is a candidate when it rises well above the level it was cut at
+(its hat-weighted mean height at least this times the level's height): a disc does, by its
+contrast; a fragment of a line or an edge cut near its own crest does not."""
 
 
-def _split_large(hat, thr, base, step, off, max_span_px):
+def _split(hat, thr, base, step, off, max_span_px):
     """Candidates inside the components of ``hat > thr`` too large for a disc.
 
-    A disc whose top-hat touches shading, a shadow's edge or clutter above the first
-    threshold joins them in one component, too large to be kept. Such components are
-    thresholded again at twice the height above ``base`` (``thr' = base + 2 (thr - base)``)
-    within their own samples, and again within the parts still too large, up to
-    :data:`MAX_SPLIT_LEVELS` times; every part of a disc's size found on the way is a
-    candidate (each sample belongs to at most one). Returns ``(u, v, extent)`` [px].
+    A disc whose top-hat touches shading, a shadow's edge, clutter or (the dot of a ringed
+    target, e.g. PhotoModeler's coded targets) its ring's segments through a gap a little
+    darker than the paper joins them in one component above the first threshold, too
+    large to be kept. Where the image's noise is at the estimator's floor (a JPEG's flat
+    areas: 0.3 DN) that threshold is a few DN, and many discs of a shaded sheet are lost
+    so. Such components are thresholded again at twice the height above ``base``
+    (``thr' = base + 2 (thr - base)``) within their own samples, and again within the parts
+    still too large, up to :data:`MAX_SPLIT_LEVELS` times; every part of a disc's size
+    found on the way that rises above its level (:data:`SPLIT_RISE`) is a candidate (each
+    sample is in at most one; the window stage measures it and its filters decide).
+    Returns ``(u, v, extent)`` [px].
     """
     sums, labels = _component_sums(hat, thr, base, return_labels=True)
     u, v, extent, span = _moments(sums, step, off)
@@ -226,7 +235,9 @@ def _split_large(hat, thr, base, step, off, max_span_px):
         mask = np.isin(labels, big)
         sums, labels = _component_sums(hat, int(math.ceil(level)), base, mask, return_labels=True)
         u, v, extent, span = _moments(sums, step, off)
-        ok = (span <= max_span_px) & np.isfinite(u) & np.isfinite(v)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            height = sums[3] / sums[0]                      # hat-weighted mean height above base
+        ok = (span <= max_span_px) & np.isfinite(u) & np.isfinite(v) & (height >= SPLIT_RISE * (level - base))
         found.append((u[ok], v[ok], extent[ok]))
     if not found:
         return np.zeros(0), np.zeros(0), np.zeros(0)
@@ -260,7 +271,7 @@ def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contr
     u, v, extent, span = _moments(sums, step, off)
     max_span = max_diameter_px + 2 * step
     keep = (span <= max_span) & np.isfinite(u) & np.isfinite(v)
-    su, sv, sext = _split_large(hat, thr, base, step, off, max_span)
+    su, sv, sext = _split(hat, thr, base, step, off, max_span)
     cand = _Candidates(np.concatenate([u[keep], su]), np.concatenate([v[keep], sv]),
                        np.concatenate([extent[keep], sext]))
     return cand, min_contrast_dn
