@@ -38,13 +38,13 @@ import tifffile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fieldcal.field.adjustment import AdjustmentOptions  # noqa: E402
+from fieldcal.field.adjustment import AdjustmentOptions, adjust_field  # noqa: E402
 from fieldcal.field.from_images import calibrate_from_measurements  # noqa: E402
 from fieldcal.measure.discs import detect_targets  # noqa: E402
 from fieldcal.measure.imageio import read_image  # noqa: E402
 from fieldcal.model.camera import INDEX  # noqa: E402
 from fieldcal.pipeline import measure, prepare  # noqa: E402
-from tests.realdata import DBAT  # noqa: E402
+from tests.realdata import DBAT, dbat_field_data  # noqa: E402
 
 MARKS_PER_IMAGE = 5
 
@@ -155,6 +155,37 @@ def classify(folder: Path, names: dict, pm: np.ndarray, measurements, data, resu
     return out
 
 
+def sheet_place(target_xy: dict, tid: str) -> str:
+    """``corner``, ``border`` (the sheet's outermost row or column of targets) or ``inner``."""
+    xs = np.array([xy[0] for xy in target_xy.values()])
+    ys = np.array([xy[1] for xy in target_xy.values()])
+    x, y = target_xy[tid]
+    on_x = min(abs(x - xs.min()), abs(x - xs.max())) < 0.01
+    on_y = min(abs(y - ys.min()), abs(y - ys.max())) < 0.01
+    return "corner" if on_x and on_y else "border" if on_x or on_y else "inner"
+
+
+def rejected_by_place(rows):
+    """Rejected points and all marks by their target's place on the sheet, and how many of
+    the rejected the adjustment of PhotoModeler's own marks rejects too."""
+    xy = {}
+    for line in _rows(DBAT / "objpts-pm.txt"):
+        t = line.split()
+        xy[t[0]] = (float(t[1]), float(t[2]))
+    ref = adjust_field(dbat_field_data()).residual_table().to_pydict()
+    pm_rejected = {(im, t) for im, t, u in zip(ref["image"], ref["target_id"], ref["used"], strict=True) if not u}
+    lines = [f"PhotoModeler's own marks, adjusted by fieldcal (0.1 px): {len(ref['used']) - len(pm_rejected)} used, "
+             f"{len(pm_rejected)} rejected",
+             "| place on the sheet | marks | rejected (ours) | share | also rejected with PM's marks |",
+             "|---|---|---|---|---|"]
+    for place in ("inner", "border", "corner"):
+        sel = [r for r in rows if sheet_place(xy, r["target"]) == place]
+        rej = [r for r in sel if r["cls"].startswith("in adjustment, rejected")]
+        both = sum((r["image"], r["target"]) in pm_rejected for r in rej)
+        lines.append(f"| {place} | {len(sel)} | {len(rej)} | {100 * len(rej) / max(len(sel), 1):.1f} % | {both} |")
+    return lines
+
+
 def summarise(rows):
     lines = []
     for group, sel in (("plain targets", [r for r in rows if not r["control"]]),
@@ -192,6 +223,7 @@ def main(argv=None):
     print(f"points used {st['n_observations']}, "
           f"rejected {st['n_rejected']}, rmse {st['rmse_px']:.3f} px, sigma0 {st['sigma0']:.3f}")
     print("\n".join(summarise(rows)))
+    print("\n".join(rejected_by_place(rows)))
     for n in ("f_mm", "xp_mm", "yp_mm", "k1"):
         print(f"{n}: {result.params[INDEX[n]]:.6g} ± {result.sigma.get(n, float('nan')):.2g}")
     per_image = Counter(r["image"] for r in rows if r["cls"] != "used" and not r["control"])
