@@ -176,13 +176,16 @@ def rejected_by_place(rows):
     pm_rejected = {(im, t) for im, t, u in zip(ref["image"], ref["target_id"], ref["used"], strict=True) if not u}
     lines = [f"PhotoModeler's own marks, adjusted by fieldcal (0.1 px): {len(ref['used']) - len(pm_rejected)} used, "
              f"{len(pm_rejected)} rejected",
-             "| place on the sheet | marks | rejected (ours) | share | also rejected with PM's marks |",
-             "|---|---|---|---|---|"]
+             "| place on the sheet | marks | rejected (ours) | share | also rejected with PM's marks "
+             "| PM's marks rejected |",
+             "|---|---|---|---|---|---|"]
     for place in ("inner", "border", "corner"):
         sel = [r for r in rows if sheet_place(xy, r["target"]) == place]
         rej = [r for r in sel if r["cls"].startswith("in adjustment, rejected")]
         both = sum((r["image"], r["target"]) in pm_rejected for r in rej)
-        lines.append(f"| {place} | {len(sel)} | {len(rej)} | {100 * len(rej) / max(len(sel), 1):.1f} % | {both} |")
+        pm_here = sum(sheet_place(xy, t) == place for _, t in pm_rejected)
+        lines.append(f"| {place} | {len(sel)} | {len(rej)} | {100 * len(rej) / max(len(sel), 1):.1f} % | {both} "
+                     f"| {pm_here} |")
     return lines
 
 

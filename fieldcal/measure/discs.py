@@ -152,22 +152,12 @@ class _Candidates:
     extent: np.ndarray   # (n,) upper bound of the blob's extent [px]
 
 
-def _component_sums(hat, thr, base, mask=None, *, return_labels=False):
-    """The 8-connected components of ``hat > thr`` (OpenCV) and their top-hat-weighted sums
+def _sums(hat, idx, lab, m, base):
+    """Top-hat-weighted sums of the samples ``idx`` (flat indices) of components ``lab`` (0..m-1):
     ``sum w, sum w c, sum w r, sum w^2``, then about the weighted mean ``sum w dc dc,
-    sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,).
-    ``mask``: only the samples where it is true; ``return_labels``: also the label image
-    (0 outside, component ``j`` labelled ``j + 1``)."""
-    above = hat > thr
-    if mask is not None:
-        above &= mask
-    binary = above.view(np.uint8)
-    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
-    idx = np.flatnonzero(binary)
-    lab = labels.ravel()[idx] - 1
+    sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,)."""
     hv = hat.ravel()[idx].astype(np.float64) - base
     r, c = np.divmod(idx, hat.shape[1])
-    m = n - 1
 
     def total(w):
         return np.bincount(lab, weights=w, minlength=m)
@@ -176,8 +166,15 @@ def _component_sums(hat, thr, base, mask=None, *, return_labels=False):
     with np.errstate(invalid="ignore", divide="ignore"):
         sc, sr = total(hv * c), total(hv * r)
         dc, dr = c - (sc / sh)[lab], r - (sr / sh)[lab]
-        sums = (sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr))
-    return (sums, labels) if return_labels else sums
+        return sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr)
+
+
+def _component_sums(hat, thr, base):
+    """The 8-connected components of ``hat > thr`` (OpenCV) and their sums (:func:`_sums`)."""
+    binary = (hat > thr).view(np.uint8)
+    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
+    idx = np.flatnonzero(binary)
+    return _sums(hat, idx, labels.ravel()[idx] - 1, n - 1, base)
 
 
 def _moments(sums, step, off):
@@ -220,25 +217,32 @@ def _split(hat, thr, base, step, off, max_span_px):
     sample is in at most one; the window stage measures it and its filters decide).
     Returns ``(u, v, extent)`` [px].
     """
-    sums, labels = _component_sums(hat, thr, base, return_labels=True)
-    u, v, extent, span = _moments(sums, step, off)
+    max_area = 0.5 * math.pi * (max_span_px / step) ** 2      # twice the largest disc's [samples]
+    binary = hat > thr
     found = []
     level = float(thr)
     top = float(hat.max())
-    for _ in range(MAX_SPLIT_LEVELS):
-        big = np.flatnonzero(~(span <= max_span_px)) + 1
-        if not big.size:
-            break
-        level = base + 2.0 * (level - base)
-        if level >= top:
-            break
-        mask = np.isin(labels, big)
-        sums, labels = _component_sums(hat, int(math.ceil(level)), base, mask, return_labels=True)
+    for k in range(MAX_SPLIT_LEVELS + 1):
+        n, labels = cv2.connectedComponents(binary.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        idx = np.flatnonzero(binary)
+        lab = labels.ravel()[idx] - 1
+        # a component of more than twice the largest disc's area is too large without its
+        # moments (the shaded floor beside a sheet); the moments of the others
+        huge = np.bincount(lab, minlength=n - 1) > max_area
+        sel = ~huge[lab]
+        sums = _sums(hat, idx[sel], lab[sel], n - 1, base)
         u, v, extent, span = _moments(sums, step, off)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            height = sums[3] / sums[0]                      # hat-weighted mean height above base
-        ok = (span <= max_span_px) & np.isfinite(u) & np.isfinite(v) & (height >= SPLIT_RISE * (level - base))
-        found.append((u[ok], v[ok], extent[ok]))
+        big = huge | ~(span <= max_span_px)
+        if k:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                height = sums[3] / sums[0]                  # hat-weighted mean height above base
+            ok = ~big & np.isfinite(u) & np.isfinite(v) & (height >= SPLIT_RISE * (level - base))
+            found.append((u[ok], v[ok], extent[ok]))
+        level = base + 2.0 * (level - base)
+        if not big.any() or level >= top:
+            break
+        in_big = np.concatenate([[False], big])
+        binary = (hat > int(math.ceil(level))) & in_big[labels]
     if not found:
         return np.zeros(0), np.zeros(0), np.zeros(0)
     return tuple(np.concatenate(c) for c in zip(*found, strict=True))
@@ -271,9 +275,11 @@ def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contr
     u, v, extent, span = _moments(sums, step, off)
     max_span = max_diameter_px + 2 * step
     keep = (span <= max_span) & np.isfinite(u) & np.isfinite(v)
-    su, sv, sext = _split(hat, thr, base, step, off, max_span)
-    cand = _Candidates(np.concatenate([u[keep], su]), np.concatenate([v[keep], sv]),
-                       np.concatenate([extent[keep], sext]))
+    cand = _Candidates(u[keep], v[keep], extent[keep])
+    if np.any(span > max_span):                 # only then: a frame of separate discs costs nothing more
+        su, sv, sext = _split(hat, thr, base, step, off, max_span)
+        cand = _Candidates(np.concatenate([cand.u, su]), np.concatenate([cand.v, sv]),
+                           np.concatenate([cand.extent, sext]))
     return cand, min_contrast_dn
 
 
