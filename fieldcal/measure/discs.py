@@ -12,7 +12,9 @@ full-image labelling is made (figures for a 8208 x 6280 frame: bench/README_extr
    morphological black (white) top-hat, with a square wider than the largest disc,
    removes the background; samples more than a few noise sigmas above it are grouped
    into connected components, one per candidate; top-hat-weighted moments give a first
-   position and size.
+   position and size. A component too large for a disc (a disc joined to shading, a
+   shadow, clutter or, for a ringed target's dot, its ring's segments) is thresholded
+   again within itself, higher, until its discs stand alone (``_split``).
 2. **Windows** (per candidate). A square window around each candidate, sized from its
    coarse extent, is cut out; same-size windows are stacked and measured together
    (vectorised over windows, no loop per target or per pixel) by the NumPy reference
