@@ -55,9 +55,9 @@ def _ringed_coverage(shape, centre, A, r_dot, r_in, r_out, segments_deg, supersa
 
 @pytest.fixture(scope="module")
 def discs_in_shade():
-    """Discs of 22-30 px at the edge of a soft shadow 10 DN deep (a dip 40 px wide beside
-    each, as the sheet's curl and the books cast on the DBAT photographs), an 8-bit image
-    with 0.3 DN of noise (a JPEG's flat areas)."""
+    """Discs of 22-30 px at the edge of a soft shadow band 10 DN deep (28 px FWHM, its middle
+    24 px below the discs' centres, as the sheet's curl and the books cast on the DBAT
+    photographs), an 8-bit image with 0.3 DN of noise (a JPEG's flat areas)."""
     rng = np.random.default_rng(23)
     H, W = 300, 600
     centres = np.array([[80.0 + 110.0 * k, 150.0] for k in range(5)]) + rng.uniform(-0.5, 0.5, (5, 2))
