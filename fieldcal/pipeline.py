@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.fingerprint import fingerprint, sha256_file
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
-from fieldcal.session.fingerprint import fingerprint, sha256_file
 from fieldcal.session.loader import Session, field_data_from_observations, load_session
 from fieldcal.session.store import is_url, open_store
 

@@ -17,12 +17,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from fieldcal.contract.fingerprint import fingerprint, sha256_bytes, sha256_file
 from fieldcal.errors import InputError
 from fieldcal.field.adjustment import AdjustmentOptions
 from fieldcal.pipeline import Settings
 from fieldcal.rig.data import RigData
 from fieldcal.rig.session import RigSession, load_rig_session, rig_data_from_observations
-from fieldcal.session.fingerprint import fingerprint, sha256_bytes, sha256_file
 from fieldcal.session.loader import safe_path
 
 __all__ = ["RigPrepared", "RigOutcome", "prepare_rig", "measure_rig", "solve_rig", "run_rig"]

@@ -12,9 +12,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData", "ScaleBars", "normal_problem"]
 

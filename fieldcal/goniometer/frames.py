@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.goniometer_schema import MEASUREMENT_SCHEMA
 from fieldcal.errors import ImageError, InputError
-from fieldcal.goniometer.schema import MEASUREMENT_SCHEMA
 from fieldcal.measure.imageio import read_image
 from fieldcal.measure.spots import FLAGS, measure_spot
 from fieldcal.model.camera import Sensor

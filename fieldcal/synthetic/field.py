@@ -462,7 +462,7 @@ def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True,
     """
     import pyarrow as pa
 
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     rng = np.random.default_rng([int(seed), int(image_index)])
     k = np.flatnonzero(sf.data.obs.image == image_index)

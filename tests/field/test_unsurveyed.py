@@ -223,7 +223,7 @@ def test_a_session_with_unsurveyed_targets_and_scale_bars_runs_through_the_pipel
     """prepare + solve of an observations-only session: 4 surveyed targets, the rest unlisted,
     a free network (session.json field.datum) scaled by scale_bars.csv; the document validates."""
     from fieldcal import pipeline
-    from fieldcal.session.schemas import validate_json
+    from fieldcal.contract.schemas import validate_json
 
     sf, _, control = field
     folder = tmp_path / "free"

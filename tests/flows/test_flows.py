@@ -20,12 +20,12 @@ import yaml
 import zarr
 
 from fieldcal import batch, progress
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.errors import InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.lake import history
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES
-from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.loader import Session
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session

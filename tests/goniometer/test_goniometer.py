@@ -419,7 +419,7 @@ def test_result_has_the_contracts_document_parts(solved):
 
 
 def test_lake_residuals_follow_the_residuals_schema(solved):
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     res, _ = solved["h3d", True]
     t = res.lake_residuals()

@@ -22,19 +22,19 @@ import pytest
 import zarr
 
 import fieldcal
-from fieldcal.errors import InputError, LakeError
-from fieldcal.lake import history
-from fieldcal.lake.store import Lake, new_version, observations_key, version_time
-from fieldcal.lake.tables import Tables
-from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, PARAM_NAMES
-from fieldcal.model.rotations import R_world_to_camera_from_opk
-from fieldcal.session.fingerprint import (
+from fieldcal.contract.fingerprint import (
     canonical_json,
     code_version,
     fingerprint,
     is_fingerprint,
     sha256_file,
 )
+from fieldcal.errors import InputError, LakeError
+from fieldcal.lake import history
+from fieldcal.lake.store import Lake, new_version, observations_key, version_time
+from fieldcal.lake.tables import Tables
+from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, PARAM_NAMES
+from fieldcal.model.rotations import R_world_to_camera_from_opk
 
 VERSION_RE = re.compile(r"^\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4}$")
 
@@ -122,7 +122,7 @@ def residual_table(n=20, *, seed=0, n_rejected=2):
 
 def field_measurements(image="images/IMG_0000.tif", n=3, *, seed=0):
     """A field image's measured targets (schemas/measurements.arrow.json), n rows."""
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     rng = np.random.default_rng(seed)
     rows = [{"image": image, "blob": i, "kind": "disc", "code": None,
@@ -135,7 +135,7 @@ def field_measurements(image="images/IMG_0000.tif", n=3, *, seed=0):
 
 
 def spot_measurement(file="images/F000.tif", u_px=400.0):
-    """A goniometer frame's spot (fieldcal.goniometer.method.MEASUREMENT_SCHEMA), one row."""
+    """A goniometer frame's spot (fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA), one row."""
     from fieldcal.goniometer.method import measurements_table
 
     return measurements_table([{"file": file, "u_px": u_px, "v_px": 300.0, "peak_dn": 900.0,
