@@ -61,8 +61,8 @@ DISTANCE_M = 60.0
 
 def dense_field():
     """A SyntheticField: one image of a planar grid of discs filling the frame."""
-    from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
     from fieldcal.model.camera import Camera, Sensor
+    from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
     from fieldcal.synthetic.field import IXU150_TABLE1, SyntheticField, look_at
 
     cam = Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)

@@ -35,7 +35,7 @@ from fieldcal.session.store import is_url, open_store
 
 if TYPE_CHECKING:
     from fieldcal.field.adjustment import FieldResult
-    from fieldcal.field.data import FieldData
+    from fieldcal.session.data import FieldData
 
 # The solvers (SciPy, ~1-2 s to import) are imported where they are used, so that
 # validating a session (`prepare`) answers in well under a second.
@@ -166,9 +166,9 @@ def _prepare(sess: Session, settings: Settings) -> Prepared:
                                  "targets per image) to be identified", str(sess.folder / "session.json"))
         _check_image_folders(sess, to_measure)
         return Prepared(sess, settings, to_measure, tables, field_data=field_data)
-    from fieldcal.goniometer import method as goniometer
+    from fieldcal.session.frames import read_frames_csv
 
-    frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
+    frames = read_frames_csv(sess.frames_path, strict=False)
     tables[sess.frames_path.name] = sess.frames_path.read_bytes()
     names = [str(f) for f in frames.column("file").to_pylist()]
     _check_image_folders(sess, names)
@@ -237,7 +237,7 @@ def drop_sparse_images(data: FieldData, min_points: int | None = None) -> tuple[
 
     Parameters
     ----------
-    data : fieldcal.field.data.FieldData
+    data : fieldcal.session.data.FieldData
         The field data of an observations-only session (every image it lists).
     min_points : int, optional
         Default :data:`fieldcal.field.adjustment.MIN_POINTS_PER_IMAGE`.

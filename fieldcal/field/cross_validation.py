@@ -38,9 +38,9 @@ from scipy.special import chdtrc  # chi2.sf(x, k) = chdtrc(k, x), without scipy.
 
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import FieldResult, InitialValues, adjust_field
-from fieldcal.field.data import FieldData
 from fieldcal.products.compare import ray_difference_px
 from fieldcal.products.uncertainty import landing_jacobian, remove_rotation_part
+from fieldcal.session.data import FieldData
 
 __all__ = ["StationMove", "CrossValidation", "cross_validate_by_station", "station_groups"]
 

@@ -12,7 +12,7 @@ import importlib
 
 _EXPORTS = {"along_axis_difference_px": "chain", "MEASUREMENT_SCHEMA": "frames", "average_frames": "frames",
             "measure_frame": "frames", "measure_session": "frames", "measurements_table": "frames",
-            "read_frames_csv": "frames", "calibrate": "method", "min_sum_linear": "minsum",
+            "calibrate": "method", "min_sum_linear": "minsum",
             "min_sum_rigorous": "minsum", "GoniometerResult": "result"}
 """Names of the package and the module that defines each, imported on first use (PEP 562):
 importing a light module of the package (:mod:`~fieldcal.contract.goniometer_schema`) does not

@@ -27,9 +27,9 @@ import numpy as np
 from fieldcal.contract.names import normal_file_name
 from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.model.camera import FIELD_PARAMS, Sensor
 from fieldcal.rig.data import RigData, RigHead
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.session.loader import (
     MANIFEST,
     OBSERVATIONS,

@@ -49,9 +49,9 @@ from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.contract.names import normal_file_name
 from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
     MARKS_COLUMNS,
@@ -438,7 +438,7 @@ def _unique_keys(pairs):
 
 def _check_frame_paths(folder: Path, frames_path: Path, store: SessionStore | None = None) -> None:
     """Every frame that frames.csv names stays inside the session folder (path checks only)."""
-    from fieldcal.goniometer.method import read_frames_csv
+    from fieldcal.session.frames import read_frames_csv
 
     check_size(frames_path, "frames.csv")
     frames = read_frames_csv(frames_path, strict=False)

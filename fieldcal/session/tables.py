@@ -55,7 +55,8 @@ import pyarrow.csv as pacsv
 from fieldcal.contract.names import check_name, first_invalid, normal_file_name
 from fieldcal.contract.schemas import shown
 from fieldcal.errors import InputError
-from fieldcal.field.data import (
+from fieldcal.model.camera import Sensor
+from fieldcal.session.data import (
     DEFAULT_TARGET_SIGMA_MM,
     FieldImage,
     FieldObservations,
@@ -63,7 +64,6 @@ from fieldcal.field.data import (
     TargetField,
     normal_problem,
 )
-from fieldcal.model.camera import Sensor
 
 __all__ = ["MAX_BYTES", "MAX_ROWS", "MAX_IMAGES", "CsvTable", "check_size", "read_csv_table",
            "read_targets_csv", "read_observations_csv", "read_marks_csv", "read_scale_bars_csv"]

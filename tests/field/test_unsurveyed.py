@@ -15,8 +15,8 @@ import pytest
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
-from fieldcal.field.data import ScaleBars
 from fieldcal.model.camera import INDEX
+from fieldcal.session.data import ScaleBars
 from fieldcal.session.loader import field_data_from_observations, load_session
 from fieldcal.synthetic.field import wide_field, with_control_points
 from fieldcal.synthetic.session_writer import write_field_session

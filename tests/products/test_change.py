@@ -214,7 +214,8 @@ def test_repeat_goniometer_sessions_scatter_as_their_sigmas_say(pairs):
 def test_the_issues_three_synthetic_sessions_of_one_camera_agree(tmp_path):
     """``fieldcal synth --method goniometer`` seeds 1, 2, 3 (the same camera, rendered frames):
     called changed with chi2 464-6425 on 9 dof before; no pair is significant now."""
-    from fieldcal.goniometer import measure_session, read_frames_csv
+    from fieldcal.goniometer import measure_session
+    from fieldcal.session.frames import read_frames_csv
     from fieldcal.synthetic.goniometer import write_session
 
     cals = []
