@@ -42,10 +42,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from fieldcal.analysis.compare import compare_calibrations  # noqa: E402
+from fieldcal.analysis.uncertainty import Calibration  # noqa: E402
 from fieldcal.goniometer import method as gon  # noqa: E402
 from fieldcal.model.camera import PARAM_NAMES  # noqa: E402
-from fieldcal.products.compare import compare_calibrations  # noqa: E402
-from fieldcal.products.uncertainty import Calibration  # noqa: E402
 from fieldcal.session.frames import read_frames_csv  # noqa: E402
 from fieldcal.synthetic.goniometer import write_session  # noqa: E402
 

@@ -20,11 +20,11 @@ from collections.abc import Mapping
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.correction import correction_grid
 from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError, one_line
 from fieldcal.lake.ids import parse_time, plain_json
 from fieldcal.model.camera import PARAM_NAMES, Sensor
-from fieldcal.products.correction import correction_grid
 
 __all__ = ["conform_residuals", "prepare_arrays", "catalog_row", "array_digest", "reason",
            "KNOWN_ARRAYS", "KEY_COLUMNS"]

@@ -79,6 +79,7 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
 
+from fieldcal.analysis.correction import CORRECTION_GRID
 from fieldcal.contract.fingerprint import code_version, is_fingerprint
 from fieldcal.contract.schemas import validate_json
 from fieldcal.errors import InputError, LakeError
@@ -99,7 +100,6 @@ from fieldcal.lake.ids import (
 from fieldcal.lake.parts import KNOWN_ARRAYS, array_digest, catalog_row, conform_residuals, prepare_arrays, reason
 from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
-from fieldcal.products.correction import CORRECTION_GRID
 from fieldcal.session.loader import check_acquired_not_ahead
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",

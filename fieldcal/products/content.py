@@ -1,6 +1,6 @@
 r"""The numbers a calibration report and a certificate show, as plain rows.
 
-Computed from a :class:`fieldcal.products.uncertainty.Calibration` (the document, its
+Computed from a :class:`fieldcal.analysis.uncertainty.Calibration` (the document, its
 covariance and arrays) and the version's residual table; :mod:`fieldcal.products.report`
 and :mod:`fieldcal.products.certificate` only lay them out.
 
@@ -9,7 +9,7 @@ and :mod:`fieldcal.products.certificate` only lay them out.
   ``u0 = (W - 1)/2 + xp / d``, ``v0 = (H - 1)/2 - yp / d`` (docs/conventions.md).
 - :func:`distortion_table`: the radial distortion and the decentering profile at field
   angles or radii, with 1-sigma from the covariance
-  (:func:`fieldcal.products.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
+  (:func:`fieldcal.analysis.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
   *distortion*, ``Delta r = -dr`` (measured minus ideal radius, positive away from the
   principal point), the sign of USGS calibration reports; the model's correction ``dr`` is
   its negative (docs/conventions.md section 2).
@@ -35,8 +35,8 @@ import math
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.uncertainty import Calibration, decentering_curve, radial_curve
 from fieldcal.model.camera import INDEX
-from fieldcal.products.uncertainty import Calibration, decentering_curve, radial_curve
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",

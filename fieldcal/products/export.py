@@ -64,9 +64,9 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import ConvergenceError, InputError
 from fieldcal.model.camera import Camera
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["EXACT_PX", "OPENCV_MODELS", "FORMATS", "ModelFit", "normalised_rays",
            "opencv_project", "opencv_jacobian", "metashape_project", "fit_opencv", "fit_metashape",

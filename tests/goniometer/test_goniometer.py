@@ -486,8 +486,8 @@ def test_the_effective_focal_length_is_the_true_one_and_f_alone_is_not(solved, s
     """The scenarios' true cameras have no linear term (k0 = 0); the method puts a scale into k0
     and f. f / (1 + k0) -- what the certificate states beside f -- is the true focal length
     within its uncertainty; f alone is many sigma off where the lens distorts (issue 30)."""
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.focal_length import effective_focal
-    from fieldcal.products.uncertainty import Calibration
 
     truth = sessions[name][0].camera
     res, _ = solved[name, False]

@@ -154,7 +154,7 @@ def test_a_missing_or_damaged_zarr_chunk_is_an_error_naming_it(tmp_path):
     (zarr_dir / "sigma" / "c" / "0").unlink()
     with pytest.raises(LakeError, match=rf"chunk .*{v}\.zarr/sigma/c/0 is missing"):
         lake.open_zarr(v)
-    from fieldcal.products.uncertainty import Calibration
+    from fieldcal.analysis.uncertainty import Calibration
 
     with pytest.raises(LakeError, match="sigma/c/0 is missing"):
         Calibration.from_lake(lake, v)
