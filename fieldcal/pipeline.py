@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.correction import correction_arrays
 from fieldcal.contract.fingerprint import fingerprint, sha256_file
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.model.camera import PARAM_NAMES
@@ -323,7 +324,7 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
         images=res.images_section(), fingerprint=fp,
         extra={"acquired": sess.acquired.strftime("%Y-%m-%dT%H:%M:%SZ")})
     names = res.covariance_names
-    arrays = {"covariance": res.covariance, "correlation": res.correlation_interior}
+    arrays = {"covariance": res.covariance, "correlation": res.correlation_interior, **correction_arrays(doc)}
     attrs = {"covariance": {"names": names, "units": "a-posteriori, parameter units; rotations rad, centres m"},
              "correlation": {"names": list(res.estimate)}}
     if res.sigma_targets_m is not None:

@@ -79,7 +79,6 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
 
-from fieldcal.analysis.correction import CORRECTION_GRID
 from fieldcal.contract.fingerprint import code_version, is_fingerprint
 from fieldcal.contract.schemas import validate_json
 from fieldcal.errors import InputError, LakeError
@@ -103,7 +102,7 @@ from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
 from fieldcal.session.loader import check_acquired_not_ahead
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
-           "KNOWN_ARRAYS", "CORRECTION_GRID"]
+           "KNOWN_ARRAYS"]
 
 
 class Committed(str):

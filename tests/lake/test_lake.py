@@ -22,6 +22,7 @@ import pytest
 import zarr
 
 import fieldcal
+from fieldcal.analysis.correction import correction_arrays
 from fieldcal.contract.fingerprint import (
     canonical_json,
     code_version,
@@ -245,11 +246,24 @@ def test_field_commit_round_trip(tmp_path):
     assert list(g["exterior/center_m"].attrs["images"]) == [im["file"] for im in doc["images"]]
 
 
+def test_the_lake_stores_the_correction_field_it_is_given_and_computes_none(tmp_path):
+    """Issue 25, goal 1: the lake stores what it is given; the grid comes from the solve step."""
+    lake = Lake(tmp_path)
+    g = lake.open_zarr(lake.commit(field_document(), {}, residual_table()))
+    assert not {"correction_field", "grid_u_px", "grid_v_px"} & set(g.array_keys())
+    doc = field_document(seed=3)
+    given = correction_arrays(doc)
+    g = lake.open_zarr(lake.commit(doc, given, residual_table()))
+    for name, arr in given.items():
+        np.testing.assert_array_equal(g[name][:], arr)
+
+
 def test_correction_field_follows_the_contract_formula(tmp_path):
-    """The derived correction field against CONTRACT section 2 written out independently."""
+    """The correction field the solve step hands in (analysis.correction), as stored, against
+    CONTRACT section 2 written out independently."""
     lake = Lake(tmp_path)
     doc = field_document()
-    g = lake.open_zarr(lake.commit(doc, {}, residual_table()))
+    g = lake.open_zarr(lake.commit(doc, correction_arrays(doc), residual_table()))
     field, gu, gv = g["correction_field"][:], g["grid_u_px"][:], g["grid_v_px"][:]
     assert field.shape == (gv.size, gu.size, 2) and gu[0] == 0 and gu[-1] == 819 and gv[-1] == 627
     p = doc["parameters"]
