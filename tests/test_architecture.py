@@ -174,6 +174,19 @@ def test_every_import_points_down_or_sideways():
     assert upward == []
 
 
+def test_no_cycles_between_packages():
+    """The subpackages (and top-level modules) of fieldcal, one node each: sideways imports
+    within a layer never close a loop either (issue 25: they all reached each other)."""
+    def unit(m):
+        return ".".join(m.split(".")[:2])
+
+    graph = {}
+    for m, targets in _graph().items():
+        graph.setdefault(unit(m), set()).update(unit(t) for t in targets if unit(t) != unit(m))
+    graph = {u: {t for t in ts if t != "fieldcal"} for u, ts in graph.items()}   # the root: __version__
+    assert _cycles(graph) == []
+
+
 def test_no_import_cycles_in_the_library():
     """Module-level and deferred imports alike: a package's ``__init__`` re-exporting its
     modules counts as importing them."""
