@@ -159,6 +159,24 @@ def _layer_or_none(module: str):
         return None
 
 
+def test_the_architecture_page_draws_every_layer():
+    """docs/architecture.md shows each package or module of :data:`LAYERS` (as ``name/`` or
+    ``name.py``), so the page cannot fall behind the table."""
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    mods = _known_modules()
+    missing = []
+    for _, names in LAYERS:
+        for name in names:
+            if name == "fieldcal":
+                continue
+            short = name.split(".")[-1]
+            shown = f"{short}/" if (name + ".__init__") in mods or any(m.startswith(name + ".") for m in mods) \
+                else f"{short}.py"
+            if shown not in page:
+                missing.append(shown)
+    assert missing == []
+
+
 def test_every_import_points_down_or_sideways():
     """Module-level and deferred imports (inside functions) alike, in fieldcal/ and flows/."""
     mods = _known_modules()
