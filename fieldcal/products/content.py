@@ -74,6 +74,7 @@ def interior_rows(cal: Calibration) -> list[dict]:
     p = cal.camera.params
     f, xp, yp = (float(p[INDEX[n]]) for n in ("f_mm", "xp_mm", "yp_mm"))
     sf, sx, sy = (_sigma(cal, n) for n in ("f_mm", "xp_mm", "yp_mm"))
+    u0, v0 = cal.camera.principal_point_px
 
     def px(v):
         return None if v is None else v / d
@@ -85,9 +86,9 @@ def interior_rows(cal: Calibration) -> list[dict]:
         {"name": "principal point yp", "mm": yp, "sigma_mm": sy, "px": yp / d, "sigma_px": px(sy),
          "note": "from the sensor centre, y up"},
         {"name": "principal point u0", "mm": None, "sigma_mm": None,
-         "px": (s.width_px - 1) / 2 + xp / d, "sigma_px": px(sx), "note": "pixel column"},
+         "px": float(u0), "sigma_px": px(sx), "note": "pixel column"},
         {"name": "principal point v0", "mm": None, "sigma_mm": None,
-         "px": (s.height_px - 1) / 2 - yp / d, "sigma_px": px(sy), "note": "pixel row (down)"},
+         "px": float(v0), "sigma_px": px(sy), "note": "pixel row (down)"},
     ]
 
 
