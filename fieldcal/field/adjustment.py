@@ -1488,6 +1488,7 @@ def _bar_report(solver, result, bars) -> dict:
 def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
     """The :class:`FieldResult`, centres and targets translated back to the data's frame."""
     cov, s, corr = stats
+    s, corr = s[: model.n_cam], corr[: model.n_cam, : model.n_cam]     # the camera's (a board warp follows)
     params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
     X, var_X = solver.targets_now(), None
