@@ -12,6 +12,9 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
    residuals of all images, exterior orientations, interior parameters and (by default)
    the targets, whose surveyed coordinates enter as observations weighted by their sigma
    (a self-calibrating bundle; ``targets_adjusted=False`` holds them fixed as the paper does).
+   A **planar board** (observed targets all surveyed and coplanar to 1 um: nominal coordinates,
+   :mod:`fieldcal.field.board`) is by default held fixed up to a low-order warp whose three
+   coefficients are unknowns of this adjustment (``board_model``; ``stats.board``).
 3. **Blunders**: first gross rejection on residuals normalised by a robust scale
    (``robust_k`` times 1.4826 MAD), then data snooping: the test statistic of each image
    point (2-D), each survey (3-D) and each scale bar (1-D) ``T = v^T Q_vv^-1 v / sigma0^2`` with
