@@ -19,6 +19,7 @@ from fieldcal.field.board import BOARD_FLATNESS_M, board_warp, is_planar_board, 
 from fieldcal.field.bundle import BundleModel
 from fieldcal.model.camera import FIELD_PARAMS, INDEX
 from fieldcal.model.rotations import R_from_rotvec
+from fieldcal.products import certificate_sections, report
 from fieldcal.products.content import board_text
 from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import board_deflection_mm, board_field, wide_field
@@ -143,12 +144,16 @@ def test_a_board_session_records_its_model_and_shape_in_the_document(tmp_path):
     folder = tmp_path / "board"
     write_field_session(folder, sf, images=False, observations_csv=True, coded=False, camera_id="cam-board")
     prepared = pipeline.prepare(folder)
-    doc = pipeline.solve(prepared, {}, fingerprint_=pipeline.input_fingerprint(prepared, {})).document
+    outcome = pipeline.solve(prepared, {}, fingerprint_=pipeline.input_fingerprint(prepared, {}))
+    doc = outcome.document
     b = doc["stats"]["board"]
     assert b["model"] == "warp" and doc["stats"]["targets_adjusted"] is False
     assert set(b["coefficients_mm"]) == {"warp_uu_mm", "warp_vv_mm", "warp_uv_mm"}
     text = board_text(Calibration.from_document(doc))                 # the report's and certificate's line
     assert text.startswith("planar board, board model 'warp'") and "twist" in text and "µm" in text
+    assert text in report.inputs_summary(Calibration.from_document(doc), outcome.residuals)["went_in"]
+    html = certificate_sections._adjustment(Calibration.from_document(doc), outcome.residuals)
+    assert any('id="board"' in part and "Planar board, board model" in part for part in html)
     # the session's own choice (session.json field.board_model) is honoured
     manifest = json.loads((folder / "session.json").read_text())
     manifest["field"]["board_model"] = "rigid"
