@@ -13,7 +13,12 @@ projection-uncertainty region (95.45 % ellipse, :func:`fieldcal.products.uncerta
 holds the true landing error on >= 90 % of a 21 x 15 grid (goal >= 0.9), and for the warp its
 fitted bows (mean over the runs, RMS of ``(fit - truth) / sigma``).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_boards.py [--runs 20]
+Then ``--rendered N`` runs: the same boards (flat, dome and fold of 80 um) as disc boards
+(12 mm discs) rendered by :mod:`fieldcal.synthetic.render` (PSF, noise), written as sessions
+with ``marks.csv``, measured and identified from the images by the pipeline (eccentricity
+corrected with the planar-fit normal), and solved with each board model (``field.board_model``).
+
+    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_boards.py [--runs 20] [--rendered 5]
 
 Results: bench/README_uncertainty.md, "Planar boards".
 """
@@ -87,13 +92,69 @@ def monte_carlo(runs: int) -> None:
                   f"{np.median([x[2] for x in r]):.3f} | {covered:.2f} | {fit} | {zfit} |", flush=True)
 
 
+def _rendered_one(sf, folder, models):
+    import json
+
+    from fieldcal import pipeline
+    from fieldcal.synthetic.session_writer import write_field_session
+
+    write_field_session(folder, sf, images=True, marks_csv=True, coded=False, compression_mix=False,
+                        marks_error_px=0.3, seed=int(sf.settings["seed"]))
+    prepared = pipeline.prepare(folder)
+    meas = {n: pipeline.measure(prepared, n) for n in prepared.to_measure}
+    manifest = json.loads((folder / "session.json").read_text())
+    out = {}
+    for m in models:
+        manifest["field"]["board_model"] = m
+        (folder / "session.json").write_text(json.dumps(manifest))
+        prepared = pipeline.prepare(folder)
+        doc = pipeline.solve(prepared, meas, fingerprint_=pipeline.input_fingerprint(prepared, {})).document
+        truth = sf.camera.to_dict()
+        z = np.array([(doc["parameters"][p] - truth[p]) / doc["sigma"][p] for p in CORE])
+        b = doc["stats"].get("board", {})
+        out[m] = (z, b.get("coefficients_mm"), b.get("sigma_mm"), doc["stats"]["eccentricity"].get("max_px"))
+    return out
+
+
+def rendered(runs: int) -> None:
+    import tempfile
+    from pathlib import Path
+
+    print("\n| rendered board | model | RMS z f | RMS z xp | RMS z yp | mean z f | fitted bows c_uu, c_vv [um] "
+          "(truth) | largest eccentricity correction [px] |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for shape, amp in (("flat", 0.0), ("dome", 0.08), ("fold", 0.08)):
+            rows = {m: [] for m in MODELS}
+            for k, seed in enumerate(range(900, 900 + runs)):
+                sf = board_field(seed=seed, shape=shape, amplitude_mm=amp)
+                for m, r in _rendered_one(sf, Path(tmp) / f"{shape}{k}", MODELS).items():
+                    rows[m].append(r)
+            truth = _truth_warp(shape, amp)
+            for m, r in rows.items():
+                z = np.array([x[0] for x in r])
+                rms = np.sqrt(np.mean(z**2, axis=0))
+                fit = ""
+                if r[0][1]:
+                    c = np.array([list(x[1].values()) for x in r])
+                    fit = f"{1000 * c[:, 0].mean():.0f}, {1000 * c[:, 1].mean():.0f}"
+                    fit += f" ({1000 * truth[0]:.0f}, {1000 * truth[1]:.0f})" if truth else " (a crease)"
+                name = f"{shape} {1000 * amp:.0f} um" if amp else shape
+                print(f"| {name} | {m} | {rms[0]:.2f} | {rms[1]:.2f} | {rms[2]:.2f} | {z[:, 0].mean():+.2f} | {fit} | "
+                      f"{max(x[3] for x in r):.3f} |", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--rendered", type=int, default=0, help="runs per board from rendered images (default 0)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     print(f"load before: {os.getloadavg()[0]:.1f}")
-    monte_carlo(args.runs)
+    if args.runs:
+        monte_carlo(args.runs)
+    if args.rendered:
+        rendered(args.rendered)
     print(f"\n{time.perf_counter() - t0:.0f} s; load after: {os.getloadavg()[0]:.1f}")
 
 

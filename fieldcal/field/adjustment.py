@@ -62,7 +62,7 @@ import scipy.linalg
 from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.board import BoardWarp, board_warp, facing, is_planar_board, resolve_board_model
+from fieldcal.field.board import BOARD_MODELS, BoardWarp, board_warp, facing, is_planar_board, resolve_board_model
 from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
 from fieldcal.field.data import FieldData
@@ -1200,8 +1200,8 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     validate_field_data(data)
     local, origin = centred(data)
     board = _board_model(local, o)
-    if board is not None:
-        o = replace(o, targets_adjusted=board == "points")
+    if board is not None:      # recorded as resolved: a re-adjustment (cross-validation) uses the same model
+        o = replace(o, targets_adjusted=board == "points", board_model=board)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
     _check_unsurveyed(data, o)
@@ -1354,8 +1354,9 @@ def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str
 
 
 def _check_options(o: AdjustmentOptions) -> None:
-    resolve_board_model(o.board_model, False, o.targets_adjusted) if o.board_model == "auto" else \
-        resolve_board_model(o.board_model, True, o.targets_adjusted)      # the value's check
+    if o.board_model not in BOARD_MODELS:
+        raise InputError(f"board_model must be one of {', '.join(map(repr, BOARD_MODELS))}, got {o.board_model!r}",
+                         "adjustment options")
     if o.datum not in ("auto", "free"):
         raise InputError(f"datum must be 'auto' or 'free', got {o.datum!r}", "adjustment options")
     if o.datum == "free" and (o.check_points or o.check_fraction > 0):

@@ -349,7 +349,8 @@ def board_deflection_mm(shape: str, amplitude_mm: float, u, v):
 
 def board_field(*, seed: int = 0, shape: str = "flat", amplitude_mm: float = 0.05, n_poses: int = 20,
                 image_noise_px: float = 0.1, board_sigma_mm: float = 0.01, camera: Camera | None = None,
-                corners=(13, 12), square_mm: float = 30.0, print_noise_mm: float = 0.0) -> SyntheticField:
+                corners=(13, 12), square_mm: float = 30.0, print_noise_mm: float = 0.0,
+                disc_diameter_mm: float = 12.0) -> SyntheticField:
     """A planar chessboard seen from ``n_poses`` poses (see the module docstring).
 
     The board lies in the world's ``Z = 0`` plane (normal ``+Z``, towards the cameras), its
@@ -360,7 +361,8 @@ def board_field(*, seed: int = 0, shape: str = "flat", amplitude_mm: float = 0.0
     board made worse than stated; drawn after the poses). Poses: the camera
     0.5-0.8 m from the board's middle, tilted 5-40 degrees from its normal in a random
     azimuth, aimed within 40 mm of the middle, rolled by multiples of 90 degrees (+- 10);
-    all seeded by ``seed`` (poses, then image noise).
+    all seeded by ``seed`` (poses, then image noise). For the renderer the corners are discs of
+    ``disc_diameter_mm`` (a disc board).
     """
     rng = np.random.default_rng(seed)
     cam = camera or Camera.from_dict(Sensor(640, 480, 7.4), BOARD_CAMERA)
@@ -388,7 +390,7 @@ def board_field(*, seed: int = 0, shape: str = "flat", amplitude_mm: float = 0.0
         true = true + rng.normal(0.0, print_noise_mm / 1000.0, true.shape)
         targets = replace(targets, xyz_m=true)
     sf = _simulate("board", cam, targets, poses, names, image_noise_px=image_noise_px, survey_noise_mm=0.0,
-                   seed=seed + 1, margin_px=5.0, target_diameter_mm=5.0, marker_size_mm=20.0,
+                   seed=seed + 1, margin_px=5.0, target_diameter_mm=disc_diameter_mm, marker_size_mm=20.0,
                    max_incidence_deg=75.0, nominal_focal_mm=cam.f_mm,
                    settings={"scenario": "board", "shape": shape, "amplitude_mm": amplitude_mm})
     sf.data = replace(sf.data, targets=TargetField(ids, nominal, np.full(len(ids), board_sigma_mm),

@@ -101,6 +101,7 @@ def test_a_domed_board_is_fitted_with_its_shape_and_an_unbiased_camera():
     res = adjust_field(sf.data)                                          # the default: a planar board -> warp
     b = res.stats()["board"]
     assert b["model"] == "warp" and not res.options.targets_adjusted
+    assert res.options.board_model == "warp"            # recorded as resolved: a re-adjustment keeps the warp
     truth = {"warp_uu_mm": amp / 2, "warp_vv_mm": amp / 2, "warp_uv_mm": 0.0}
     for name, value in truth.items():
         # 2.5 sigma: a two-sided 1.2 % chance per coefficient for an honest sigma
