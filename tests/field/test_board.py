@@ -62,6 +62,10 @@ def test_board_model_resolution_and_refusals():
         adjust_field(board_field(seed=0).data, AdjustmentOptions(board_model="bent"))
     with pytest.raises(InputError, match="is for a planar board"):
         adjust_field(wide_field(seed=0).data, AdjustmentOptions(board_model="warp"))
+    with pytest.raises(InputError, match="holds the targets fixed: a free network"):
+        adjust_field(board_field(seed=0).data, AdjustmentOptions(datum="free", board_model="warp"))
+    free = adjust_field(board_field(seed=0).data, AdjustmentOptions(datum="free"))
+    assert free.board["model"] == "points" and free.stats()["datum"]["type"] == "free network"
     res = adjust_field(wide_field(seed=0).data)                          # a 3-D field: no board model
     assert "board" not in res.stats() and res.options.targets_adjusted
 
