@@ -9,7 +9,7 @@ weighted by its 0.01 mm, with variance components), ``rigid`` (corners held fixe
 propagated) and ``warp`` (held fixed up to the 3-term warp; the default). Reported per board and
 model: RMS over the runs of ``|error| / sigma`` of f, xp, yp (goal 0.7-1.3), the mean signed
 ``error / sigma`` of f (a bias), the median sigma of f [px], the fraction of runs whose 2-sigma
-projection-uncertainty region (95.45 % ellipse, :func:`fieldcal.products.uncertainty.coverage_fraction`)
+projection-uncertainty region (95.45 % ellipse, :func:`fieldcal.analysis.uncertainty.coverage_fraction`)
 holds the true landing error on >= 90 % of a 21 x 15 grid (goal >= 0.9), and for the warp its
 fitted bows (mean over the runs, RMS of ``(fit - truth) / sigma``).
 
@@ -33,9 +33,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from fieldcal.analysis.uncertainty import Calibration, coverage_fraction  # noqa: E402
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field  # noqa: E402
 from fieldcal.model.camera import INDEX  # noqa: E402
-from fieldcal.products.uncertainty import Calibration, coverage_fraction  # noqa: E402
 from fieldcal.synthetic.field import board_field  # noqa: E402
 
 CORE = ("f_mm", "xp_mm", "yp_mm")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from fieldcal import pipeline
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import InputError
 from fieldcal.field import bundle_kernel
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
@@ -21,7 +22,6 @@ from fieldcal.model.camera import FIELD_PARAMS, INDEX
 from fieldcal.model.rotations import R_from_rotvec
 from fieldcal.products import certificate_sections, report
 from fieldcal.products.content import board_text
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import board_deflection_mm, board_field, wide_field
 from fieldcal.synthetic.session_writer import write_field_session
 
