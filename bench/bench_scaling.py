@@ -47,6 +47,8 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("FIELDCAL_REPORTS", "off")
 os.environ["FIELDCAL_HASH_CACHE"] = "off"
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")   # no telemetry from the bench's server
+os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 OUT = HERE / "out" / "scaling"
 PICKS = [12 * s + a for s in range(6) for a in (s % 4, 4 + (s + 1) % 4)]      # 12 images: 2 attitudes per station
@@ -117,13 +119,29 @@ def run_bare(img_root: Path) -> dict:
 # --------------------------------------------------------------------------------------
 # the per-task breakdown
 # --------------------------------------------------------------------------------------
+def blas_threads() -> list[dict]:
+    """The thread counts of the OpenBLAS libraries loaded in this process (found in its memory
+    map, asked through their own ``*openblas_get_num_threads*``)."""
+    import ctypes
+
+    libs = sorted({line.split()[-1] for line in Path("/proc/self/maps").read_text().splitlines()
+                   if "openblas" in line.lower() and ".so" in line})
+    out = []
+    for lib in libs:
+        handle = ctypes.CDLL(lib)
+        for sym in ("openblas_get_num_threads", "scipy_openblas_get_num_threads64_", "openblas_get_num_threads64_"):
+            if hasattr(handle, sym):
+                out.append({"api": Path(lib).name, "threads": int(getattr(handle, sym)())})
+                break
+    return out
+
+
 def worker_facts() -> dict:
-    """Run on a worker: its threads (BLAS / OpenMP pools, OpenCV, Numba) and what it imported."""
+    """Run on a worker: its threads (OpenBLAS pools, OpenCV, Numba) and what it imported."""
     import cv2
     import numba
-    import threadpoolctl
 
-    pools = [{"api": p["internal_api"], "threads": p["num_threads"]} for p in threadpoolctl.threadpool_info()]
+    pools = blas_threads()
     return {"pid": os.getpid(), "pools": pools, "opencv_threads": cv2.getNumThreads(),
             "numba_threads": numba.get_num_threads(), "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
             "n_modules": len(sys.modules), "prefect_imported": "prefect.task_engine" in sys.modules,
