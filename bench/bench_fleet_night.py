@@ -252,8 +252,10 @@ def main() -> None:
                 assert moto.poll() is None and time.monotonic() < deadline, "the moto server did not start"
                 time.sleep(0.3)
         options = {"endpoint_url": endpoint, "client_kwargs": {"region_name": REGION}}
+        import boto3
+
+        boto3.client("s3", endpoint_url=endpoint, region_name=REGION).create_bucket(Bucket=BUCKET)
         fs = fsspec.filesystem("s3", **options)
-        fs.mkdir(BUCKET)
         t = time.perf_counter()
         fs.put(str(local) + "/", f"{BUCKET}/sessions/", recursive=True)
         res["upload_s"] = time.perf_counter() - t

@@ -76,6 +76,19 @@ def make_sessions(n_img: int, n_obs: int) -> tuple[Path, Path]:
     return img, obs
 
 
+def warm_root(img_root: Path, obs_root: Path) -> Path:
+    """A root of one image and one observations session (copies), to warm a cluster with."""
+    import shutil
+
+    warm = OUT / "warm"
+    for root in (img_root, obs_root):
+        first = session_folders(root)[0]
+        target = warm / first.relative_to(root)
+        if not (target / "session.json").is_file():
+            shutil.copytree(first, target)
+    return warm
+
+
 def session_folders(root: Path) -> list[Path]:
     return sorted(p.parent for p in root.glob("*/*/session.json"))
 
@@ -181,6 +194,31 @@ def start_cluster(n: int):
     return c, time.perf_counter() - t
 
 
+STALL_S = 30.0
+"""A fleet run with no session ending for this long dumps the flow process's stacks (``--stacks``)."""
+_last = [time.monotonic(), 0]
+
+
+def watch_stalls() -> None:
+    """Thread: when no session ended for :data:`STALL_S` during a fleet run, write every
+    thread's stack of this process to ``bench/out/scaling/stall-K.txt`` (at most 3)."""
+    import faulthandler
+    import threading
+
+    def loop():
+        while _last[1] < 3:
+            time.sleep(1.0)
+            if RUNNING[0] and time.monotonic() - _last[0] > STALL_S:
+                with open(OUT / f"stall-{_last[1]}.txt", "w") as f:
+                    faulthandler.dump_traceback(f, all_threads=True)
+                _last[0], _last[1] = time.monotonic(), _last[1] + 1
+
+    threading.Thread(target=loop, daemon=True, name="stall-watch").start()
+
+
+RUNNING = [False]
+
+
 def fleet_run(address: str, root: Path, lake: str) -> dict:
     import flows.fleet as fleet_flow
 
@@ -189,17 +227,20 @@ def fleet_run(address: str, root: Path, lake: str) -> dict:
 
     def recording(*args, **kwargs):
         out = run_session(*args, **kwargs)
+        _last[0] = time.monotonic()
         if isinstance(out, dict):
             record.append(out)
         return out
 
     fleet_flow._run_session = recording
+    _last[0], RUNNING[0] = time.monotonic(), True
     try:
         t = time.perf_counter()
         s = fleet_flow.recalibrate_fleet(lake, root=str(root), dask_address=address)
         wall = time.perf_counter() - t
     finally:
         fleet_flow._run_session = run_session
+        RUNNING[0] = False
     rows = [r for out in record for r in (out.get("measure") or {}).get("rows", [])]
     tasks = [t for out in record for t in (out.get("measure") or {}).get("tasks", [])]
     return {"wall_s": wall, "n_committed": s["n_committed"], "n_failed": s["n_failed"],
@@ -246,8 +287,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--full", action="store_true", help="8 image and 24 observation sessions (default 4 and 12)")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--stacks", action="store_true", help=f"dump the stacks when no session ends for {STALL_S:g} s")
     ap.add_argument("--bare", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.stacks:
+        OUT.mkdir(parents=True, exist_ok=True)
+        watch_stalls()
     if args.bare:
         print(json.dumps(bare(Path(args.bare))))
         return
@@ -256,6 +301,7 @@ def main() -> None:
     t0 = time.perf_counter()
     n_img, n_obs = (8, 24) if args.full else (4, 12)
     img_root, obs_root = make_sessions(n_img, n_obs)
+    warm = warm_root(img_root, obs_root)
     res = {"n_sessions": {"image": n_img, "observations": n_obs}, "load_start": os.getloadavg()[0],
            "runs": {"1": {"image": [], "observations": []}, "2": {"image": [], "observations": []}}}
     res["bare"] = run_bare(img_root)
@@ -276,8 +322,7 @@ def main() -> None:
             for n, c in clusters.items():
                 with distributed.Client(c.scheduler_address) as client:
                     res.setdefault("workers_before", {})[str(n)] = list(client.run(worker_facts).values())
-                for kind, root in (("image", img_root), ("observations", obs_root)):
-                    fleet_run(c.scheduler_address, root, f"{tmp}/warm-{n}-{kind}")     # imports, kernels, caches
+                fleet_run(c.scheduler_address, warm, f"{tmp}/warm-{n}")     # imports, kernels, caches
             for rnd in range(args.rounds):
                 for n in ((1, 2) if rnd % 2 == 0 else (2, 1)):
                     for kind, root in (("image", img_root), ("observations", obs_root)):
