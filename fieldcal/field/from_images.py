@@ -94,6 +94,7 @@ from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, P
 from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
 from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
@@ -324,6 +325,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         raise InputError("not a field-method session", session.manifest_where)
     run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
                identify or IdentifyOptions(), priors or PriorOptions())
+    if is_thin(run.targets) and run.marks:
+        return _thin(run, referencing)
     first, keep1, marker1, res1 = _first_pass(run)
     state = _Oriented(run, res1, keep1, first)
     starts = {i: "seeds" for i in keep1}
@@ -363,6 +366,29 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
             " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
     return data, result, report
+
+
+THIN_ECCENTRICITY = {"max_px": None, "normals": "none", "applied": False,
+                     "reason": "thin survey: the discs' normals are not known before they are adjusted"}
+"""``stats.eccentricity`` of a run started from the marked control points (:mod:`fieldcal.field.thin_start`)."""
+
+
+def _thin(run: _Run, referencing: ReferencingOptions | None):
+    """0: a survey too thin to identify targets by projection (:func:`fieldcal.field.thin_start.is_thin`):
+    the images are resected from their marked control points and the network grown by automatic
+    referencing (:func:`fieldcal.field.thin_start.start_from_marks`); scale_bars.csv joins."""
+    from fieldcal.session.loader import scale_bars_of
+
+    sess = run.session
+    bars = None if sess.scale_bars_path is None else (lambda targets: scale_bars_of(sess, targets))
+    st = start_from_marks(sess, run.measurements, run.targets, run.marks, run.options, run.working_options,
+                          run.nominal, referencing=referencing, scale_bars=bars, say=run.say, progress=run.progress)
+    data = st.data
+    data.meta.update(referenced_targets=st.n_tracks, marker_sigma_factor=1.0, identifications={},
+                     eccentricity=dict(THIN_ECCENTRICITY), target_normals=None)
+    data.meta["identification"] = summary = identification_summary(st.report)
+    run.say(f"images used: {summary['used']} of {summary['images']} (started from the marked control points)")
+    return data, st.result, st.report
 
 
 def _with_eccentricity_bound(run, data: FieldData, result: FieldResult, ecc_summary: dict) -> FieldResult:

@@ -1,0 +1,259 @@
+"""From photographs with a thin survey: resection from the marked control points, then referencing.
+
+The identification (:mod:`fieldcal.field.identify`) finds targets by projecting their surveyed
+coordinates; an image needs :data:`~fieldcal.field.adjustment.MIN_POINTS_PER_IMAGE` (6) of
+them. A sheet with four control points and every other target unsurveyed (issue 26 goal 6:
+PhotoModeler's and DBAT's calibration sheet) has too few: there the network is started from
+the control points alone and grown by automatic referencing (:mod:`fieldcal.field.referencing`):
+
+1. **Control points.** Each image's marks (marks.csv) of surveyed targets: a mark is snapped to
+   the nearest measured point within :data:`SNAP_PX` (its measured centre and sigma); a mark no
+   measured point is near (a ringed control target whose centre the detector does not measure)
+   is taken as measured, with the session's ``default_sigma_px``: marks are then expected to be
+   measured points (for example another program's subpixel marks), not rough clicks.
+2. **Resection** of every image from its marked control points (four or more,
+   :func:`fieldcal.field.resection.resect`: IPPE for coplanar points) with the nominal camera
+   (``lens.nominal_focal_mm``, principal point at the centre, no distortion). Why resection and
+   not relative orientation (:mod:`fieldcal.field.relative_orientation`): every image has its
+   four known points, which give its pose at once in the survey's frame; a relative orientation
+   needs correspondences of the plain discs first, and finding those is what needs the poses.
+3. **Referencing and adjustment, in rounds** (:data:`GATES_PX`): the discs no mark names are
+   matched across the oriented images with a gate that starts wide (the nominal camera's
+   missing distortion moves points by tens of pixels near the corners) and shrinks as the
+   camera is adjusted; each round adjusts the control points and the tracks (unsurveyed
+   targets, ids ``AR0001``, ...) from the last round's camera and poses. The last round uses
+   the session's referencing options and the final adjustment options.
+
+The datum is the session's (weighted control, or ``field.datum`` ``"free"`` with the control
+points' coordinates only as the start); ``scale_bars.csv`` joins the last adjustment. The
+eccentricity of disc centres is not corrected on this route (the discs have no normals before
+they are adjusted; see docs/methods.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pyarrow as pa
+
+from fieldcal.errors import GeometryError
+from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, InitialValues, adjust_field
+from fieldcal.field.data import FieldData, FieldObservations, TargetField
+from fieldcal.field.identify import measured_points
+from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.resection import resect
+from fieldcal.model.camera import Camera
+
+__all__ = ["SNAP_PX", "GATES_PX", "MIN_IMAGES", "REFERENCED_PREFIX", "is_thin", "ThinStart", "start_from_marks"]
+
+SNAP_PX = 3.0
+"""A mark is the measured point nearest it within this distance [px]."""
+GATES_PX = (40.0, 10.0, 3.0)
+"""Referencing gates of the rounds before the last [px]: the nominal camera's error near the
+corners (tens of pixels of uncorrected distortion), then a first adjusted camera's, then a few
+times the noise; the last round uses the session's :class:`ReferencingOptions`."""
+MIN_IMAGES = 3
+REFERENCED_PREFIX = "AR"
+"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
+
+
+def is_thin(targets: TargetField) -> bool:
+    """Too few surveyed targets for an image to be identified by projection (fewer than
+    :data:`~fieldcal.field.adjustment.MIN_POINTS_PER_IMAGE`)."""
+    return int(np.sum(targets.surveyed)) < MIN_POINTS_PER_IMAGE
+
+
+@dataclass
+class ThinStart:
+    """The result of :func:`start_from_marks`.
+
+    Attributes
+    ----------
+    data : FieldData
+        The control points' and the referenced discs' observations of the oriented images.
+    result : FieldResult
+        The last adjustment.
+    report : list of dict
+        One entry per image of the session (as :mod:`fieldcal.field.from_images` reports).
+    n_tracks : int
+        Referenced targets in ``data``.
+    """
+
+    data: FieldData
+    result: FieldResult
+    report: list[dict]
+    n_tracks: int
+
+
+def _sigma(table: pa.Table, rows, default: float) -> np.ndarray:
+    if "sigma_px" not in table.column_names:
+        return np.full(len(rows), default)
+    s = np.asarray(table.column("sigma_px").fill_null(np.nan).to_numpy(zero_copy_only=False), float)[rows]
+    return np.where(np.isfinite(s) & (s > 0), s, default)
+
+
+@dataclass
+class _View:
+    """One image: its control observations, its unnamed discs and its pose."""
+
+    index: int                  # in the session's images
+    control_t: np.ndarray       # target indices (into the surveyed targets)
+    control_uv: np.ndarray
+    control_sigma: np.ndarray
+    n_snapped: int
+    disc_uv: np.ndarray         # the usable discs no mark names
+    disc_sigma: np.ndarray
+    R: np.ndarray | None = None
+    C: np.ndarray | None = None
+
+
+def _view(index, table, marks, default_sigma) -> _View:
+    """Step 1 for one image: the marks snapped to measured points, the other discs."""
+    kind, _, uv_all, usable = measured_points(table)
+    t, muv = marks
+    rows = np.flatnonzero(usable)
+    uv, sig = np.asarray(muv, float).reshape(-1, 2).copy(), np.full(len(t), float(default_sigma))
+    named = np.zeros(len(uv_all), bool)
+    snapped = 0
+    if len(rows):
+        d = np.linalg.norm(uv[:, None] - uv_all[rows][None], axis=2)
+        for k in range(len(t)):
+            j = int(np.argmin(d[k]))
+            if d[k, j] <= SNAP_PX and not named[rows[j]]:
+                named[rows[j]] = True
+                uv[k], sig[k] = uv_all[rows[j]], _sigma(table, [rows[j]], default_sigma)[0]
+                snapped += 1
+    free = np.flatnonzero(usable & ~named & (kind == "disc"))
+    return _View(index, np.asarray(t, np.int64), uv, sig, snapped, uv_all[free], _sigma(table, free, default_sigma))
+
+
+def _resect(view: _View, X, camera: Camera, name: str):
+    """Step 2: the pose of one image from its control points; a reason when it has none."""
+    if len(view.control_t) < 4:
+        return f"only {len(view.control_t)} marked control point(s): resection needs 4"
+    try:
+        r = resect(X[view.control_t], view.control_uv, camera, where=name)
+    except GeometryError as err:
+        return str(err)
+    view.R, view.C = r.R_world_to_camera, r.center_m
+    return None
+
+
+def _data(session_like: dict, targets: TargetField, views, tracks, images) -> tuple[FieldData, np.ndarray]:
+    """FieldData of the control points and the tracks (targets: the surveyed ones, then one per
+    track) and the start of the targets' coordinates."""
+    img, tgt, uv, sig = [], [], [], []
+    for n, v in enumerate(views):
+        img.append(np.full(len(v.control_t), n))
+        tgt.append(v.control_t)
+        uv.append(v.control_uv)
+        sig.append(v.control_sigma)
+    n0 = len(targets)
+    if tracks is not None and len(tracks):
+        img.append(tracks.image)
+        tgt.append(n0 + tracks.track)
+        uv.append(np.stack([views[m].disc_uv[p] for m, p in zip(tracks.image, tracks.point, strict=True)]))
+        sig.append(np.array([views[m].disc_sigma[p] for m, p in zip(tracks.image, tracks.point, strict=True)]))
+    obs = FieldObservations(np.concatenate(img), np.concatenate(tgt).astype(np.int64), np.concatenate(uv),
+                            np.concatenate(sig))
+    n_tr = 0 if tracks is None else len(tracks)
+    ids = [f"{REFERENCED_PREFIX}{k + 1:04d}" for k in range(n_tr)]
+    taken = set(targets.ids.tolist())
+    if taken.intersection(ids):                      # never reuse a listed id
+        ids = [f"{REFERENCED_PREFIX}_{k + 1:04d}" for k in range(n_tr)]
+    all_targets = targets.with_unsurveyed(ids)
+    X0 = targets.xyz_m if tracks is None else np.vstack([targets.xyz_m, tracks.X_m])
+    data = FieldData(sensor=session_like["sensor"], targets=all_targets, images=[images[v.index] for v in views],
+                     obs=obs, nominal_focal_mm=session_like["nominal_focal_mm"],
+                     default_sigma_px=session_like["default_sigma_px"], meta=dict(session_like["meta"]))
+    return data, X0
+
+
+def _round(data, X0, params, views, options, how, progress) -> FieldResult:
+    init = InitialValues(np.asarray(params, float).copy(), np.stack([v.R for v in views]),
+                         np.stack([v.C for v in views]), np.zeros(len(data.obs), bool),
+                         np.full(len(views), np.nan), how, targets_m=X0)
+    return adjust_field(data, options, progress=progress, initial=init)
+
+
+def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: TargetField, marks: dict,
+                     options: AdjustmentOptions, working_options: AdjustmentOptions, nominal: Camera, *,
+                     referencing: ReferencingOptions | None = None, scale_bars: Callable | None = None,
+                     say: Callable[[str], None] = lambda _line: None,
+                     progress: Callable[[str], None] | None = None) -> ThinStart:
+    """Calibrate from photographs whose survey is thin (module docstring).
+
+    ``targets``: the surveyed targets (marks' target indices refer to them); ``marks``:
+    ``{image index: (target indices, uv)}``; ``scale_bars``: called with the final targets, returns
+    their :class:`~fieldcal.field.data.ScaleBars` (or None).
+
+    Raises
+    ------
+    GeometryError
+        Fewer than :data:`MIN_IMAGES` images could be resected from their marks (the reasons listed).
+    """
+    images, names = list(session.images), [im.file for im in session.images]
+    X = targets.xyz_m
+    views, reasons = [], {}
+    for i, name in enumerate(names):
+        if name not in measurements:
+            reasons[i] = "not measured (the image could not be read or measured)"
+            continue
+        if i not in marks:
+            reasons[i] = "no marks of surveyed control points in marks.csv (the survey is too thin to identify targets)"
+            continue
+        v = _view(i, measurements[name], marks[i], session.default_sigma_px)
+        why = _resect(v, X, nominal, name)
+        if why is None:
+            views.append(v)
+        else:
+            reasons[i] = why
+    if len(views) < MIN_IMAGES:
+        more = "; ".join(f"{names[i]}: {r}" for i, r in list(reasons.items())[:5])
+        raise GeometryError(f"the survey has {len(X)} targets, too few to identify targets in the images; only "
+                            f"{len(views)} image(s) could be resected from their marked control points (at least "
+                            f"{MIN_IMAGES} needed): {more}")
+    say(f"thin survey ({len(X)} surveyed targets): {len(views)} images resected from their marked control points "
+        f"({sum(v.n_snapped for v in views)} of {sum(len(v.control_t) for v in views)} marks on measured points)")
+    like = {"sensor": session.sensor, "nominal_focal_mm": session.nominal_focal_mm,
+            "default_sigma_px": session.default_sigma_px,
+            "meta": {"camera_id": session.camera_id, "session_id": session.session_id}}
+    final_ref = referencing or ReferencingOptions()
+    params, result, tracks = nominal.params, None, None
+    rounds = [(replace(final_ref, gate_px=g), working_options) for g in GATES_PX] + [(final_ref, options)]
+    for k, (ref, opts) in enumerate(rounds):
+        cam = nominal if result is None else result.camera
+        tracks = reference_discs(cam, np.stack([v.R for v in views]), np.stack([v.C for v in views]),
+                                 [v.disc_uv for v in views], ref)
+        data, X0 = _data(like, targets, views, tracks, images)
+        if k == len(rounds) - 1 and scale_bars is not None:
+            data = replace(data, scale_bars=scale_bars(data.targets))
+        how = "resection from the marked control points" if result is None else "the previous round (warm start)"
+        result = _round(data, X0, params, views, opts, how, progress if k == len(rounds) - 1 else None)
+        params = result.params
+        for n, v in enumerate(views):
+            v.R, v.C = result.R_world_to_camera[n], result.center_m[n]
+        say(f"referencing round {k + 1} (gate {ref.gate_px:g} px): {len(tracks)} unsurveyed targets, "
+            f"{len(tracks.image)} points; f {result.params[0]:.5f} mm, rmse {result.stats()['rmse_px']:.3g} px")
+    report = _report(session, measurements, marks, views, reasons, data, result)
+    return ThinStart(data, result, report, len(tracks))
+
+
+def _report(session, measurements, marks, views, reasons, data, result) -> list[dict]:
+    """One entry per image, in the shape :mod:`fieldcal.field.from_images` reports."""
+    at = {v.index: n for n, v in enumerate(views)}
+    used = np.bincount(data.obs.image[result.obs_used], minlength=len(views))
+    out = []
+    for i, im in enumerate(session.images):
+        table = measurements.get(im.file)
+        n = at.get(i)
+        entry = {"image": im.file, "n_measured": 0 if table is None else int(table.num_rows), "n_coded": 0,
+                 "n_identified": 0 if n is None else int(np.sum(data.obs.image == n)),
+                 "n_identified_first": 0, "n_marks": int(len(marks[i][0])) if i in marks else 0,
+                 "n_used": 0 if n is None else int(used[n]), "wrong_marks": [], "wrong_codes": [], "rms_px": None,
+                 "eccentricity_max_px": None, "start": None if n is None else "resection from marks",
+                 "status": "ok" if n is not None else "left out", "reason": "" if n is not None else reasons[i]}
+        out.append(entry)
+    return out
