@@ -368,11 +368,6 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     return data, result, report
 
 
-THIN_ECCENTRICITY = {"max_px": None, "normals": "none", "applied": False,
-                     "reason": "thin survey: the discs' normals are not known before they are adjusted"}
-"""``stats.eccentricity`` of a run started from the marked control points (:mod:`fieldcal.field.thin_start`)."""
-
-
 def _thin(run: _Run, referencing: ReferencingOptions | None):
     """0: a survey too thin to identify targets by projection (:func:`fieldcal.field.thin_start.is_thin`):
     the images are resected from their marked control points and the network grown by automatic
@@ -385,7 +380,7 @@ def _thin(run: _Run, referencing: ReferencingOptions | None):
                           run.nominal, referencing=referencing, scale_bars=bars, say=run.say, progress=run.progress)
     data = st.data
     data.meta.update(referenced_targets=st.n_tracks, marker_sigma_factor=1.0, identifications={},
-                     eccentricity=dict(THIN_ECCENTRICITY), target_normals=None)
+                     eccentricity=st.eccentricity, target_normals=None)
     data.meta["identification"] = summary = identification_summary(st.report)
     run.say(f"images used: {summary['used']} of {summary['images']} (started from the marked control points)")
     return data, st.result, st.report

@@ -24,10 +24,15 @@ the control points alone and grown by automatic referencing (:mod:`fieldcal.fiel
    targets, ids ``AR0001``, ...) from the last round's camera and poses. The last round uses
    the session's referencing options and the final adjustment options.
 
+4. **Perspective eccentricity** (when the session gives ``field.target_diameter_mm``): the
+   targets' normals are the given ones or, for a planar field, the plane of the adjusted targets
+   (:func:`fieldcal.field.normals.resolve_normals`, no local-plane estimate); every point of a
+   target with a normal is moved to the image of its centre
+   (:func:`fieldcal.field.eccentricity.correction_px`) and the adjustment repeated (warm). A
+   target without a normal keeps its measured centre (reported in ``summary``).
+
 The datum is the session's (weighted control, or ``field.datum`` ``"free"`` with the control
-points' coordinates only as the start); ``scale_bars.csv`` joins the last adjustment. The
-eccentricity of disc centres is not corrected on this route (the discs have no normals before
-they are adjusted; see docs/methods.md).
+points' coordinates only as the start); ``scale_bars.csv`` joins the last adjustment.
 """
 
 from __future__ import annotations
@@ -41,7 +46,9 @@ import pyarrow as pa
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, InitialValues, adjust_field
 from fieldcal.field.data import FieldData, FieldObservations, TargetField
+from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import measured_points
+from fieldcal.field.normals import resolve_normals
 from fieldcal.field.referencing import ReferencingOptions, reference_discs
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
@@ -79,12 +86,15 @@ class ThinStart:
         One entry per image of the session (as :mod:`fieldcal.field.from_images` reports).
     n_tracks : int
         Referenced targets in ``data``.
+    eccentricity : dict
+        ``stats.eccentricity`` of the document (``max_px``, ``normals``, ``applied``, ``reason``).
     """
 
     data: FieldData
     result: FieldResult
     report: list[dict]
     n_tracks: int
+    eccentricity: dict
 
 
 def _sigma(table: pa.Table, rows, default: float) -> np.ndarray:
@@ -237,8 +247,47 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
             v.R, v.C = result.R_world_to_camera[n], result.center_m[n]
         say(f"referencing round {k + 1} (gate {ref.gate_px:g} px): {len(tracks)} unsurveyed targets, "
             f"{len(tracks.image)} points; f {result.params[0]:.5f} mm, rmse {result.stats()['rmse_px']:.3g} px")
+    data, result, ecc = _eccentricity(session, data, result, options, progress, say)
     report = _report(session, measurements, marks, views, reasons, data, result)
-    return ThinStart(data, result, report, len(tracks))
+    return ThinStart(data, result, report, len(tracks), ecc)
+
+
+def _eccentricity(session, data: FieldData, result: FieldResult, options, progress, say):
+    """Step 4: the discs' perspective eccentricity removed, the adjustment repeated (warm)."""
+    diameter_mm = session.target_diameter_mm
+    if not diameter_mm:
+        return data, result, {"max_px": None, "normals": "none", "applied": False,
+                              "reason": "no field.target_diameter_mm in the session"}
+    X = np.asarray(result.targets_m, float)
+    towards = np.zeros_like(X)
+    np.add.at(towards, data.obs.target, result.center_m[data.obs.image])
+    towards /= np.maximum(np.bincount(data.obs.target, minlength=len(X)), 1)[:, None]
+    tn = resolve_normals(data.targets, xyz_m=X, estimate=False, towards_m=towards)
+    o = data.obs
+    e = np.zeros((len(o), 2))
+    for n in range(len(data.images)):
+        k = np.flatnonzero((o.image == n) & tn.known[o.target])
+        if len(k):
+            e[k] = correction_px(result.camera, result.R_world_to_camera[n], result.center_m[n], X[o.target[k]],
+                                 tn.normals[o.target[k]], diameter_mm / 2000.0)
+    e = np.where(np.isfinite(e), e, 0.0)
+    norm = np.hypot(e[:, 0], e[:, 1])
+    sources = sorted(set(tn.source[np.unique(o.target)].tolist()))
+    summary = {"max_px": float(norm.max()) if len(norm) else 0.0, "normals": ", ".join(sources),
+               "applied": bool(norm.max() > 0) if len(norm) else False}
+    if not summary["applied"]:
+        summary["reason"] = "no target's normal is known (a field in 3-D without normals)"
+        return data, result, summary
+    n_unknown = int(np.sum(~tn.known[np.unique(o.target)]))
+    if n_unknown:
+        summary["n_uncorrected_targets"] = n_unknown
+    data = replace(data, obs=FieldObservations(o.image, o.target, o.uv_px - e, o.sigma_px))
+    init = InitialValues(np.asarray(result.params, float).copy(), result.R_world_to_camera, result.center_m,
+                         ~result.obs_used, np.full(len(data.images), np.nan),
+                         "the adjustment before the eccentricity correction (warm start)", targets_m=X)
+    say(f"perspective eccentricity removed from {int(np.sum(norm > 0))} points (normals: {summary['normals']}): "
+        f"median {np.median(norm):.4f} px, max {norm.max():.4f} px")
+    return data, adjust_field(data, options, progress=progress, initial=init), summary
 
 
 def _report(session, measurements, marks, views, reasons, data, result) -> list[dict]:
