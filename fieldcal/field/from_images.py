@@ -94,8 +94,8 @@ from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, P
 from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
 from fieldcal.field.referencing import ReferencingOptions, reference_discs
-from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
+from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.loader import Session
