@@ -93,7 +93,7 @@ from fieldcal.field.identify import IdentifyOptions, identify_images, measured_p
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
-from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.referencing import ReferencingOptions, reference_discs, track_ids
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
 from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.model.camera import INDEX, Camera
@@ -459,10 +459,6 @@ def _admit(fixed, candidates, attempt):
     return outcome, rejected
 
 
-REFERENCED_PREFIX = "AR"
-"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
-
-
 def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions | None):
     """7: automatic referencing (:mod:`fieldcal.field.referencing`). The usable discs of the
     images ``keep`` (``data``'s images, in order) that the identification ``second`` left
@@ -485,13 +481,7 @@ def _referenced(run, data: FieldData, result: FieldResult, second, keep, options
     data.meta["referenced_targets"] = len(tracks)
     if not len(tracks):
         return data, result
-    taken = set(data.targets.ids.tolist())
-    ids, k = [], 0
-    while len(ids) < len(tracks):
-        k += 1
-        name = f"{REFERENCED_PREFIX}{k:04d}"
-        if name not in taken:
-            ids.append(name)
+    ids = track_ids(len(tracks), run.all_targets.ids.tolist() + data.targets.ids.tolist())
     first = len(data.targets)
     new = FieldObservations(tracks.image, first + tracks.track,
                             np.stack([uv[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]),

@@ -49,11 +49,11 @@ from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import measured_points
 from fieldcal.field.normals import resolve_normals
-from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.referencing import ReferencingOptions, reference_discs, track_ids
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
 
-__all__ = ["SNAP_PX", "GATES_PX", "MIN_IMAGES", "REFERENCED_PREFIX", "is_thin", "ThinStart", "start_from_marks"]
+__all__ = ["SNAP_PX", "GATES_PX", "MIN_IMAGES", "is_thin", "ThinStart", "start_from_marks"]
 
 SNAP_PX = 3.0
 """A mark is the measured point nearest it within this distance [px]."""
@@ -62,8 +62,6 @@ GATES_PX = (40.0, 10.0, 3.0)
 corners (tens of pixels of uncorrected distortion), then a first adjusted camera's, then a few
 times the noise; the last round uses the session's :class:`ReferencingOptions`."""
 MIN_IMAGES = 3
-REFERENCED_PREFIX = "AR"
-"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
 
 
 def is_thin(targets: TargetField) -> bool:
@@ -169,10 +167,7 @@ def _data(session_like: dict, targets: TargetField, views, tracks, images) -> tu
     obs = FieldObservations(np.concatenate(img), np.concatenate(tgt).astype(np.int64), np.concatenate(uv),
                             np.concatenate(sig))
     n_tr = 0 if tracks is None else len(tracks)
-    ids = [f"{REFERENCED_PREFIX}{k + 1:04d}" for k in range(n_tr)]
-    taken = set(targets.ids.tolist())
-    if taken.intersection(ids):                      # never reuse a listed id
-        ids = [f"{REFERENCED_PREFIX}_{k + 1:04d}" for k in range(n_tr)]
+    ids = track_ids(n_tr, session_like["listed_ids"])         # never an id targets.csv lists
     all_targets = targets.with_unsurveyed(ids)
     X0 = targets.xyz_m if tracks is None else np.vstack([targets.xyz_m, tracks.X_m])
     data = FieldData(sensor=session_like["sensor"], targets=all_targets, images=[images[v.index] for v in views],
@@ -229,7 +224,8 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
         f"({sum(v.n_snapped for v in views)} of {sum(len(v.control_t) for v in views)} marks on measured points)")
     like = {"sensor": session.sensor, "nominal_focal_mm": session.nominal_focal_mm,
             "default_sigma_px": session.default_sigma_px,
-            "meta": {"camera_id": session.camera_id, "session_id": session.session_id}}
+            "meta": {"camera_id": session.camera_id, "session_id": session.session_id},
+            "listed_ids": session.targets().ids.tolist()}
     final_ref = referencing or ReferencingOptions()
     params, result, tracks = nominal.params, None, None
     rounds = [(replace(final_ref, gate_px=g), working_options) for g in GATES_PX] + [(final_ref, options)]
