@@ -4,6 +4,10 @@ The measuring step (:func:`fieldcal.pipeline.measure`, one ``measurements`` tabl
 image) knows nothing of the targets' identities. This module turns those tables into a
 calibration (:func:`calibrate_from_measurements`):
 
+0. **A thin survey** (fewer than 6 surveyed targets, :func:`fieldcal.field.thin_start.is_thin`) with
+   marks.csv: the identification by projection cannot work; every image is resected from its
+   marked control points and the network grown by automatic referencing instead
+   (:func:`fieldcal.field.thin_start.start_from_marks`; the steps below are not taken).
 1. **First identification, nominal camera.** Every image is identified
    (:func:`fieldcal.field.identify.identify_images`, all images at once) with the camera the
    session describes: the nominal focal length (``lens.nominal_focal_mm``), principal point at

@@ -49,7 +49,7 @@ REFERENCED_PREFIX = "AR"
 
 A track is never given an id targets.csv lists: a listed unsurveyed plain target has no
 coordinates to predict where it is, and plain discs carry no identity, so nothing in the images
-ties a disc to a listed id (docs/methods.md, automatic referencing)."""
+ties a disc to a listed id (docs/conventions.md section 3, referenced targets)."""
 
 
 def track_ids(n: int, taken) -> list[str]:
