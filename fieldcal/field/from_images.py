@@ -299,10 +299,9 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     estimate_normals : bool
         Estimate the unknown normals of a 3-D field (:mod:`fieldcal.field.normals`); False
         leaves them unknown (their discs uncorrected, with the eccentricity bound in their sigmas).
-    identify : IdentifyOptions, optional
-        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
-    priors : PriorOptions, optional
-        Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
+    identify, priors : IdentifyOptions, PriorOptions, optional
+        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``) and
+        of :func:`fieldcal.field.identify_session.identify_remaining`.
     referencing : ReferencingOptions, optional
         Automatic referencing (step 7; off when None): the discs no target names are matched
         across the adjusted images (:func:`fieldcal.field.referencing.reference_discs`), get
@@ -310,10 +309,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
 
     Returns
     -------
-    data : FieldData
-        The observations of the final adjustment (eccentricity removed where applied).
-    result : FieldResult
-        The final adjustment.
+    data, result : FieldData, FieldResult
+        The final adjustment and its observations (eccentricity removed where applied).
     report : list of dict
         One entry per image of the session (module docstring).
 
@@ -322,8 +319,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     InputError
         Not a field session, no nominal focal length, unreadable targets.csv / marks.csv.
     GeometryError
-        Fewer than 3 images could be identified from their seeds (the message lists why), or
-        the adjustment cannot calibrate.
+        Fewer than 3 images could be identified from their seeds or, with a thin survey, resected
+        from their marks (the message lists why), or the adjustment cannot calibrate.
     """
     if session.method != "field":
         raise InputError("not a field-method session", session.manifest_where)
