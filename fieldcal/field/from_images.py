@@ -102,7 +102,7 @@ from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bound
 from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
-from fieldcal.session.loader import Session
+from fieldcal.session.loader import Session, scale_bars_among
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
            "reason_category"]
@@ -226,7 +226,7 @@ def _assemble(session, targets, images, keep, idents, measurements, names, uv_ov
         meta["eccentricity_bound_px"] = bound
     data = FieldData(sensor=session.sensor, targets=targets, images=[images[i] for i in keep], obs=obs,
                      nominal_focal_mm=session.nominal_focal_mm, default_sigma_px=session.default_sigma_px,
-                     meta=meta)
+                     meta=meta, scale_bars=scale_bars_among(session, targets))
     return data, marker
 
 
@@ -373,10 +373,8 @@ def _thin(run: _Run, referencing: ReferencingOptions | None):
     """0: a survey too thin to identify targets by projection (:func:`fieldcal.field.thin_start.is_thin`):
     the images are resected from their marked control points and the network grown by automatic
     referencing (:func:`fieldcal.field.thin_start.start_from_marks`); scale_bars.csv joins."""
-    from fieldcal.session.loader import scale_bars_of
-
     sess = run.session
-    bars = None if sess.scale_bars_path is None else (lambda targets: scale_bars_of(sess, targets))
+    bars = None if sess.scale_bars_path is None else (lambda targets: scale_bars_among(sess, targets))
     st = start_from_marks(sess, run.measurements, run.targets, run.marks, run.options, run.working_options,
                           run.nominal, referencing=referencing, scale_bars=bars, say=run.say, progress=run.progress)
     data = st.data
@@ -498,7 +496,7 @@ def _adjust_with(run, data: FieldData, result: FieldResult, new: FieldObservatio
     old = data.obs
     obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
                             np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
-    data = replace(data, obs=obs)
+    data = replace(data, obs=obs, scale_bars=scale_bars_among(run.session, data.targets))
     bound = data.meta.get("eccentricity_bound_px")
     if bound is not None and len(bound) == len(old):        # the new points: markers and discs with no bound
         data.meta["eccentricity_bound_px"] = np.concatenate([bound, np.zeros(len(new))])

@@ -192,7 +192,8 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
 
     ``targets``: the surveyed targets (marks' target indices refer to them); ``marks``:
     ``{image index: (target indices, uv)}``; ``scale_bars``: called with the final targets, returns
-    their :class:`~fieldcal.field.data.ScaleBars` (or None).
+    the :class:`~fieldcal.field.data.ScaleBars` between them (or None;
+    :func:`fieldcal.session.loader.scale_bars_among`).
 
     Raises
     ------
@@ -236,6 +237,9 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
         data, X0 = _data(like, targets, views, tracks, images)
         if k == len(rounds) - 1 and scale_bars is not None:
             data = replace(data, scale_bars=scale_bars(data.targets))
+            n_bars = 0 if data.scale_bars is None else len(data.scale_bars)
+            say(f"scale bars: {n_bars} between targets of the network (a bar to a listed unsurveyed plain "
+                "target cannot be used: referencing gives its disc an id of its own)")
         how = "resection from the marked control points" if result is None else "the previous round (warm start)"
         result = _round(data, X0, params, views, opts, how, progress if k == len(rounds) - 1 else None)
         params = result.params

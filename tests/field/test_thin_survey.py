@@ -20,7 +20,9 @@ import pytest
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.data import ScaleBars
 from fieldcal.model.camera import INDEX
+from fieldcal.errors import InputError
 from fieldcal.pipeline import measure, prepare, solve
+from fieldcal.session.loader import scale_bars_among
 from fieldcal.synthetic.field import SHEET_CONTROL_IDS, sheet_field
 from fieldcal.synthetic.session_writer import write_field_session
 
@@ -70,7 +72,7 @@ def sheet(tmp_path_factory):
     out_a = solve(pa_, meas, fingerprint_="a", progress=lines.append)
     out_b = solve(pb, meas, fingerprint_="b", progress=lines.append)
     print("\n" + "\n".join(ln for ln in lines if ln.startswith(("thin", "referencing"))))
-    return dict(sf=sf, a=out_a, b=out_b)
+    return dict(sf=sf, a=out_a, b=out_b, folder_a=a)
 
 
 def _z(res, sf):
@@ -133,3 +135,23 @@ def test_minimal_datums_give_the_interior_orientation_to_round_off(sheet):
         # 6e-5), the same sigmas to round-off (measured 4e-9)
         assert abs(bar.params[INDEX[p]] - free.params[INDEX[p]]) < AdjustmentOptions().sigma_tol * free.sigma[p]
         assert bar.sigma[p] == pytest.approx(free.sigma[p], rel=1e-6)
+
+
+def test_scale_bars_join_between_targets_the_photos_hold(sheet, tmp_path):
+    """From photographs the adjustment holds the targets found in the images: a bar to a listed
+    unsurveyed plain target (which referencing names AR...) is not used, one between control
+    points is; a bar naming an id targets.csv does not list is refused before measuring."""
+    folder = sheet["folder_a"]
+    data = sheet["a"].result.data
+    bars = tmp_path / "scale_bars.csv"
+    bars.write_text("from_id,to_id,length_mm,sigma_mm\n1001,1002,900.0,0.02\n2,3,100.0,0.02\n")
+    session = replace(prepare(folder).session, scale_bars_path=bars)
+    got = scale_bars_among(session, data.targets)
+    index = data.targets.index()
+    assert list(got.from_target) == [index["1001"]] and list(got.to_target) == [index["1002"]]
+    (folder / "scale_bars.csv").write_text("from_id,to_id,length_mm,sigma_mm\n1001,X9,900.0,0.02\n")
+    try:
+        with pytest.raises(InputError, match="to_id 'X9' is not a target"):
+            prepare(folder)
+    finally:
+        (folder / "scale_bars.csv").unlink()
