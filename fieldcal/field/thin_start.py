@@ -19,9 +19,9 @@ the control points alone and grown by automatic referencing (:mod:`fieldcal.fiel
    needs correspondences of the plain discs first, and finding those is what needs the poses.
 3. **Referencing and adjustment, in rounds** (:data:`GATES_PX`): the discs no mark names are
    matched across the oriented images with a gate that starts wide (the nominal camera's
-   missing distortion moves points by tens of pixels near the corners) and shrinks as the
-   camera is adjusted; each round adjusts the control points and the tracks (unsurveyed
-   targets, ids ``AR0001``, ...) from the last round's camera and poses. The last round uses
+   missing distortion) and shrinks as the camera is adjusted; each round adjusts the control points and the tracks (unsurveyed
+   targets, ids ``AR0001``, ...) from the last round's camera and poses (the first round only
+   ``f, xp, yp, k1, k2``: :data:`FIRST_ROUND`). The last round uses
    the session's referencing options and the final adjustment options.
 
 4. **Perspective eccentricity** (when the session gives ``field.target_diameter_mm``): the
@@ -57,10 +57,13 @@ __all__ = ["SNAP_PX", "GATES_PX", "MIN_IMAGES", "is_thin", "ThinStart", "start_f
 
 SNAP_PX = 3.0
 """A mark is the measured point nearest it within this distance [px]."""
-GATES_PX = (40.0, 10.0, 3.0)
-"""Referencing gates of the rounds before the last [px]: the nominal camera's error near the
-corners (tens of pixels of uncorrected distortion), then a first adjusted camera's, then a few
-times the noise; the last round uses the session's :class:`ReferencingOptions`."""
+GATES_PX = (20.0, 6.0, 2.0)
+"""Referencing gates of the rounds before the last [px]: the nominal camera's error where the
+pose from four marks leaves it (a few to ~15 px of uncorrected distortion between the control
+points, which the resection absorbs at the corners), then a first adjusted camera's, then a few
+times the noise; the last round uses the session's :class:`ReferencingOptions`. A gate must stay
+well below half the discs' spacing in the image (~70 px on the rendered sheet, ~100 px on DBAT's):
+at 40 px a rendered draw took a track one disc over in several views and the first round failed."""
 MIN_IMAGES = 3
 
 
@@ -176,6 +179,17 @@ def _data(session_like: dict, targets: TargetField, views, tracks, images) -> tu
     return data, X0
 
 
+FIRST_ROUND = ("f_mm", "xp_mm", "yp_mm", "k1", "k2")
+"""The camera parameters of the first round, which starts from the nominal camera: the dominant
+terms (the others held at 0 until the tracks are cleaner and the camera closer; a full set from
+so far away can leave LM where the normal equations are not positive definite)."""
+
+
+def _first_estimate(options: AdjustmentOptions):
+    """:data:`FIRST_ROUND` within the session's ``estimate`` (when it gives one)."""
+    return tuple(p for p in FIRST_ROUND if options.estimate is None or p in options.estimate)
+
+
 def _round(data, X0, params, views, options, how, progress) -> FieldResult:
     init = InitialValues(np.asarray(params, float).copy(), np.stack([v.R for v in views]),
                          np.stack([v.C for v in views]), np.zeros(len(data.obs), bool),
@@ -229,7 +243,9 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
             "listed_ids": session.targets().ids.tolist()}
     final_ref = referencing or ReferencingOptions()
     params, result, tracks = nominal.params, None, None
-    rounds = [(replace(final_ref, gate_px=g), working_options) for g in GATES_PX] + [(final_ref, options)]
+    first = replace(working_options, estimate=_first_estimate(options))
+    rounds = [(replace(final_ref, gate_px=g), first if k == 0 else working_options) for k, g in enumerate(GATES_PX)]
+    rounds.append((final_ref, options))
     for k, (ref, opts) in enumerate(rounds):
         cam = nominal if result is None else result.camera
         tracks = reference_discs(cam, np.stack([v.R for v in views]), np.stack([v.C for v in views]),

@@ -30,7 +30,10 @@ INTERIOR = ("f_mm", "xp_mm", "yp_mm", "k1")
 MARK_NOISE_PX = 0.3
 
 
-def _write(folder, sf, *, free: bool):
+def write_sheet_tables(folder, sf, *, free: bool):
+    """targets.csv (the four control points; unless ``free``, the other ids listed without
+    coordinates), marks.csv (the control points only) and, ``free``, scale_bars.csv (two sides)
+    and ``field.datum`` "free" in session.json (bench/bench_thin_sheet.py uses it too)."""
     ids, X = sf.targets_true.ids, sf.targets_true.xyz_m
     rows = ["id,X,Y,Z,sigma_mm,code"]
     for t, x in zip(ids, X, strict=True):
@@ -59,13 +62,13 @@ def sheet(tmp_path_factory):
     sf = sheet_field(seed=3)
     a = tmp_path_factory.mktemp("sheet-control")
     write_field_session(a, sf, coded=False, seed=3, compression_mix=False)
-    _write(a, sf, free=False)
+    write_sheet_tables(a, sf, free=False)
     b = tmp_path_factory.mktemp("sheet-free")
     write_field_session(b, sf, images=False, coded=False, seed=3)
     (b / "images").mkdir(exist_ok=True)
     for f in (a / "images").iterdir():              # the same photos (hard links: a link out is refused)
         os.link(f, b / "images" / f.name)
-    _write(b, sf, free=True)
+    write_sheet_tables(b, sf, free=True)
     pa_, pb = prepare(a), prepare(b)
     meas = {n: measure(pa_, n) for n in pa_.to_measure}
     lines = []
