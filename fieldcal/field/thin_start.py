@@ -19,11 +19,10 @@ the control points alone and grown by automatic referencing (:mod:`fieldcal.fiel
    needs correspondences of the plain discs first, and finding those is what needs the poses.
 3. **Referencing and adjustment, in rounds** (:data:`GATES_PX`): the discs no mark names are
    matched across the oriented images with a gate that starts wide (the nominal camera's
-   missing distortion) and shrinks as the camera is adjusted; each round adjusts the control points and the tracks (unsurveyed
-   targets, ids ``AR0001``, ...) from the last round's camera and poses (the first round only
-   ``f, xp, yp, k1, k2``: :data:`FIRST_ROUND`). The last round uses
-   the session's referencing options and the final adjustment options.
-
+   missing distortion) and shrinks as the camera is adjusted; each round adjusts the control
+   points and the tracks (unsurveyed targets, ids ``AR0001``, ...) from the last round's camera
+   and poses (the first round only ``f, xp, yp, k1, k2``: :data:`FIRST_ROUND`). The last round
+   uses the session's referencing options and the final adjustment options.
 4. **Perspective eccentricity** (when the session gives ``field.target_diameter_mm``): the
    targets' normals are the given ones or, for a planar field, the plane of the adjusted targets
    (:func:`fieldcal.field.normals.resolve_normals`, no local-plane estimate); every point of a
@@ -63,7 +62,7 @@ pose from four marks leaves it (a few to ~15 px of uncorrected distortion betwee
 points, which the resection absorbs at the corners), then a first adjusted camera's, then a few
 times the noise; the last round uses the session's :class:`ReferencingOptions`. A gate must stay
 well below half the discs' spacing in the image (~70 px on the rendered sheet, ~100 px on DBAT's):
-at 40 px a rendered draw took a track one disc over in several views and the first round failed."""
+at 40 px one rendered draw's first round took wrong tracks and its adjustment failed."""
 MIN_IMAGES = 3
 
 
