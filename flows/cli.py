@@ -697,7 +697,7 @@ class _Version(argparse.Action):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from fieldcal.session.fingerprint import code_version
+        from fieldcal.contract.fingerprint import code_version
 
         print(f"fieldcal {code_version()}")
         parser.exit()

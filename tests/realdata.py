@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Sensor
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 
 
 def _data_dir() -> Path:

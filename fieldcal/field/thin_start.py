@@ -44,13 +44,13 @@ import pyarrow as pa
 
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions, FieldResult, InitialValues, adjust_field
-from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import measured_points
 from fieldcal.field.normals import resolve_normals
 from fieldcal.field.referencing import ReferencingOptions, reference_discs, track_ids
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
+from fieldcal.session.data import FieldData, FieldObservations, TargetField
 
 __all__ = ["SNAP_PX", "GATES_PX", "MIN_IMAGES", "is_thin", "ThinStart", "start_from_marks"]
 
@@ -205,7 +205,7 @@ def start_from_marks(session, measurements: Mapping[str, pa.Table], targets: Tar
 
     ``targets``: the surveyed targets (marks' target indices refer to them); ``marks``:
     ``{image index: (target indices, uv)}``; ``scale_bars``: called with the final targets, returns
-    the :class:`~fieldcal.field.data.ScaleBars` between them (or None;
+    the :class:`~fieldcal.session.data.ScaleBars` between them (or None;
     :func:`fieldcal.session.loader.scale_bars_among`).
 
     Raises

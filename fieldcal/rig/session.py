@@ -24,10 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.contract.names import normal_file_name
+from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.model.camera import FIELD_PARAMS, Sensor
 from fieldcal.rig.data import RigData, RigHead
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.session.loader import (
     MANIFEST,
     OBSERVATIONS,
@@ -39,8 +41,6 @@ from fieldcal.session.loader import (
     read_targets_csv,
     safe_path,
 )
-from fieldcal.session.names import normal_file_name
-from fieldcal.session.schemas import shown, validate_json
 
 __all__ = ["RigSession", "load_rig_session", "rig_data_from_observations", "is_rig_session"]
 

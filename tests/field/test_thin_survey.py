@@ -19,9 +19,9 @@ import pytest
 
 from fieldcal.errors import InputError
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
-from fieldcal.field.data import ScaleBars
 from fieldcal.model.camera import INDEX
 from fieldcal.pipeline import measure, prepare, solve
+from fieldcal.session.data import ScaleBars
 from fieldcal.session.loader import scale_bars_among
 from fieldcal.synthetic.field import SHEET_CONTROL_IDS, sheet_field
 from fieldcal.synthetic.session_writer import write_field_session
