@@ -68,8 +68,8 @@ def test_every_photo_is_resected_and_every_disc_referenced_as_photomodeler_marke
 def test_calibration_agrees_with_photomodelers_marks_of_the_same_network(runs):
     """Two measurements of the same photos (our centroids, PhotoModeler's): xp, yp, k1 within 3
     combined sigmas, f to 0.1 % (it differs by ~4 combined sigmas: the centroid operators
-    differ, and on the same (image, target) pairs PhotoModeler's marks give f 2-3 um nearer
-    ours, bench/README_unsurveyed.md)."""
+    differ; on the same (image, target) pairs PhotoModeler's marks give the same f as on all
+    of them, bench/README_unsurveyed.md)."""
     ours, marks = runs["control"].result, runs["marks"]
     for p in ("f_mm", "xp_mm", "yp_mm", "k1"):
         z = (ours.params[INDEX[p]] - marks.params[INDEX[p]]) / np.hypot(ours.sigma[p], marks.sigma[p])
