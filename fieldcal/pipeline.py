@@ -31,7 +31,7 @@ from fieldcal.contract.fingerprint import fingerprint, sha256_file
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
-from fieldcal.session.loader import Session, field_data_from_observations, load_session
+from fieldcal.session.loader import Session, field_data_from_observations, load_session, scale_bars_of
 from fieldcal.session.store import is_url, open_store
 
 if TYPE_CHECKING:
@@ -159,6 +159,8 @@ def _prepare(sess: Session, settings: Settings) -> Prepared:
                 raise InputError("no images match the session's 'images' and there is no "
                                  "observations.csv", str(sess.folder / "session.json"))
             to_measure = [im.file for im in sess.images]
+            if sess.scale_bars_path is not None:
+                scale_bars_of(sess, targets)                    # validates now (ids of targets.csv)
             if sess.marks_path is not None:
                 sess.marks()                                    # validates now (read once)
                 tables["marks.csv"] = sess.marks_path.read_bytes()

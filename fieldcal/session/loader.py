@@ -606,3 +606,21 @@ def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
     if sess.scale_bars_path is None:
         return None
     return read_scale_bars_csv(sess.scale_bars_path, targets)
+
+
+def scale_bars_among(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """The bars of ``scale_bars.csv`` (over the session's targets.csv, :func:`scale_bars_of`)
+    whose two ends are among ``targets`` (by id), as indices into ``targets``: from photographs
+    the adjustment holds the targets found in the images, a subset (None: no file or no such
+    bar)."""
+    listed = sess.targets()
+    bars = scale_bars_of(sess, listed)
+    if bars is None:
+        return None
+    index = targets.index()
+    a = np.array([index.get(str(listed.ids[k]), -1) for k in bars.from_target], np.int64)
+    b = np.array([index.get(str(listed.ids[k]), -1) for k in bars.to_target], np.int64)
+    keep = (a >= 0) & (b >= 0)
+    if not keep.any():
+        return None
+    return ScaleBars(a[keep], b[keep], bars.length_mm[keep], bars.sigma_mm[keep])

@@ -597,6 +597,58 @@ def _marker_corners(sf: SyntheticField, i: int, t: int, sigma_px: float, rng) ->
     return (uv + rng.normal(0.0, sigma_px, uv.shape)).reshape(-1)
 
 
+SHEET_CAMERA = {
+    "f_mm": 7.45, "xp_mm": -0.015, "yp_mm": 0.10,
+    "k1": 4.5e-3, "k2": -2.0e-5, "p1": 1.0e-5, "p2": -2.0e-5, "a2": -5.0e-4,
+}
+"""A compact camera like DBAT's Olympus C-4040Z (issue 26): about 60 px of barrel distortion in
+the corners of a 1136 x 852 sensor of 6.38 um pixels (half the C-4040Z's rows and columns)."""
+SHEET_CONTROL_IDS = ("1001", "1002", "1003", "1004")
+"""The control points of :func:`sheet_field`, at the grid's corners (as the DBAT sheet's)."""
+
+
+def sheet_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 0.0,
+                camera: Camera | None = None, n_side: int = 10, spacing_m: float = 0.1) -> SyntheticField:
+    """A planar calibration sheet photographed like DBAT's (issue 26 goal 6, a truth analogue).
+
+    ``n_side`` x ``n_side`` plain discs (25 mm) ``spacing_m`` apart in the plane ``Z = 0``
+    (normal ``+Z``, towards the cameras), the four corners' ids :data:`SHEET_CONTROL_IDS`
+    (``1001`` at ``(0, s)``, ``1002`` at ``(s, s)``, ``1003`` at the origin, ``1004`` at
+    ``(s, 0)``, ``s`` the grid's side), the others ``2, 3, ...``. Twenty convergent photos: eight
+    azimuths at 40 degrees from the normal (roll 0), the same eight rolled a quarter turn, and four
+    near the normal rolled 0, 90, 180 and 270 degrees, all 1.7 m from the sheet's centre."""
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(1136, 852, 6.38), SHEET_CAMERA)
+    side = spacing_m * (n_side - 1)
+    g = np.arange(n_side) * spacing_m
+    xx, yy = (a.ravel() for a in np.meshgrid(g, g))
+    corner = {(0.0, side): "1001", (side, side): "1002", (0.0, 0.0): "1003", (side, 0.0): "1004"}
+    ids, k = [], 2
+    for x, y in zip(xx, yy, strict=True):
+        key = (round(float(x), 9), round(float(y), 9))
+        name = next((v for (a, b), v in corner.items() if abs(a - key[0]) + abs(b - key[1]) < 1e-9), None)
+        if name is None:
+            name, k = str(k), k + 1
+        ids.append(name)
+    xyz = np.stack([xx, yy, np.zeros_like(xx)], axis=1)
+    targets = TargetField(np.array(ids), xyz, 0.0, -1, np.tile([0.0, 0.0, 1.0], (len(ids), 1)))
+    centre = np.array([side / 2, side / 2, 0.0])
+    poses, names = [], []
+    for roll_deg, tilt_deg, azimuths in ((0.0, 40.0, range(0, 360, 45)), (90.0, 40.0, range(22, 360, 45)),
+                                         (None, 8.0, range(0, 360, 90))):
+        for n, az in enumerate(azimuths):
+            a, t = np.radians(az + rng.normal(0, 3.0)), np.radians(tilt_deg + rng.normal(0, 2.0))
+            C = centre + 1.7 * np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+            aim = centre + np.array([rng.normal(0, 0.03), rng.normal(0, 0.03), 0.0])
+            roll = 90.0 * n if roll_deg is None else roll_deg
+            poses.append((look_at(C, aim, np.radians(roll + rng.normal(0, 2.0)), up=(0.0, 1.0, 0.0)), C))
+            names.append(None)
+    return _simulate("sheet", cam, targets, poses, names, image_noise_px=image_noise_px,
+                     survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=12.0,
+                     target_diameter_mm=25.0, marker_size_mm=100.0, nominal_focal_mm=7.5,
+                     settings={"scenario": "sheet"})
+
+
 def with_control_points(sf: SyntheticField, spots_m=((-1.5, 1.0), (1.5, 1.0), (-1.5, 3.0), (1.5, 3.0))):
     """``sf``'s observations with only a few control points surveyed (issue 26): the targets
     nearest each ``(X, Z)`` spot [m] on the wall keep their (noisy) survey, every other target's
