@@ -171,13 +171,14 @@ def _summary(prepared: RigPrepared, res) -> list[str]:
 def run_rig(folder, lake, *, settings: Settings | None = None, force: bool = False,
             progress: Callable[[str], None] | None = None, prepared: RigPrepared | None = None):
     """Prepare (unless ``prepared`` is given), solve and commit a rig session; returns ``(rig
-    version, head versions, outcome)`` (``outcome`` None when the same inputs were committed
-    already and nothing was solved)."""
+    version, head versions, outcome)`` (``outcome`` None when nothing was solved: the same inputs
+    were committed already, the version's ``.new`` False, or an interrupted commit of them was
+    completed, ``.new`` True; :meth:`~fieldcal.lake.store.Lake.complete_rig`)."""
     prepared = prepared if prepared is not None else prepare_rig(folder, settings)
     if not force:
-        hit = lake.rig_catalog(fingerprint=prepared.fingerprint)
-        if hit.num_rows:
-            return hit["version"][-1].as_py(), hit["head_versions"][-1].as_py(), None
+        done = lake.complete_rig(prepared.fingerprint)
+        if done is not None:
+            return done[0], done[1], None
     outcome = solve_rig(prepared, progress=progress)
     version, heads = lake.commit_rig(outcome.heads, outcome.rig_document, force=force)
     return version, heads, outcome

@@ -203,8 +203,9 @@ def _run_rig(args, lake_url: str, options) -> int:
     human = common.is_tty(sys.stderr)
     version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)
     if human:
-        for line in (outcome.summary if outcome is not None else ["unchanged (same inputs and settings; "
-                                                                 "--force for a new version)"]):
+        same = ["completed the interrupted commit of the same inputs" if getattr(version, "new", False) else
+                "unchanged (same inputs and settings; --force for a new version)"]
+        for line in (outcome.summary if outcome is not None else same):
             print(line, file=sys.stderr)
         print(f"head versions: {', '.join(heads)}", file=sys.stderr)
     _finish_run(version, args.json, lambda: lake.load_rig_document(version))

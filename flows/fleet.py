@@ -162,8 +162,9 @@ def calibrate_rig(folder: str, lake: str, storage_options: dict | None, root_opt
         version, heads, outcome = rig_run.run_rig(local, Lake(lake, storage_options), prepared=prepared)
     except Exception as e:  # noqa: BLE001 - recorded in the session's entry, the fleet goes on
         return e
-    return {"status": "committed" if outcome is not None else "unchanged", "version": str(version),
-            "new": outcome is not None, "images": {"total": len(prepared.session.images)}, "left_out": [],
+    new = outcome is not None or bool(getattr(version, "new", False))      # solved, or an interrupted commit completed
+    return {"status": "committed" if new else "unchanged", "version": str(version),
+            "new": new, "images": {"total": len(prepared.session.images)}, "left_out": [],
             "head_versions": list(heads)}
 
 
