@@ -67,7 +67,7 @@ def prepare_rig(folder, settings: Settings | None = None) -> RigPrepared:
     parts = {"session": sha256_bytes((sess.folder / "session.json").read_bytes()),
              "targets": sha256_bytes(sess.targets_path.read_bytes()), "settings": settings.to_dict(), "kind": "rig"}
     if sess.observations_path is not None:
-        data = rig_data_from_observations(sess)                    # refuses unsurveyed targets it observes
+        data = rig_data_from_observations(sess)
         parts["observations"] = sha256_bytes(sess.observations_path.read_bytes())
         return RigPrepared(sess, settings, data, fingerprint(parts))
     if sess.coded is None:
