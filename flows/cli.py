@@ -166,7 +166,7 @@ def cmd_run(args) -> int:
     common.check_lake_target(lake)
     from fieldcal.rig.session import is_rig_session
 
-    if is_rig_session(args.session):
+    if is_rig_session(args.session, options):
         return _run_rig(args, lake_url, options)
     prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)), options)
     human = common.is_tty(sys.stderr)
@@ -198,7 +198,7 @@ def _run_rig(args, lake_url: str, options) -> int:
     from fieldcal.lake.store import Lake
 
     settings = pipeline.Settings(**_settings(args))
-    prepared = rig_run.prepare_rig(args.session, settings)   # bad input: one line, exit 2, nothing written
+    prepared = rig_run.prepare_rig(args.session, settings, options)   # bad input: one line, exit 2, nothing written
     lake = Lake(lake_url, options)
     human = common.is_tty(sys.stderr)
     version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)

@@ -45,6 +45,7 @@ from fieldcal.session.loader import (
 )
 from fieldcal.session.names import normal_file_name
 from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.store import SessionStore, is_url
 
 __all__ = ["RigSession", "load_rig_session", "rig_data_from_observations", "is_rig_session"]
 
@@ -80,11 +81,18 @@ class RigSession:
     target_polarity: str = "dark"
     coded: dict | None = None
     strict_targets: bool = False
+    store: SessionStore | None = None
     _read: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def where(self) -> str:
         return str(self.folder / MANIFEST)
+
+    def read_image(self, name: str):
+        """An image of a session on an object store, read from the store (the bytes hashed as they
+        arrive, :meth:`fieldcal.session.store.SessionStore.read_image`); None for a local session
+        (its file is read where it is measured)."""
+        return self.store.read_image(name) if self.store is not None else None
 
     def targets(self):
         """targets.csv, read once (a fresh copy every call)."""
@@ -93,17 +101,36 @@ class RigSession:
         return copy.deepcopy(self._read["targets"])
 
 
-def is_rig_session(folder) -> bool:
+def is_rig_session(folder, storage_options: dict | None = None) -> bool:
     """Whether ``folder/session.json`` is a JSON object with a ``rig`` (False when unreadable:
-    the single-camera loader then reports what is wrong)."""
+    the single-camera loader then reports what is wrong); ``folder`` may be an fsspec URL
+    (``storage_options``: its store's)."""
+    if is_url(str(folder)):
+        return _is_rig_on_store(str(folder), storage_options)
     try:
         return "rig" in read_manifest(Path(folder))
     except InputError:
         return False
 
 
-def load_rig_session(folder) -> RigSession:
-    """Read and validate a rig session (module docstring).
+def _is_rig_on_store(url: str, storage_options: dict | None) -> bool:
+    import json
+
+    import fsspec
+
+    from fieldcal.lake import secrets
+
+    try:
+        fs, path = fsspec.core.url_to_fs(f"{url.rstrip('/')}/{MANIFEST}", **(secrets.resolve(storage_options) or {}))
+        manifest = json.loads(fs.cat_file(path))
+    except Exception:  # noqa: BLE001 - unreadable: the single-camera loader says what is wrong
+        return False
+    return isinstance(manifest, dict) and "rig" in manifest
+
+
+def load_rig_session(folder, store: SessionStore | None = None) -> RigSession:
+    """Read and validate a rig session (module docstring); ``store``: the session is on an object
+    store and ``folder`` holds its small files (as :func:`fieldcal.session.loader.load_session`).
 
     Raises
     ------
@@ -138,7 +165,7 @@ def load_rig_session(folder) -> RigSession:
     targets_path = safe_path(folder, fld["targets"], "field.targets")
     if not targets_path.is_file():
         raise InputError(f"the targets file {fld['targets']!r} does not exist (at /field/targets)", where)
-    check_distinct_files(folder, [im.file for im in images], where)
+    check_distinct_files(folder, [im.file for im in images], where, store=store)
     obs_path = safe_path(folder, OBSERVATIONS, OBSERVATIONS)
     _refuse_single_camera_only(folder, fld, where)
     return RigSession(
@@ -150,7 +177,7 @@ def load_rig_session(folder) -> RigSession:
         estimate=tuple(estimate) if estimate is not None else None, targets_path=targets_path,
         observations_path=obs_path if obs_path.is_file() else None,
         target_diameter_mm=fld.get("target_diameter_mm"), target_polarity=fld.get("target_polarity", "dark"),
-        coded=fld.get("coded"), strict_targets=bool(fld.get("strict_targets", False)))
+        coded=fld.get("coded"), strict_targets=bool(fld.get("strict_targets", False)), store=store)
 
 
 def _refuse_single_camera_only(folder: Path, fld: dict, where: str) -> None:
