@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import os
 import posixpath
+import shutil
 import tempfile
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -82,19 +84,19 @@ def prepare_rig(folder, settings: Settings | None = None, storage_options: dict 
     from fieldcal.lake import secrets
 
     store = open_store(str(folder), storage_options, resolve=secrets.resolve)   # redacted credentials: env
-    tmp = tempfile.TemporaryDirectory(prefix="fieldcal-rig-")
-    local = os.path.join(tmp.name, store.name)
+    tmp = tempfile.mkdtemp(prefix="fieldcal-rig-")
+    local = os.path.join(tmp, store.name)
     try:
         store.fetch_small_files(local)
         prepared = _prepare_rig(load_rig_session(local, store=store), settings)
     except InputError as e:                  # named by the URL, not by the temporary copy
-        tmp.cleanup()
+        shutil.rmtree(tmp, ignore_errors=True)
         where = e.where.replace(local, store.url) if e.where else e.where
         raise type(e)(e.reason.replace(local, store.url), where) from None
     except BaseException:
-        tmp.cleanup()
+        shutil.rmtree(tmp, ignore_errors=True)
         raise
-    prepared.local = tmp
+    prepared.local = weakref.finalize(prepared, shutil.rmtree, tmp, ignore_errors=True)   # removed with it
     return prepared
 
 

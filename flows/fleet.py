@@ -45,7 +45,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from fieldcal import fleet as fleet_lib
 from fieldcal import progress
-from fieldcal.errors import FieldcalError, InputError, one_line
+from fieldcal.errors import FieldcalError, one_line
 from fieldcal.lake import secrets
 from fieldcal.lake.store import Lake
 
