@@ -45,7 +45,8 @@ def draw(make, seed):
         for p, i in zip(CORE, range(3), strict=True):
             row[p] = (st.params[h][i] - cam.params[i], res.sigma[h][p], solo.params[i] - cam.params[i], solo.sigma[p])
         heads.append(row)
-    return np.array(z_rot), np.array(z_t), np.array(e_rot), np.array(e_t), heads, dt, res.sigma_rotation_arcsec, res.sigma_t_mm
+    return (np.array(z_rot), np.array(z_t), np.array(e_rot), np.array(e_t), heads, dt, res.sigma_rotation_arcsec,
+            res.sigma_t_mm, res.variance_components)
 
 
 def run(name, make, draws):
@@ -65,6 +66,15 @@ def run(name, make, draws):
         print(f"| {ids[h]} | {', '.join(f'{v:.2f}' for v in rms(e_rot[:, j]))} | {', '.join(f'{v:.2f}' for v in s_rot)} "
               f"| {np.sqrt(np.mean(z_rot[:, j]**2)):.2f} | {', '.join(f'{v:.3f}' for v in rms(e_t[:, j]))} "
               f"| {', '.join(f'{v:.3f}' for v in s_t)} | {np.sqrt(np.mean(z_t[:, j]**2)):.2f} |")
+    vc = [o[8] for o in out]
+    image_f = np.array([[h["image_factor"] for h in v["heads"].values()] for v in vc])
+    floors = np.array([[h["image_floor_px"] for h in v["heads"].values()] for v in vc])
+    survey_f = np.array([v.get("survey_factor_estimate", np.nan) for v in vc])
+    print(f"\nVariance components: re-weighted in {sum(v['rounds'] > 0 for v in vc)} of {draws} draws "
+          f"({sum(v['rounds'] for v in vc)} rounds in all); image factor per head {image_f.mean():.3f} mean "
+          f"({image_f.min():.3f}-{image_f.max():.3f}), image floors up to {floors.max():.3f} px; survey factor "
+          f"{np.nanmean(survey_f):.3f} mean ({np.nanmin(survey_f):.3f}-{np.nanmax(survey_f):.3f}; estimated at the "
+          "last solve)")
     print(f"\nAll relative-orientation components: |error|/sigma RMS {np.sqrt(np.mean(np.concatenate([z_rot.ravel(), z_t.ravel()])**2)):.2f} "
           f"(rotation {np.sqrt(np.mean(z_rot**2)):.2f}, lever arm {np.sqrt(np.mean(z_t**2)):.2f}; "
           f"{z_rot.size + z_t.size} values)")

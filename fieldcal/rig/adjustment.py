@@ -775,7 +775,8 @@ def _components(data, problem: RigProblem, result, res_px, redundancy, floors, s
     if len(red_sur):                # the surveyed targets' factor, as the single camera's (step 4b)
         rel = group_factor(result.r[problem.n_rows_image:problem.n_rows], red_sur)
         new_factor = survey_factor * rel if np.isfinite(rel) else survey_factor
-        vc.update(survey_factor=float(survey_factor), survey_redundancy=float(np.sum(red_sur)))
+        vc.update(survey_factor=float(survey_factor), survey_redundancy=float(np.sum(red_sur)),
+                  survey_factor_estimate=float(new_factor))
         change = max(change, abs(new_factor / survey_factor - 1.0))
     if change <= WEIGHT_TOLERANCE or vc["rounds"] >= MAX_COMPONENT_ROUNDS:
         return None
