@@ -24,8 +24,9 @@
    (:data:`RETRIES`); the lake makes that safe (observations cached, one version per
    fingerprint) and its summary entry keeps the first failure's reason (``retried``).
    A rig session (CONTRACT section 3, "Rig sessions") is calibrated by the task
-   :func:`calibrate_rig` (:func:`fieldcal.rig_run.run_rig`: its observations need no image
-   work, so the adjustment runs in the task's thread), committed as one version of the rig;
+   :func:`calibrate_rig` (:func:`fieldcal.rig_run.run_rig`; a session of images has them
+   measured on the cluster, each worker reading its image, from the store for a session on
+   one; the adjustment runs in the task's thread), committed as one version of the rig;
    its summary entry has the rig's id and version and lists its heads with their versions.
 4. **progress and summary**: "session 3 of 5: cam / session: committed VERSION (12.3 s)" in
    the flow run's logs (and on a terminal), and a summary with every session found and
