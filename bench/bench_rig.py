@@ -3,7 +3,7 @@
 orientation errors against truth in units of their sigmas, and each head's accuracy in the rig
 against its calibration alone. Results: bench/README_rig.md.
 
-    .venv/bin/python bench/bench_rig.py [--draws 20] [--scenario two|oblique|both]
+    .venv/bin/python bench/bench_rig.py [--draws 20] [--scenario two|oblique|both|misstated]
 """
 
 from __future__ import annotations
@@ -11,21 +11,36 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from fieldcal.model.rotations import rotvec_from_R
 from fieldcal.rig import adjust_rig
-from fieldcal.rig.adjustment import ARCSEC_PER_RAD
+from fieldcal.rig.adjustment import ARCSEC_PER_RAD, RigOptions
 from fieldcal.synthetic.rig import oblique_rig, two_head_rig
 
 CORE = ("f_mm", "xp_mm", "yp_mm")
 
 
-def draw(make, seed):
+def misstated_two_head_rig(*, seed):
+    """The two-head rig with sigmas stated wrong: the right head's points 0.3 px (stated 0.1 px),
+    the survey 6 mm (stated 2 mm); what the variance components are for."""
+    sr = two_head_rig(seed=seed, survey_noise_mm=6.0)
+    rng = np.random.default_rng(1000 + seed)
+    t = replace(sr.data.targets, sigma_mm=np.full(len(sr.data.targets), 2.0))
+    heads = []
+    for h, d in enumerate(sr.data.head_data):
+        if h == 1:
+            d = d.with_obs(replace(d.obs, uv_px=d.obs.uv_px + rng.normal(0.0, np.sqrt(8.0) * 0.1, d.obs.uv_px.shape)))
+        heads.append(replace(d, targets=t))
+    return replace(sr, data=replace(sr.data, head_data=heads))
+
+
+def draw(make, seed, options=None):
     sr = make(seed=seed)
     t0 = time.perf_counter()
-    res = adjust_rig(sr.data)
+    res = adjust_rig(sr.data, options)
     dt = time.perf_counter() - t0
     st, ref = res.state, sr.data.reference
     z_rot, z_t, e_rot, e_t = [], [], [], []
@@ -49,8 +64,8 @@ def draw(make, seed):
             res.sigma_t_mm, res.variance_components)
 
 
-def run(name, make, draws):
-    out = [draw(make, seed) for seed in range(draws)]
+def run(name, make, draws, options=None):
+    out = [draw(make, seed, options) for seed in range(draws)]
     z_rot = np.stack([o[0] for o in out])       # (draws, heads-1, 3)
     z_t = np.stack([o[1] for o in out])
     e_rot, e_t = np.stack([o[2] for o in out]), np.stack([o[3] for o in out])
@@ -91,13 +106,18 @@ def run(name, make, draws):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--draws", type=int, default=20)
-    ap.add_argument("--scenario", default="both", choices=("two", "oblique", "both"))
+    ap.add_argument("--scenario", default="both", choices=("two", "oblique", "both", "misstated"))
     a = ap.parse_args()
     print(f"load: {os.getloadavg()[0]:.1f} (1-min), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
     if a.scenario in ("two", "both"):
         run("two-head convergent rig (different sensors and lenses)", two_head_rig, a.draws)
     if a.scenario in ("oblique", "both"):
         run("five-head oblique rig (nadir + 4 at 45 degrees)", oblique_rig, a.draws)
+    if a.scenario == "misstated":
+        name = "two-head rig, right head's points 3x and survey 3x noisier than stated"
+        run(f"{name}, variance components", misstated_two_head_rig, a.draws)
+        run(f"{name}, without variance components", misstated_two_head_rig, a.draws,
+            RigOptions(variance_components=False))
 
 
 if __name__ == "__main__":
