@@ -64,6 +64,17 @@ def draw(make, seed, options=None):
             res.sigma_t_mm, res.variance_components)
 
 
+def _print_components(vc, draws):
+    image_f = np.array([[h["image_factor"] for h in v["heads"].values()] for v in vc])
+    floors = np.array([[h["image_floor_px"] for h in v["heads"].values()] for v in vc])
+    survey_f = np.array([v.get("survey_factor_estimate", np.nan) for v in vc])
+    print(f"\nVariance components: re-weighted in {sum(v['rounds'] > 0 for v in vc)} of {draws} draws "
+          f"({sum(v['rounds'] for v in vc)} rounds in all); image factor per head {image_f.mean():.3f} mean "
+          f"({image_f.min():.3f}-{image_f.max():.3f}), image floors up to {floors.max():.3f} px; survey factor "
+          f"{np.nanmean(survey_f):.3f} mean ({np.nanmin(survey_f):.3f}-{np.nanmax(survey_f):.3f}; estimated at the "
+          "last solve)")
+
+
 def run(name, make, draws, options=None):
     out = [draw(make, seed, options) for seed in range(draws)]
     z_rot = np.stack([o[0] for o in out])       # (draws, heads-1, 3)
@@ -82,14 +93,8 @@ def run(name, make, draws, options=None):
               f"| {np.sqrt(np.mean(z_rot[:, j]**2)):.2f} | {', '.join(f'{v:.3f}' for v in rms(e_t[:, j]))} "
               f"| {', '.join(f'{v:.3f}' for v in s_t)} | {np.sqrt(np.mean(z_t[:, j]**2)):.2f} |")
     vc = [o[8] for o in out]
-    image_f = np.array([[h["image_factor"] for h in v["heads"].values()] for v in vc])
-    floors = np.array([[h["image_floor_px"] for h in v["heads"].values()] for v in vc])
-    survey_f = np.array([v.get("survey_factor_estimate", np.nan) for v in vc])
-    print(f"\nVariance components: re-weighted in {sum(v['rounds'] > 0 for v in vc)} of {draws} draws "
-          f"({sum(v['rounds'] for v in vc)} rounds in all); image factor per head {image_f.mean():.3f} mean "
-          f"({image_f.min():.3f}-{image_f.max():.3f}), image floors up to {floors.max():.3f} px; survey factor "
-          f"{np.nanmean(survey_f):.3f} mean ({np.nanmin(survey_f):.3f}-{np.nanmax(survey_f):.3f}; estimated at the "
-          "last solve)")
+    if all("heads" in v for v in vc):
+        _print_components(vc, draws)
     print(f"\nAll relative-orientation components: |error|/sigma RMS {np.sqrt(np.mean(np.concatenate([z_rot.ravel(), z_t.ravel()])**2)):.2f} "
           f"(rotation {np.sqrt(np.mean(z_rot**2)):.2f}, lever arm {np.sqrt(np.mean(z_t**2)):.2f}; "
           f"{z_rot.size + z_t.size} values)")
