@@ -123,14 +123,15 @@ def _prepare_rig(sess: RigSession, settings: Settings) -> RigPrepared:
 
 
 def _refuse_unsurveyed(sess: RigSession, targets) -> None:
-    """Bad input (for now): unsurveyed targets in a rig session of images (as
-    :func:`fieldcal.rig.session.rig_data_from_observations` refuses them in its observations):
-    the rig adjustment holds every target by its survey."""
+    """Bad input (for now): unsurveyed targets in a rig session of images (the rig adjustment
+    estimates them from observations, :func:`fieldcal.rig.session.rig_data_from_observations`,
+    but the identification of a rig's images does not place them yet)."""
     bad = targets.ids[~targets.surveyed]
     if len(bad):
         raise InputError(f"{len(bad)} unsurveyed target(s) ({', '.join(map(str, bad[:3]))}"
-                         f"{', ...' if len(bad) > 3 else ''}): a rig session needs every target surveyed "
-                         "(unsurveyed targets are supported for single cameras only)", str(sess.targets_path))
+                         f"{', ...' if len(bad) > 3 else ''}): a rig session of images needs every target "
+                         "surveyed (unsurveyed targets are supported in rig sessions with observations.csv "
+                         "and for single cameras)", str(sess.targets_path))
 
 
 def _check_image_folders(sess: RigSession, names) -> None:
