@@ -34,8 +34,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from fieldcal import pipeline
+from fieldcal.contract.fingerprint import canonical_json, sha256_bytes
 from fieldcal.errors import ImageError, InputError, LakeError, one_line
-from fieldcal.session.fingerprint import canonical_json, sha256_bytes
 
 __all__ = ["measure_settings", "measurement_key", "SessionPlan", "plan_session", "missing_images",
            "unchanged_version", "cached_observations", "measure_into_lake", "measure_many_into_lake",

@@ -22,12 +22,13 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from fieldcal.analysis.correction import correction_arrays
+from fieldcal.contract.fingerprint import fingerprint, sha256_bytes, sha256_file
 from fieldcal.errors import InputError
 from fieldcal.field.adjustment import AdjustmentOptions
 from fieldcal.pipeline import Settings
 from fieldcal.rig.data import RigData
 from fieldcal.rig.session import RigSession, load_rig_session, rig_data_from_observations
-from fieldcal.session.fingerprint import fingerprint, sha256_bytes, sha256_file
 from fieldcal.session.loader import safe_path
 from fieldcal.session.store import is_url, open_store
 
@@ -209,8 +210,9 @@ def solve_rig(prepared: RigPrepared, *, progress: Callable[[str], None] | None =
     for h, hd in enumerate(prepared.data.heads):
         fp = fingerprint({"rig": prepared.fingerprint, "camera_id": hd.camera_id})
         arrays, attrs = head_arrays(res, h)
-        heads.append({"document": head_document(res, h, session_id=sess.session_id, fingerprint=fp, acquired=acquired),
-                      "arrays": arrays, "array_attrs": attrs, "residuals": head_residual_table(res, h)})
+        doc = head_document(res, h, session_id=sess.session_id, fingerprint=fp, acquired=acquired)
+        heads.append({"document": doc, "arrays": arrays | correction_arrays(doc), "array_attrs": attrs,
+                      "residuals": head_residual_table(res, h)})
     rig = rig_document(res, session_id=sess.session_id, head_versions=[""] * len(heads),
                        fingerprint=prepared.fingerprint, acquired=acquired)
     return RigOutcome(heads, rig, _summary(prepared, res), res)

@@ -164,9 +164,10 @@ def cmd_run(args) -> int:
     _check_compute(args)
     lake = Lake(lake_url, options)
     common.check_lake_target(lake)
+    from fieldcal.lake import secrets
     from fieldcal.rig.session import is_rig_session
 
-    if is_rig_session(args.session, options):
+    if is_rig_session(args.session, options, resolve=secrets.resolve):
         return _run_rig(args, lake_url, options)
     prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)), options)
     human = common.is_tty(sys.stderr)
@@ -698,7 +699,7 @@ class _Version(argparse.Action):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from fieldcal.session.fingerprint import code_version
+        from fieldcal.contract.fingerprint import code_version
 
         print(f"fieldcal {code_version()}")
         parser.exit()

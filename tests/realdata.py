@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Sensor
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 
 
 def _data_dir() -> Path:

@@ -10,8 +10,8 @@ import shutil
 import pytest
 
 from fieldcal import batch, pipeline
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.lake.store import Lake
-from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.session_writer import write_field_session

@@ -61,7 +61,6 @@ from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
-from fieldcal.field.data import FieldData
 from fieldcal.field.datum import MIN_CONTROL_POINTS, minimal_constraints, to_minimum_trace
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.field.scale_bars import BarObservations, bar_ends, covariance_blocks, usable
@@ -77,6 +76,7 @@ from fieldcal.field.variance_components import (
 )
 from fieldcal.model.camera import FIELD_PARAMS, Camera
 from fieldcal.robust import robust_sigma
+from fieldcal.session.data import FieldData
 from fieldcal.solver.blocksparse import (
     BlockSparseJacobian,
     ResidualBlock,

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldcal.field import bundle_kernel
-from fieldcal.field.data import FieldData
 from fieldcal.model.camera import (
     INDEX,
     NEWTON_MAX_ITER,
@@ -48,6 +47,7 @@ from fieldcal.model.camera import (
     ideal_point_columns,
 )
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
+from fieldcal.session.data import FieldData
 
 __all__ = ["BundleModel", "ObservationJacobian", "image_residuals"]
 

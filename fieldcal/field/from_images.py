@@ -87,7 +87,6 @@ from fieldcal.field.adjustment import (
     InitialValues,
     adjust_field,
 )
-from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
@@ -97,6 +96,7 @@ from fieldcal.field.referencing import ReferencingOptions, reference_discs
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
+from fieldcal.session.data import FieldData, FieldObservations, TargetField
 from fieldcal.session.loader import Session
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",

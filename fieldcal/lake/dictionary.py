@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.lake.tables import PARTITIONS, TABLES, goniometer_spot_schema, table_schema
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["data_dictionary", "column_docs", "HISTORY_DOCS"]
 

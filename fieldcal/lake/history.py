@@ -41,9 +41,9 @@ import duckdb
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC, SESSION_SQL
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["connect", "sql", "camera_history", "rig_history", "fleet", "fleet_pairs", "pick_columns",
            "DEFAULT_COLUMNS",

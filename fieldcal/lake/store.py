@@ -79,6 +79,8 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
 
+from fieldcal.contract.fingerprint import code_version, is_fingerprint
+from fieldcal.contract.schemas import validate_json
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake import observations as obs
 from fieldcal.lake import order
@@ -97,13 +99,10 @@ from fieldcal.lake.ids import (
 from fieldcal.lake.parts import KNOWN_ARRAYS, array_digest, catalog_row, conform_residuals, prepare_arrays, reason
 from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
-from fieldcal.products.correction import CORRECTION_GRID
-from fieldcal.session.fingerprint import code_version, is_fingerprint
 from fieldcal.session.loader import check_acquired_not_ahead
-from fieldcal.session.schemas import validate_json
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
-           "KNOWN_ARRAYS", "CORRECTION_GRID"]
+           "KNOWN_ARRAYS"]
 
 
 class Committed(str):
@@ -885,7 +884,7 @@ class Lake:
         """Cache an image's observations (one Delta append); returns the table's name.
 
         ``table`` is a field image's measurements (``schemas/measurements.arrow.json``) or a
-        goniometer frame's (:data:`fieldcal.goniometer.method.MEASUREMENT_SCHEMA`);
+        goniometer frame's (:data:`fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA`);
         the kind is told by the columns. Its schema metadata ``fieldcal.image_sha256``
         (the image's own hash) is kept.
         """

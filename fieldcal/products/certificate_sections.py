@@ -16,10 +16,10 @@ import math
 
 import numpy as np
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.model.camera import INDEX, PARAM_NAMES
 from fieldcal.products import content, plots
 from fieldcal.products import focal_length as fl
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["page", "UNITS", "COVERAGE_FACTOR", "focal_lengths"]
 

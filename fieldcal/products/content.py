@@ -1,6 +1,6 @@
 r"""The numbers a calibration report and a certificate show, as plain rows.
 
-Computed from a :class:`fieldcal.products.uncertainty.Calibration` (the document, its
+Computed from a :class:`fieldcal.analysis.uncertainty.Calibration` (the document, its
 covariance and arrays) and the version's residual table; :mod:`fieldcal.products.report`
 and :mod:`fieldcal.products.certificate` only lay them out.
 
@@ -9,7 +9,7 @@ and :mod:`fieldcal.products.certificate` only lay them out.
   ``u0 = (W - 1)/2 + xp / d``, ``v0 = (H - 1)/2 - yp / d`` (docs/conventions.md).
 - :func:`distortion_table`: the radial distortion and the decentering profile at field
   angles or radii, with 1-sigma from the covariance
-  (:func:`fieldcal.products.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
+  (:func:`fieldcal.analysis.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
   *distortion*, ``Delta r = -dr`` (measured minus ideal radius, positive away from the
   principal point), the sign of USGS calibration reports; the model's correction ``dr`` is
   its negative (docs/conventions.md section 2).
@@ -35,8 +35,8 @@ import math
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.uncertainty import Calibration, decentering_curve, radial_curve
 from fieldcal.model.camera import INDEX
-from fieldcal.products.uncertainty import Calibration, decentering_curve, radial_curve
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
@@ -74,6 +74,7 @@ def interior_rows(cal: Calibration) -> list[dict]:
     p = cal.camera.params
     f, xp, yp = (float(p[INDEX[n]]) for n in ("f_mm", "xp_mm", "yp_mm"))
     sf, sx, sy = (_sigma(cal, n) for n in ("f_mm", "xp_mm", "yp_mm"))
+    u0, v0 = cal.camera.principal_point_px
 
     def px(v):
         return None if v is None else v / d
@@ -85,9 +86,9 @@ def interior_rows(cal: Calibration) -> list[dict]:
         {"name": "principal point yp", "mm": yp, "sigma_mm": sy, "px": yp / d, "sigma_px": px(sy),
          "note": "from the sensor centre, y up"},
         {"name": "principal point u0", "mm": None, "sigma_mm": None,
-         "px": (s.width_px - 1) / 2 + xp / d, "sigma_px": px(sx), "note": "pixel column"},
+         "px": float(u0), "sigma_px": px(sx), "note": "pixel column"},
         {"name": "principal point v0", "mm": None, "sigma_mm": None,
-         "px": (s.height_px - 1) / 2 - yp / d, "sigma_px": px(sy), "note": "pixel row (down)"},
+         "px": float(v0), "sigma_px": px(sy), "note": "pixel row (down)"},
     ]
 
 

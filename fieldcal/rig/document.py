@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import validate_json
 from fieldcal.model.rotations import skew
 from fieldcal.rig.adjustment import ARCSEC_PER_RAD, RigResult
 from fieldcal.rig.poses import head_pose
 from fieldcal.session.document import calibration_document, utc_now_iso
-from fieldcal.session.schemas import validate_json
 
 __all__ = ["RIG_SCHEMA", "head_document", "head_arrays", "head_residual_table", "rig_document",
            "validate_rig_document", "relative_units", "document_names", "DOCUMENT_COMPONENTS"]

@@ -27,10 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.contract.names import normal_file_name
+from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.model.camera import FIELD_PARAMS, Sensor
 from fieldcal.rig.data import RigData, RigHead
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.session.loader import (
     MANIFEST,
     OBSERVATIONS,
@@ -43,8 +45,6 @@ from fieldcal.session.loader import (
     read_targets_csv,
     safe_path,
 )
-from fieldcal.session.names import normal_file_name
-from fieldcal.session.schemas import shown, validate_json
 from fieldcal.session.store import SessionStore, is_url
 
 __all__ = ["RigSession", "load_rig_session", "rig_data_from_observations", "is_rig_session"]
@@ -101,27 +101,27 @@ class RigSession:
         return copy.deepcopy(self._read["targets"])
 
 
-def is_rig_session(folder, storage_options: dict | None = None) -> bool:
+def is_rig_session(folder, storage_options: dict | None = None, resolve=None) -> bool:
     """Whether ``folder/session.json`` is a JSON object with a ``rig`` (False when unreadable:
     the single-camera loader then reports what is wrong); ``folder`` may be an fsspec URL
-    (``storage_options``: its store's)."""
+    (``storage_options``: its store's; ``resolve``: as :class:`~fieldcal.session.store.SessionStore`'s,
+    e.g. :func:`fieldcal.lake.secrets.resolve`)."""
     if is_url(str(folder)):
-        return _is_rig_on_store(str(folder), storage_options)
+        return _is_rig_on_store(str(folder), storage_options, resolve)
     try:
         return "rig" in read_manifest(Path(folder))
     except InputError:
         return False
 
 
-def _is_rig_on_store(url: str, storage_options: dict | None) -> bool:
+def _is_rig_on_store(url: str, storage_options: dict | None, resolve) -> bool:
     import json
 
     import fsspec
 
-    from fieldcal.lake import secrets
-
+    options = resolve(storage_options) if resolve is not None else storage_options
     try:
-        fs, path = fsspec.core.url_to_fs(f"{url.rstrip('/')}/{MANIFEST}", **(secrets.resolve(storage_options) or {}))
+        fs, path = fsspec.core.url_to_fs(f"{url.rstrip('/')}/{MANIFEST}", **(options or {}))
         manifest = json.loads(fs.cat_file(path))
     except Exception:  # noqa: BLE001 - unreadable: the single-camera loader says what is wrong
         return False

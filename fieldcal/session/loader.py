@@ -9,7 +9,7 @@ columns, unique ids and finite numbers (errors name file and row).
 - ``session_id`` defaults to the name of the session folder as given (not following a
   link): :func:`default_session_id`, the one place that says so.
 - An image is named by its path relative to the session folder in one spelling
-  (:func:`fieldcal.session.names.normal_file_name`). Two entries that are one photograph
+  (:func:`fieldcal.contract.names.normal_file_name`). Two entries that are one photograph
   are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
   file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
   Copies are found by size, then a 64 KiB sample from the middle of the file, then the
@@ -45,13 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.contract.fingerprint import sha256_file
+from fieldcal.contract.names import normal_file_name
+from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
-from fieldcal.session.fingerprint import sha256_file
-from fieldcal.session.names import normal_file_name
-from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
     MARKS_COLUMNS,
@@ -438,7 +438,7 @@ def _unique_keys(pairs):
 
 def _check_frame_paths(folder: Path, frames_path: Path, store: SessionStore | None = None) -> None:
     """Every frame that frames.csv names stays inside the session folder (path checks only)."""
-    from fieldcal.goniometer.method import read_frames_csv
+    from fieldcal.session.frames import read_frames_csv
 
     check_size(frames_path, "frames.csv")
     frames = read_frames_csv(frames_path, strict=False)

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 
 __all__ = [
     "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field", "faceted_field",
@@ -462,7 +462,7 @@ def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True,
     """
     import pyarrow as pa
 
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     rng = np.random.default_rng([int(seed), int(image_index)])
     k = np.flatnonzero(sf.data.obs.image == image_index)
