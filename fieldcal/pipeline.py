@@ -275,7 +275,8 @@ def _field_result(prepared, measurements, progress, left_out):
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver,
                                 check_points=sess.check_points, check_fraction=prepared.settings.check_fraction,
-                                check_seed=prepared.settings.check_seed, datum=sess.datum)
+                                check_seed=prepared.settings.check_seed, datum=sess.datum,
+                                board_model=sess.board_model)
     if sess.observations_path is not None:
         data, left = drop_sparse_images(prepared.field_data or field_data_from_observations(sess))
         if left and len(data.images) < MIN_IMAGES:

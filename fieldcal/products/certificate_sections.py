@@ -313,6 +313,8 @@ def _adjustment(cal: Calibration, residuals) -> list[str]:
                      f'<td class="num">{E(fig)}</td>']]),
             *([f'<p id="eccentricity">{E(ecc[0].upper() + ecc[1:])}.</p>']
               if (ecc := content.eccentricity_text(cal)) else []),
+            *([f'<p id="board">{E(board[0].upper() + board[1:])}.</p>']
+              if (board := content.board_text(cal)) else []),
             _coverage(cal, residuals)]
 
 

@@ -40,7 +40,8 @@ from fieldcal.model.camera import INDEX
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
-           "check_points", "parse_time", "residual_format", "sig", "rig_rows", "eccentricity_text"]
+           "check_points", "parse_time", "residual_format", "sig", "rig_rows", "eccentricity_text",
+           "board_text", "BOARD_MODEL_TEXT"]
 
 MODEL_EQUATIONS = """\
 xb = x' - xp        yb = y' - yp        r^2 = xb^2 + yb^2
@@ -261,6 +262,31 @@ def eccentricity_text(cal: Calibration) -> str | None:
     elif isinstance(ecc.get("bias_bound"), dict) and ecc["bias_bound"].get("f_mm") is not None:
         text += (f"; discs of undetermined normal (eccentricity up to {sig(bound)} px) not corrected: the bias "
                  f"they can cause, up to {sig(1000 * ecc['bias_bound']['f_mm'])} µm in f, is in the sigmas")
+    return text
+
+
+BOARD_MODEL_TEXT = {
+    "warp": "the board's nominal coordinates held fixed up to a low-order warp estimated in the adjustment",
+    "rigid": "the board's nominal coordinates held fixed (a rigid, flat board)",
+    "points": "every board point adjusted, its nominal coordinates weighted by their sigma",
+}
+"""How each board model (:mod:`fieldcal.field.board`) is named in the report and certificate."""
+
+
+def board_text(cal: Calibration) -> str | None:
+    """One sentence on a planar board's model (docs/uncertainty.md section 2c) and, for the warp
+    model, its fitted shape with sigmas; None when the field is not a planar board."""
+    b = (cal.document.get("stats") or {}).get("board")
+    if cal.method != "field" or not isinstance(b, dict) or b.get("model") not in BOARD_MODEL_TEXT:
+        return None
+    text = f"planar board, board model '{b['model']}': {BOARD_MODEL_TEXT[b['model']]}"
+    c, s = b.get("coefficients_mm") or {}, b.get("sigma_mm") or {}
+    if b["model"] == "warp" and c:
+        terms = {"warp_uu_mm": "bow along the first axis", "warp_vv_mm": "bow along the second axis",
+                 "warp_uv_mm": "twist"}
+        shape = "; ".join(f"{terms.get(k, k)} {sig(1000 * v)} ± {sig(1000 * s.get(k, float('nan')), 2)} µm"
+                          for k, v in c.items())
+        text += f" ({shape}; peak to valley over the targets {sig(1000 * b.get('peak_to_valley_mm', float('nan')))} µm)"
     return text
 
 

@@ -184,6 +184,8 @@ def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
                        if st.get("targets_adjusted") else "surveyed target coordinates held fixed")
         if (ecc := content.eccentricity_text(cal)) is not None:
             went_in.append(ecc)
+        if (board := content.board_text(cal)) is not None:
+            went_in.append(board)
         detailed = st.get("left_out") if isinstance(st.get("left_out"), list) else None
         named = set()
         for item in detailed or []:

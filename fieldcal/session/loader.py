@@ -119,6 +119,7 @@ class Session:
     scale_bars_path: Path | None = None
     strict_targets: bool = False
     datum: str = "auto"
+    board_model: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -550,6 +551,7 @@ def load_session(folder, store: SessionStore | None = None) -> Session:
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
         sess.strict_targets = bool(fld.get("strict_targets", False))
         sess.datum = str(fld.get("datum", "auto"))
+        sess.board_model = str(fld.get("board_model", "auto"))     # fieldcal.field.board (beyond the contract)
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 

@@ -121,7 +121,7 @@ def test_every_photo_is_identified_without_a_wrong_identity(dbat):
     targets, the books and the wood grain give no identity."""
     ref, pm = dbat["reference"], _pm_lookup(dbat["reference"])
     assert all(r["status"] == "ok" for r in dbat["report"]), [r["reason"] for r in dbat["report"]]
-    n_same = n_elsewhere = n_pm_measured = n_pm_identified = 0
+    n_same = n_elsewhere = n_pm_measured = n_pm_identified = n_ringed = n_ringed_measured = 0
     res = dbat["result"]
     for name, ident in dbat["data"].meta["identifications"].items():
         table = dbat["measurements"][name]
@@ -149,12 +149,20 @@ def test_every_photo_is_identified_without_a_wrong_identity(dbat):
                 n_elsewhere += 1
         measured = d.min(axis=0) < 1.0
         n_pm_measured += int(measured.sum())
+        ringed = pm_id.astype(int) >= 1000                # the ringed control targets 1001-1004
+        n_ringed += int(ringed.sum())
+        n_ringed_measured += int((measured & ringed).sum())
         ids_found = {str(dbat["data"].targets.ids[t]) for t in ident.target[ident.target >= 0]}
         n_pm_identified += int(sum(pid in ids_found for pid in pm_id[measured]))
     print(f"\nidentified {n_same} blobs that PhotoModeler marked (all with its id) and {n_elsewhere} it did "
           f"not mark; of PhotoModeler's {len(ref.obs)} marks our detector measured {n_pm_measured}, "
           f"of which {n_pm_identified} were identified")
+    print(f"the ringed control targets: {n_ringed_measured} of their {n_ringed} marks measured (their dots)")
     assert n_pm_identified >= 0.99 * n_pm_measured
+    # recall (issue 23): discs joined to the sheet's shading were lost at the candidate stage
+    # (1829 of 2074 measured before; bench/README_dbat_recall.md)
+    assert n_pm_measured >= 0.99 * len(ref.obs)
+    assert n_ringed_measured >= 0.95 * n_ringed
     assert n_elsewhere <= 5
     assert res.stats()["n_images"] == 21
 
