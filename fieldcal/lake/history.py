@@ -74,6 +74,9 @@ def _register(con, lake, name: str, as_of, only: dict | None = None) -> None:
         if only:
             con.register("catalog", lake.catalog(as_of=as_of, filter=f, equal=only, sort=False))
             return
+    if name == "rigs":          # committed rig versions only (Lake.rig_catalog: their heads in the catalog)
+        con.register("rigs", lake.rig_catalog(as_of=as_of))
+        return
     dataset, rest = lake.tables.lazy(name, as_of=as_of)
     con.register(f"_{name}_recent", rest)
     if dataset is not None:

@@ -71,7 +71,8 @@ def head_document(res: RigResult, h: int, *, session_id: str, fingerprint: str, 
              "mean_abs_u_px": float(np.mean(np.abs(du[:, 0]))), "mean_abs_v_px": float(np.mean(np.abs(du[:, 1]))),
              "sigma0": float(res.sigma0), "iterations": int(res.lsq.iterations), "solver": res.options.method,
              "targets_adjusted": bool(res.options.targets_adjusted),
-             "fixed_parameters": dict(st.fixed_parameters[h]), "initial_values": "the head calibrated alone"}
+             "fixed_parameters": dict(st.fixed_parameters[h]), "initial_values": "the head calibrated alone",
+             **res.unsurveyed_stats(h)}
     role = "reference" if h == d.reference else "head"
     return calibration_document(
         camera_id=d.heads[h].camera_id, session_id=session_id, version="", method="field", sensor=hd.sensor,
