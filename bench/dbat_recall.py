@@ -24,7 +24,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -32,9 +31,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import cv2
 import numpy as np
-import tifffile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -44,56 +41,13 @@ from fieldcal.measure.discs import detect_targets  # noqa: E402
 from fieldcal.measure.imageio import read_image  # noqa: E402
 from fieldcal.model.camera import INDEX  # noqa: E402
 from fieldcal.pipeline import measure, prepare  # noqa: E402
-from tests.realdata import DBAT, dbat_field_data  # noqa: E402
-
-MARKS_PER_IMAGE = 5
-
-
-def _rows(path):
-    return [ln for ln in Path(path).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
-
-
-def _spread(uv, n):
-    chosen = [int(np.argmax(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))]
-    dmin = np.linalg.norm(uv - uv[chosen[0]], axis=1)
-    for _ in range(n - 1):
-        chosen.append(int(np.argmax(dmin)))
-        dmin = np.minimum(dmin, np.linalg.norm(uv - uv[chosen[-1]], axis=1))
-    return np.array(chosen)
+from tests.realdata import DBAT, dbat_field_data, dbat_image_names, dbat_marks, dbat_rows, write_dbat_photo_session  # noqa: E402
 
 
 def write_session(folder: Path) -> tuple[dict, np.ndarray]:
     """The session of tests/field/test_dbat_photos.py in ``folder``; (image id -> name, marks)."""
-    (folder / "images").mkdir(parents=True, exist_ok=True)
-    names = {}
-    for line in _rows(DBAT / "images.txt"):
-        i, path = line.split(",")
-        jpg = path.strip().rsplit("/", 1)[-1]
-        names[int(i)] = "images/" + jpg.replace(".JPG", ".tif")
-        gray = cv2.imread(str(DBAT / "images" / jpg), cv2.IMREAD_GRAYSCALE)
-        tifffile.imwrite(folder / names[int(i)], gray, photometric="minisblack")
-    targets = ["id,X,Y,Z,sigma_mm,code"]
-    for line in _rows(DBAT / "objpts-pm.txt"):
-        t = line.split()
-        targets.append(f"{t[0]},{t[1]},{t[2]},{t[3]},{max(float(v) for v in t[4:7]) * 1000.0:.4f},")
-    (folder / "targets.csv").write_text("\n".join(targets) + "\n")
-    pm = np.array([[float(v) for v in line.split(",")] for line in _rows(DBAT / "markpts.txt")])
-    marks = ["image,target_id,u,v"]
-    for i, name in names.items():
-        m = pm[(pm[:, 0] == i) & (pm[:, 1] < 1000)]
-        for k in _spread(m[:, 2:4], MARKS_PER_IMAGE):
-            marks.append(f"{name},{int(m[k, 1])},{m[k, 2] - 0.5:.4f},{m[k, 3] - 0.5:.4f}")
-    (folder / "marks.csv").write_text("\n".join(marks) + "\n")
-    manifest = {
-        "schema": "fieldcal.session/1", "method": "field", "camera_id": "olympus-c4040z",
-        "session_id": "dbat-camcal", "acquired": "2003-08-25",
-        "sensor": {"width_px": 2272, "height_px": 1704, "pixel_size_um": 3.1911},
-        "lens": {"nominal_focal_mm": 7.5},
-        "field": {"targets": "targets.csv", "target_polarity": "dark"},
-        "images": "images/*.tif", "default_sigma_px": 0.1,
-    }
-    (folder / "session.json").write_text(json.dumps(manifest, indent=2))
-    return names, pm
+    write_dbat_photo_session(folder, None, list_plain=False, pm_survey=True)
+    return {i: name for i, (_, name) in dbat_image_names().items()}, dbat_marks()
 
 
 def _local_look(img, u, v, r=14):
@@ -169,7 +123,7 @@ def rejected_by_place(rows):
     """Rejected points and all marks by their target's place on the sheet, and how many of
     the rejected the adjustment of PhotoModeler's own marks rejects too."""
     xy = {}
-    for line in _rows(DBAT / "objpts-pm.txt"):
+    for line in dbat_rows(DBAT / "objpts-pm.txt"):
         t = line.split()
         xy[t[0]] = (float(t[1]), float(t[2]))
     ref = adjust_field(dbat_field_data()).residual_table().to_pydict()

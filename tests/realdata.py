@@ -134,13 +134,31 @@ def dbat_rows(path):
 
 
 def _spread(uv, n):
-    """Indices of ``n`` well-spread points of ``uv`` (farthest-point choice, as tests/field/test_dbat_photos.py)."""
+    """Indices of ``n`` well-spread points of ``uv`` (farthest-point choice, deterministic)."""
     chosen = [int(np.argmax(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))]
     dmin = np.linalg.norm(uv - uv[chosen[0]], axis=1)
     for _ in range(n - 1):
         chosen.append(int(np.argmax(dmin)))
         dmin = np.minimum(dmin, np.linalg.norm(uv - uv[chosen[-1]], axis=1))
     return np.array(chosen)
+
+
+def dbat_marks() -> np.ndarray:
+    """PhotoModeler's marks (markpts.txt) as rows ``image id, target id, u, v`` in its own pixel
+    convention (subtract 0.5 for fieldcal's)."""
+    require("dbat-camcal")
+    return np.array([[float(v) for v in ln.split(",")] for ln in dbat_rows(DBAT / "markpts.txt")])
+
+
+def dbat_image_names() -> dict[int, tuple[str, str]]:
+    """Image id -> (the JPEG's file name in the data set, the session's ``images/<name>.tif``)."""
+    require("dbat-camcal")
+    names = {}
+    for line in dbat_rows(DBAT / "images.txt"):
+        i, path = line.split(",")
+        jpg = path.strip().rsplit("/", 1)[-1]
+        names[int(i)] = (jpg, "images/" + jpg.replace(".JPG", ".tif"))
+    return names
 
 
 def write_dbat_photo_session(folder: Path, images: Path | None, *, list_plain: bool, bars: int = 0,
@@ -157,15 +175,14 @@ def write_dbat_photo_session(folder: Path, images: Path | None, *, list_plain: b
     folder.mkdir(parents=True)
     (folder / "images").mkdir()
     names = {}
-    for line in dbat_rows(DBAT / "images.txt"):
-        i, path = line.split(",")
-        jpg = path.strip().rsplit("/", 1)[-1]
-        names[int(i)] = "images/" + jpg.replace(".JPG", ".tif")
+    for i, (jpg, name) in dbat_image_names().items():
+        names[i] = name
         if images is None:
-            gray = cv2.imread(str(DBAT / "images" / jpg), cv2.IMREAD_GRAYSCALE)
-            tifffile.imwrite(folder / names[int(i)], gray, photometric="minisblack")
+            gray = cv2.imread(str(DBAT / "images" / jpg), cv2.IMREAD_GRAYSCALE)     # BT.601 luminance
+            assert gray is not None and gray.shape == (1704, 2272), jpg
+            tifffile.imwrite(folder / name, gray, photometric="minisblack")
         else:
-            os.link(images / Path(names[int(i)]).name, folder / names[int(i)])
+            os.link(images / Path(name).name, folder / name)
     rows = ["id,X,Y,Z,sigma_mm,code"]
     for line in dbat_rows(DBAT / "ctrlpts-weighted.txt"):
         t = [s.strip() for s in line.split(",")]
@@ -176,7 +193,7 @@ def write_dbat_photo_session(folder: Path, images: Path | None, *, list_plain: b
         rows = ["id,X,Y,Z,sigma_mm,code"] + [f"{t[0]},{t[1]},{t[2]},{t[3]},{max(float(v) for v in t[4:7]) * 1000:.4f},"
                                              for t in pts]
     (folder / "targets.csv").write_text("\n".join(rows) + "\n")
-    pm = np.array([[float(v) for v in ln.split(",")] for ln in dbat_rows(DBAT / "markpts.txt")])
+    pm = dbat_marks()
     marks = ["image,target_id,u,v"]
     for i, name in names.items():
         m = pm[(pm[:, 0] == i) & (pm[:, 1] < 1000)]

@@ -443,22 +443,10 @@ class FieldResult:
         }
 
     def unsurveyed_stats(self) -> dict:
-        """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
-        adjustment estimated, the ids targets.csv does not list, and each one's adjusted
-        coordinates and sigmas (``{}`` when every target is surveyed)."""
-        t = self.data.targets
-        observed = np.unique(self.data.obs.target[self.obs_used])
-        uns = observed[~t.surveyed[observed]]
-        unlisted = list(self.data.meta.get("unlisted_targets", []))
-        if not len(uns) and not unlisted:
-            return {}
-        sigma = (self.sigma_targets_m[uns] * 1000.0 if self.sigma_targets_m is not None
-                 else np.full((len(uns), 3), np.nan))
-        return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
-                "unlisted_targets": unlisted,
-                "unsurveyed_targets": [{"id": str(t.ids[j]), "xyz_m": [float(v) for v in self.targets_m[j]],
-                                        "sigma_mm": [float(v) for v in sig]}
-                                       for j, sig in zip(uns, sigma, strict=True)]}
+        """The document's account of the unsurveyed targets (:func:`unsurveyed_account`)."""
+        return unsurveyed_account(self.data.targets, self.data.obs.target[self.obs_used],
+                                  self.data.meta.get("unlisted_targets", []), self.targets_m,
+                                  self.sigma_targets_m)
 
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
@@ -1540,3 +1528,21 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
         iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc,
         datum=datum)
+
+
+def unsurveyed_account(targets, observed_targets, unlisted, targets_m, sigma_targets_m) -> dict:
+    """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
+    adjustment estimated among ``observed_targets`` (indices of the points in use), the ids
+    targets.csv does not list, and each one's adjusted coordinates [m] and sigmas [mm] (``{}``
+    when every target is surveyed). The single camera's and the rig's documents share it."""
+    observed = np.unique(observed_targets)
+    uns = observed[~targets.surveyed[observed]]
+    unlisted = list(unlisted)
+    if not len(uns) and not unlisted:
+        return {}
+    sigma = (sigma_targets_m[uns] * 1000.0 if sigma_targets_m is not None else np.full((len(uns), 3), np.nan))
+    return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
+            "unlisted_targets": unlisted,
+            "unsurveyed_targets": [{"id": str(targets.ids[j]), "xyz_m": [float(v) for v in targets_m[j]],
+                                    "sigma_mm": [float(v) for v in sig]}
+                                   for j, sig in zip(uns, sigma, strict=True)]}

@@ -81,6 +81,7 @@ from fieldcal.field.adjustment import (
     adjust_field,
     snooped,
     snooping_statistic,
+    unsurveyed_account,
 )
 from fieldcal.field.bundle import BundleModel
 from fieldcal.field.datum import MIN_CONTROL_POINTS
@@ -274,20 +275,10 @@ class RigResult:
         :meth:`~fieldcal.field.adjustment.FieldResult.unsurveyed_stats`) over every head's points in
         use, or head ``h``'s: how many were estimated, the ids targets.csv does not list, each one's
         adjusted coordinates and sigmas (``{}`` when every target is surveyed)."""
-        t = self.data.targets
         heads = range(self.data.n_heads) if h is None else [h]
-        observed = np.unique(np.concatenate([self.data.head_data[g].obs.target[self.obs_used[g]] for g in heads]))
-        uns = observed[~t.surveyed[observed]]
-        unlisted = list(self.data.meta.get("unlisted_targets", []))
-        if not len(uns) and not unlisted:
-            return {}
-        sigma = (self.sigma_targets_m[uns] * 1000.0 if self.sigma_targets_m is not None
-                 else np.full((len(uns), 3), np.nan))
-        return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
-                "unlisted_targets": unlisted,
-                "unsurveyed_targets": [{"id": str(t.ids[j]), "xyz_m": [float(v) for v in self.state.targets_m[j]],
-                                        "sigma_mm": [float(v) for v in sig]}
-                                       for j, sig in zip(uns, sigma, strict=True)]}
+        observed = np.concatenate([self.data.head_data[g].obs.target[self.obs_used[g]] for g in heads])
+        return unsurveyed_account(self.data.targets, observed, self.data.meta.get("unlisted_targets", []),
+                                  self.state.targets_m, self.sigma_targets_m)
 
 
 _REL_COMPONENTS = ("rot_x", "rot_y", "rot_z", "t_x_m", "t_y_m", "t_z_m")
