@@ -61,8 +61,8 @@ DISTANCE_M = 60.0
 
 def dense_field():
     """A SyntheticField: one image of a planar grid of discs filling the frame."""
-    from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
     from fieldcal.model.camera import Camera, Sensor
+    from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
     from fieldcal.synthetic.field import IXU150_TABLE1, SyntheticField, look_at
 
     cam = Camera.from_dict(Sensor(8208, 6280, 5.3), IXU150_TABLE1)
@@ -242,10 +242,10 @@ def _child_per_image(paths: list[str], rounds: int) -> dict:
     way (``read_file``), decoding from those bytes with 1 or 2 codec threads, extraction
     by the Numba kernel.
     """
+    from fieldcal.contract.fingerprint import sha256_file
     from fieldcal.measure import disc_kernel
     from fieldcal.measure.discs import detect_targets
     from fieldcal.measure.imageio import read_file, read_image
-    from fieldcal.session.fingerprint import sha256_file
 
     assert disc_kernel.warm_up(), disc_kernel.problem()
 

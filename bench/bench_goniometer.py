@@ -42,10 +42,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from fieldcal.analysis.compare import compare_calibrations  # noqa: E402
+from fieldcal.analysis.uncertainty import Calibration  # noqa: E402
 from fieldcal.goniometer import method as gon  # noqa: E402
 from fieldcal.model.camera import PARAM_NAMES  # noqa: E402
-from fieldcal.products.compare import compare_calibrations  # noqa: E402
-from fieldcal.products.uncertainty import Calibration  # noqa: E402
+from fieldcal.session.frames import read_frames_csv  # noqa: E402
 from fieldcal.synthetic.goniometer import write_session  # noqa: E402
 
 KEYS = ("f_mm", "xp_mm", "yp_mm")
@@ -63,7 +64,7 @@ def run(name: str, workdir: Path, scale: float, seed: int) -> list[str]:
     t0 = time.perf_counter()
     truth = write_session(folder, name, seed=seed, raster_scale=scale)
     t1 = time.perf_counter()
-    frames = gon.read_frames_csv(folder / "frames.csv")
+    frames = read_frames_csv(folder / "frames.csv")
     meas = gon.measure_session(folder, frames, truth.sensor)
     t2 = time.perf_counter()
     n = frames.num_rows
@@ -137,7 +138,7 @@ def repeat(name: str, workdir: Path, scale: float, n: int, pairs: int) -> list[s
     for seed in range(n):
         folder = workdir / f"{name}-repeat-{seed}"
         truth = write_session(folder, name, seed=100 + seed, raster_scale=scale)
-        frames = gon.read_frames_csv(folder / "frames.csv")
+        frames = read_frames_csv(folder / "frames.csv")
         meas = gon.measure_session(folder, frames, truth.sensor)
         rendered.append(_calibration(gon.calibrate(truth.sensor, frames, meas), f"r{seed}"))
     t1 = time.perf_counter()
@@ -149,7 +150,7 @@ def repeat(name: str, workdir: Path, scale: float, n: int, pairs: int) -> list[s
     aligned = {a: {"zero_px": [0.0, 0.0], "tilt_mrad": 0.0, "cone_mrad": 0.0} for a in "xy"}
     exact = write_session(workdir / f"{name}-aligned", name, seed=0, raster_scale=scale,
                           misalignment=aligned, noise=False, jitter_px=0.0, encoder_sigma_arcsec=0.0)
-    f_exact = gon.read_frames_csv(exact.folder / "frames.csv")
+    f_exact = read_frames_csv(exact.folder / "frames.csv")
     conv = gon.calibrate(exact.sensor, f_exact, exact.exact_measurements()).parameters[:3]
     s = exact.sensor
     return [f"### {name}: repeat sessions of one camera ({s.width_px} x {s.height_px} px of "

@@ -50,6 +50,8 @@ import pyarrow as pa
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fieldcal.analysis.uncertainty import Calibration  # noqa: E402
+from fieldcal.contract.fingerprint import code_version, fingerprint  # noqa: E402
 from fieldcal.lake import history  # noqa: E402
 from fieldcal.lake.parts import catalog_row, conform_residuals  # noqa: E402
 from fieldcal.lake.store import Lake  # noqa: E402
@@ -57,8 +59,6 @@ from fieldcal.model.camera import PARAM_NAMES  # noqa: E402
 from fieldcal.products import status  # noqa: E402
 from fieldcal.products.dashboard import write_dashboard  # noqa: E402
 from fieldcal.products.report import fleet_summary  # noqa: E402
-from fieldcal.products.uncertainty import Calibration  # noqa: E402
-from fieldcal.session.fingerprint import code_version, fingerprint  # noqa: E402
 
 RESIDUAL_ROWS = 20
 """Residual rows per bulk version (real calibrations have thousands; the catalog is what grows)."""

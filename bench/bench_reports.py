@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from fieldcal import pipeline
+from fieldcal.analysis.compare import compare_calibrations
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, Camera, Sensor
-from fieldcal.products.compare import compare_calibrations
 from fieldcal.products.export import fit_metashape, fit_opencv
 from fieldcal.products.report import write_report
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.products.undistort import undistort_image
 from fieldcal.synthetic.field import IXU150_TABLE1, WIDE_ANGLE, paper_field
 from fieldcal.synthetic.goniometer import make_scenario, write_session

@@ -3,7 +3,7 @@
 orientation errors against truth in units of their sigmas, and each head's accuracy in the rig
 against its calibration alone. Results: bench/README_rig.md.
 
-    .venv/bin/python bench/bench_rig.py [--draws 20] [--scenario two|oblique|both]
+    .venv/bin/python bench/bench_rig.py [--draws 20] [--scenario two|oblique|both|misstated]
 """
 
 from __future__ import annotations
@@ -11,21 +11,36 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from fieldcal.model.rotations import rotvec_from_R
 from fieldcal.rig import adjust_rig
-from fieldcal.rig.adjustment import ARCSEC_PER_RAD
+from fieldcal.rig.adjustment import ARCSEC_PER_RAD, RigOptions
 from fieldcal.synthetic.rig import oblique_rig, two_head_rig
 
 CORE = ("f_mm", "xp_mm", "yp_mm")
 
 
-def draw(make, seed):
+def misstated_two_head_rig(*, seed):
+    """The two-head rig with sigmas stated wrong: the right head's points 0.3 px (stated 0.1 px),
+    the survey 6 mm (stated 2 mm); what the variance components are for."""
+    sr = two_head_rig(seed=seed, survey_noise_mm=6.0)
+    rng = np.random.default_rng(1000 + seed)
+    t = replace(sr.data.targets, sigma_mm=np.full(len(sr.data.targets), 2.0))
+    heads = []
+    for h, d in enumerate(sr.data.head_data):
+        if h == 1:
+            d = d.with_obs(replace(d.obs, uv_px=d.obs.uv_px + rng.normal(0.0, np.sqrt(8.0) * 0.1, d.obs.uv_px.shape)))
+        heads.append(replace(d, targets=t))
+    return replace(sr, data=replace(sr.data, head_data=heads))
+
+
+def draw(make, seed, options=None):
     sr = make(seed=seed)
     t0 = time.perf_counter()
-    res = adjust_rig(sr.data)
+    res = adjust_rig(sr.data, options)
     dt = time.perf_counter() - t0
     st, ref = res.state, sr.data.reference
     z_rot, z_t, e_rot, e_t = [], [], [], []
@@ -45,11 +60,23 @@ def draw(make, seed):
         for p, i in zip(CORE, range(3), strict=True):
             row[p] = (st.params[h][i] - cam.params[i], res.sigma[h][p], solo.params[i] - cam.params[i], solo.sigma[p])
         heads.append(row)
-    return np.array(z_rot), np.array(z_t), np.array(e_rot), np.array(e_t), heads, dt, res.sigma_rotation_arcsec, res.sigma_t_mm
+    return (np.array(z_rot), np.array(z_t), np.array(e_rot), np.array(e_t), heads, dt, res.sigma_rotation_arcsec,
+            res.sigma_t_mm, res.variance_components)
 
 
-def run(name, make, draws):
-    out = [draw(make, seed) for seed in range(draws)]
+def _print_components(vc, draws):
+    image_f = np.array([[h["image_factor"] for h in v["heads"].values()] for v in vc])
+    floors = np.array([[h["image_floor_px"] for h in v["heads"].values()] for v in vc])
+    survey_f = np.array([v.get("survey_factor_estimate", np.nan) for v in vc])
+    print(f"\nVariance components: re-weighted in {sum(v['rounds'] > 0 for v in vc)} of {draws} draws "
+          f"({sum(v['rounds'] for v in vc)} rounds in all); image factor per head {image_f.mean():.3f} mean "
+          f"({image_f.min():.3f}-{image_f.max():.3f}), image floors up to {floors.max():.3f} px; survey factor "
+          f"{np.nanmean(survey_f):.3f} mean ({np.nanmin(survey_f):.3f}-{np.nanmax(survey_f):.3f}; estimated at the "
+          "last solve)")
+
+
+def run(name, make, draws, options=None):
+    out = [draw(make, seed, options) for seed in range(draws)]
     z_rot = np.stack([o[0] for o in out])       # (draws, heads-1, 3)
     z_t = np.stack([o[1] for o in out])
     e_rot, e_t = np.stack([o[2] for o in out]), np.stack([o[3] for o in out])
@@ -65,6 +92,9 @@ def run(name, make, draws):
         print(f"| {ids[h]} | {', '.join(f'{v:.2f}' for v in rms(e_rot[:, j]))} | {', '.join(f'{v:.2f}' for v in s_rot)} "
               f"| {np.sqrt(np.mean(z_rot[:, j]**2)):.2f} | {', '.join(f'{v:.3f}' for v in rms(e_t[:, j]))} "
               f"| {', '.join(f'{v:.3f}' for v in s_t)} | {np.sqrt(np.mean(z_t[:, j]**2)):.2f} |")
+    vc = [o[8] for o in out]
+    if all("heads" in v for v in vc):
+        _print_components(vc, draws)
     print(f"\nAll relative-orientation components: |error|/sigma RMS {np.sqrt(np.mean(np.concatenate([z_rot.ravel(), z_t.ravel()])**2)):.2f} "
           f"(rotation {np.sqrt(np.mean(z_rot**2)):.2f}, lever arm {np.sqrt(np.mean(z_t**2)):.2f}; "
           f"{z_rot.size + z_t.size} values)")
@@ -81,13 +111,18 @@ def run(name, make, draws):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--draws", type=int, default=20)
-    ap.add_argument("--scenario", default="both", choices=("two", "oblique", "both"))
+    ap.add_argument("--scenario", default="both", choices=("two", "oblique", "both", "misstated"))
     a = ap.parse_args()
     print(f"load: {os.getloadavg()[0]:.1f} (1-min), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
     if a.scenario in ("two", "both"):
         run("two-head convergent rig (different sensors and lenses)", two_head_rig, a.draws)
     if a.scenario in ("oblique", "both"):
         run("five-head oblique rig (nadir + 4 at 45 degrees)", oblique_rig, a.draws)
+    if a.scenario == "misstated":
+        name = "two-head rig, right head's points 3x and survey 3x noisier than stated"
+        run(f"{name}, variance components", misstated_two_head_rig, a.draws)
+        run(f"{name}, without variance components", misstated_two_head_rig, a.draws,
+            RigOptions(variance_components=False))
 
 
 if __name__ == "__main__":

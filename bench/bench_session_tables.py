@@ -36,7 +36,7 @@ CHILD = r"""
 import json, sys, time, types, subprocess
 sys.path.insert(0, {root!r})
 import numpy as np
-from fieldcal.field.data import FieldImage
+from fieldcal.session.data import FieldImage
 from fieldcal.errors import InputError
 cand, kind, path, targets_path = sys.argv[1:5]
 if cand == "old":

@@ -27,10 +27,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from fieldcal.analysis.uncertainty import Calibration, coverage_fraction  # noqa: E402
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field  # noqa: E402
 from fieldcal.field.cross_validation import cross_validate_by_station  # noqa: E402
 from fieldcal.model.camera import INDEX  # noqa: E402
-from fieldcal.products.uncertainty import Calibration, coverage_fraction  # noqa: E402
 from fieldcal.synthetic.field import paper_field, wide_field  # noqa: E402
 
 CORE = ("f_mm", "xp_mm", "yp_mm")

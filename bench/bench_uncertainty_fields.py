@@ -23,7 +23,7 @@ does (:func:`fieldcal.field.from_images.calibrate_from_measurements`, the normal
 and for contrast with ``estimate_normals=False`` (normals "none": discs uncorrected, the
 eccentricity bound in their sigmas) and ``eccentricity=False`` (uncorrected, no bound). Per
 calibration it records ``z = (estimate - truth) / sigma`` of f, xp, yp and the coverage of the
-2-sigma projection-uncertainty region (:func:`fieldcal.products.uncertainty.coverage_fraction`
+2-sigma projection-uncertainty region (:func:`fieldcal.analysis.uncertainty.coverage_fraction`
 on a 21 x 15 grid: the fraction of grid points whose true landing error lies in the 95.45 %
 ellipse of their landing covariance, and in the circle of two semi-major axes the map draws).
 One JSON line per calibration goes to ``--out`` as soon as it is done; ``--table`` prints the
@@ -42,13 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.analysis.uncertainty import Calibration, coverage_fraction
 from fieldcal.errors import FieldcalError
 from fieldcal.field.adjustment import AdjustmentOptions
-from fieldcal.field.data import TargetField
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.model.camera import INDEX
 from fieldcal.pipeline import measure, prepare
-from fieldcal.products.uncertainty import Calibration, coverage_fraction
+from fieldcal.session.data import TargetField
 from fieldcal.synthetic.field import faceted_field, target_plane_axes, wide_field
 from fieldcal.synthetic.render import scaled_field
 from fieldcal.synthetic.session_writer import write_field_session

@@ -41,8 +41,8 @@ def four_control(sf):
 
 def monte_carlo(draws: int) -> dict:
     from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
-    from fieldcal.field.data import ScaleBars
     from fieldcal.model.camera import INDEX
+    from fieldcal.session.data import ScaleBars
     from fieldcal.synthetic.field import wide_field
 
     cases = ("surveyed", "4 control", "free + 1 bar")
@@ -75,7 +75,7 @@ def cost_child(kind: str) -> None:
     import tracemalloc
 
     from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
-    from fieldcal.field.data import ScaleBars
+    from fieldcal.session.data import ScaleBars
     from fieldcal.synthetic.field import paper_field
 
     sf = paper_field(seed=1)

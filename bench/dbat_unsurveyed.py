@@ -27,8 +27,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field  # noqa: E402
-from fieldcal.field.data import ScaleBars  # noqa: E402
 from fieldcal.model.camera import INDEX  # noqa: E402
+from fieldcal.session.data import ScaleBars  # noqa: E402
 from tests.realdata import DBAT, dbat_field_data  # noqa: E402
 
 CONTROL = {"1001": (0, 1, 0), "1002": (1, 1, 0), "1003": (0, 0, 0), "1004": (1, 0, 0)}

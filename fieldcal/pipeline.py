@@ -26,16 +26,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.correction import correction_arrays
+from fieldcal.contract.fingerprint import fingerprint, sha256_file
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.model.camera import PARAM_NAMES
 from fieldcal.session.document import calibration_document
-from fieldcal.session.fingerprint import fingerprint, sha256_file
-from fieldcal.session.loader import Session, field_data_from_observations, load_session
+from fieldcal.session.loader import Session, field_data_from_observations, load_session, scale_bars_of
 from fieldcal.session.store import is_url, open_store
 
 if TYPE_CHECKING:
     from fieldcal.field.adjustment import FieldResult
-    from fieldcal.field.data import FieldData
+    from fieldcal.session.data import FieldData
 
 # The solvers (SciPy, ~1-2 s to import) are imported where they are used, so that
 # validating a session (`prepare`) answers in well under a second.
@@ -158,6 +159,8 @@ def _prepare(sess: Session, settings: Settings) -> Prepared:
                 raise InputError("no images match the session's 'images' and there is no "
                                  "observations.csv", str(sess.folder / "session.json"))
             to_measure = [im.file for im in sess.images]
+            if sess.scale_bars_path is not None:
+                scale_bars_of(sess, targets)                    # validates now (ids of targets.csv)
             if sess.marks_path is not None:
                 sess.marks()                                    # validates now (read once)
                 tables["marks.csv"] = sess.marks_path.read_bytes()
@@ -166,9 +169,9 @@ def _prepare(sess: Session, settings: Settings) -> Prepared:
                                  "targets per image) to be identified", str(sess.folder / "session.json"))
         _check_image_folders(sess, to_measure)
         return Prepared(sess, settings, to_measure, tables, field_data=field_data)
-    from fieldcal.goniometer import method as goniometer
+    from fieldcal.session.frames import read_frames_csv
 
-    frames = goniometer.read_frames_csv(sess.frames_path, strict=False)
+    frames = read_frames_csv(sess.frames_path, strict=False)
     tables[sess.frames_path.name] = sess.frames_path.read_bytes()
     names = [str(f) for f in frames.column("file").to_pylist()]
     _check_image_folders(sess, names)
@@ -237,7 +240,7 @@ def drop_sparse_images(data: FieldData, min_points: int | None = None) -> tuple[
 
     Parameters
     ----------
-    data : fieldcal.field.data.FieldData
+    data : fieldcal.session.data.FieldData
         The field data of an observations-only session (every image it lists).
     min_points : int, optional
         Default :data:`fieldcal.field.adjustment.MIN_POINTS_PER_IMAGE`.
@@ -274,7 +277,8 @@ def _field_result(prepared, measurements, progress, left_out):
     options = AdjustmentOptions(targets_adjusted=prepared.settings.targets_adjusted,
                                 estimate=sess.estimate, method=prepared.settings.solver,
                                 check_points=sess.check_points, check_fraction=prepared.settings.check_fraction,
-                                check_seed=prepared.settings.check_seed, datum=sess.datum)
+                                check_seed=prepared.settings.check_seed, datum=sess.datum,
+                                board_model=sess.board_model)
     if sess.observations_path is not None:
         data, left = drop_sparse_images(prepared.field_data or field_data_from_observations(sess))
         if left and len(data.images) < MIN_IMAGES:
@@ -323,7 +327,7 @@ def _solve_field(prepared, measurements, fp, progress, left_out) -> Outcome:
         images=res.images_section(), fingerprint=fp,
         extra={"acquired": sess.acquired.strftime("%Y-%m-%dT%H:%M:%SZ")})
     names = res.covariance_names
-    arrays = {"covariance": res.covariance, "correlation": res.correlation_interior}
+    arrays = {"covariance": res.covariance, "correlation": res.correlation_interior, **correction_arrays(doc)}
     attrs = {"covariance": {"names": names, "units": "a-posteriori, parameter units; rotations rad, centres m"},
              "correlation": {"names": list(res.estimate)}}
     if res.sigma_targets_m is not None:

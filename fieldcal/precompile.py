@@ -3,7 +3,7 @@
 Numba compiles a kernel the first time a process calls it with a new specialisation
 (array dtypes, layouts, read-only flags) and, with ``cache=True``, keeps the machine code
 on disk (``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``); every later process,
-a Dask worker included, loads it in milliseconds (:mod:`fieldcal.solver.compiled`). On a fresh
+a Dask worker included, loads it in milliseconds (:mod:`fieldcal.contract.compiled`). On a fresh
 installation nothing is cached yet, and the first calibration paid for the compilation:
 the first ``make demo`` of a fresh clone took 52 s, 19 s with the kernels precompiled
 (the Prefect server up; bench/README.md, ``bench_first_run.py``).
@@ -58,7 +58,7 @@ def _solving() -> dict[str, str]:
     """prepare + solve of a written synthetic observation session, targets fixed and adjusted;
     the solver kernels' statuses."""
     from fieldcal import pipeline
-    from fieldcal.solver import compiled
+    from fieldcal.contract import compiled
     from fieldcal.synthetic.field import wide_field
     from fieldcal.synthetic.session_writer import write_field_session
 

@@ -385,7 +385,7 @@ def _pulled_from_queue(c: _Collector, runner, slots, names, params, image_s: flo
     run until its end marker (:func:`fieldcal.batch.pull_chunks`); returns images per piece."""
     from distributed import Queue
 
-    pieces = batch.pull_chunks(names, image_s)
+    pieces = batch.pull_chunks(names, image_s, n_tasks=len(slots))
     slots = slots[:len(pieces)]                       # no more tasks than pieces
     queue = Queue(f"fieldcal-images-{uuid.uuid4().hex}", client=runner.client)
     try:

@@ -164,9 +164,10 @@ def cmd_run(args) -> int:
     _check_compute(args)
     lake = Lake(lake_url, options)
     common.check_lake_target(lake)
+    from fieldcal.lake import secrets
     from fieldcal.rig.session import is_rig_session
 
-    if is_rig_session(args.session):
+    if is_rig_session(args.session, options, resolve=secrets.resolve):
         return _run_rig(args, lake_url, options)
     prepared = pipeline.prepare(args.session, pipeline.Settings(**_settings(args)), options)
     human = common.is_tty(sys.stderr)
@@ -198,13 +199,14 @@ def _run_rig(args, lake_url: str, options) -> int:
     from fieldcal.lake.store import Lake
 
     settings = pipeline.Settings(**_settings(args))
-    prepared = rig_run.prepare_rig(args.session, settings)   # bad input: one line, exit 2, nothing written
+    prepared = rig_run.prepare_rig(args.session, settings, options)   # bad input: one line, exit 2, nothing written
     lake = Lake(lake_url, options)
     human = common.is_tty(sys.stderr)
     version, heads, outcome = rig_run.run_rig(args.session, lake, force=args.force, prepared=prepared)
     if human:
-        for line in (outcome.summary if outcome is not None else ["unchanged (same inputs and settings; "
-                                                                 "--force for a new version)"]):
+        same = ["completed the interrupted commit of the same inputs" if getattr(version, "new", False) else
+                "unchanged (same inputs and settings; --force for a new version)"]
+        for line in (outcome.summary if outcome is not None else same):
             print(line, file=sys.stderr)
         print(f"head versions: {', '.join(heads)}", file=sys.stderr)
     _finish_run(version, args.json, lambda: lake.load_rig_document(version))
@@ -697,7 +699,7 @@ class _Version(argparse.Action):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from fieldcal.session.fingerprint import code_version
+        from fieldcal.contract.fingerprint import code_version
 
         print(f"fieldcal {code_version()}")
         parser.exit()

@@ -15,7 +15,7 @@ sessions).
   line names what the configuration does not state (``--strict`` refuses then).
 - ``fieldcal compare V1 V2 [--plot PNG] [--format text|json] [--out FILE]``: where the same
   ray lands in both, what their uncertainties explain, and the change test
-  (:mod:`fieldcal.products.compare`).
+  (:mod:`fieldcal.analysis.compare`).
 - ``fieldcal dashboard --out DIR``: the fleet dashboard, a static site
   (:mod:`fieldcal.products.dashboard`); prints the path of its ``index.html``.
 - ``fieldcal export VERSION --format opencv|colmap|metashape|json [--out FILE]``: to standard
@@ -165,8 +165,8 @@ def _comparison_text(c, a, b) -> str:
 
 @_run
 def _compare(args) -> int:
-    from fieldcal.products.compare import check_grid, check_level, compare_calibrations
-    from fieldcal.products.uncertainty import Calibration
+    from fieldcal.analysis.compare import check_grid, check_level, compare_calibrations
+    from fieldcal.analysis.uncertainty import Calibration
 
     check_level(args.tolerance_um, args.alpha)       # bad settings: refused before the lake is read
     check_grid(args.grid)
@@ -210,8 +210,8 @@ def _compare_rigs(lake, args) -> int:
 
 @_run
 def _dashboard(args) -> int:
+    from fieldcal.analysis.compare import check_level
     from fieldcal.products.certificate import load_config
-    from fieldcal.products.compare import check_level
     from fieldcal.products.dashboard import write_dashboard
 
     load_config(args.config)
@@ -231,8 +231,8 @@ def _dashboard(args) -> int:
 
 @_run
 def _export(args) -> int:
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.export import export_text
-    from fieldcal.products.uncertainty import Calibration
 
     _check_outputs(args, (args.out, "--out"))
     cal = Calibration.from_lake(*_lake_and_version(args))
@@ -249,7 +249,7 @@ def _export(args) -> int:
 
 @_run
 def _undistort(args) -> int:
-    from fieldcal.products.uncertainty import Calibration
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.undistort import undistort_file
 
     check_input_file(args.image, "IMAGE")
@@ -304,7 +304,7 @@ def _add_certificate(subparsers) -> None:
 def add_commands(subparsers) -> None:
     """Register ``report``, ``certificate``, ``compare``, ``export`` and ``undistort`` (module
     docstring)."""
-    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
+    from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
     from fieldcal.products.export import FORMATS, OPENCV_MODELS
     from fieldcal.products.undistort import INTERPOLATION
 
@@ -402,7 +402,7 @@ def history_extras(parser: argparse.ArgumentParser):
     """Add ``--plot FILE.png``, ``--fleet``, ``--tolerance-um``, ``--alpha`` and ``--param``
     to ``fieldcal history``'s parser (options it does not already have); returns
     :func:`history_handler`, which :func:`flows.cli.cmd_history` calls first."""
-    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
+    from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM
 
     have = set(parser._option_string_actions)            # noqa: SLF001 - argparse has no API
     if "--plot" not in have:

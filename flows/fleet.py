@@ -24,8 +24,9 @@
    (:data:`RETRIES`); the lake makes that safe (observations cached, one version per
    fingerprint) and its summary entry keeps the first failure's reason (``retried``).
    A rig session (CONTRACT section 3, "Rig sessions") is calibrated by the task
-   :func:`calibrate_rig` (:func:`fieldcal.rig_run.run_rig`: its observations need no image
-   work, so the adjustment runs in the task's thread), committed as one version of the rig;
+   :func:`calibrate_rig` (:func:`fieldcal.rig_run.run_rig`; a session of images has them
+   measured on the cluster, each worker reading its image, from the store for a session on
+   one; the adjustment runs in the task's thread), committed as one version of the rig;
    its summary entry has the rig's id and version and lists its heads with their versions.
 4. **progress and summary**: "session 3 of 5: cam / session: committed VERSION (12.3 s)" in
    the flow run's logs (and on a terminal), and a summary with every session found and
@@ -45,7 +46,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from fieldcal import fleet as fleet_lib
 from fieldcal import progress
-from fieldcal.errors import FieldcalError, InputError, one_line
+from fieldcal.errors import FieldcalError, one_line
 from fieldcal.lake import secrets
 from fieldcal.lake.store import Lake
 
@@ -98,7 +99,7 @@ def calibrate_one(found: fleet_lib.FoundSession, index: int, total: int, lake: s
     t = time.perf_counter()
     for attempt in range(1 + RETRIES):
         if found.rig:
-            outcome = calibrate_rig(found.folder, lake, storage_options, root_options, settings)
+            outcome = calibrate_rig(found.folder, lake, storage_options, root_options, settings, address)
         else:
             outcome = _run_session(found.folder, lake, storage_options, root_options, address, n_workers,
                                    settings, batch_size)
@@ -147,24 +148,40 @@ def _run_session(folder: str, lake: str, storage_options: dict | None, root_opti
 
 @task(name="calibrate-rig", cache_policy=NO_CACHE, persist_result=False)
 def calibrate_rig(folder: str, lake: str, storage_options: dict | None, root_options: dict | None,
-                  settings: dict | None):
+                  settings: dict | None, address: str | None = None):
     """One rig session's run (:func:`fieldcal.rig_run.run_rig`) in this task's thread: a result
     like :func:`flows.calibrate.calibrate_session`'s (``status``, ``version`` the rig's, ``new``,
-    ``images``, ``left_out``) with ``head_versions``, or the exception that ended it (never raised)."""
+    ``images``, ``left_out``) with ``head_versions``, or the exception that ended it (never raised).
+    ``folder`` a local path or a URL (``root_options``: its store's); the images of a session to
+    measure are measured on the Dask cluster at ``address`` (each worker reads its image, from the
+    store for a session on one), the adjustment runs here."""
     from fieldcal import pipeline, rig_run
 
     try:
-        if "://" in folder and not folder.startswith("file://"):
-            raise InputError("a rig session is read from a local folder; rig sessions on an object store "
-                             "are not supported yet", folder)
-        local = folder.removeprefix("file://")
-        prepared = rig_run.prepare_rig(local, pipeline.Settings(**(settings or {})))
-        version, heads, outcome = rig_run.run_rig(local, Lake(lake, storage_options), prepared=prepared)
+        source = folder.removeprefix("file://")
+        prepared = rig_run.prepare_rig(source, pipeline.Settings(**(settings or {})), root_options)
+        with _rig_mapper(address if prepared.to_measure else None) as mapper:
+            version, heads, outcome = rig_run.run_rig(source, Lake(lake, storage_options), prepared=prepared,
+                                                      mapper=mapper)
     except Exception as e:  # noqa: BLE001 - recorded in the session's entry, the fleet goes on
         return e
-    return {"status": "committed" if outcome is not None else "unchanged", "version": str(version),
-            "new": outcome is not None, "images": {"total": len(prepared.session.images)}, "left_out": [],
+    new = outcome is not None or bool(getattr(version, "new", False))      # solved, or an interrupted commit completed
+    return {"status": "committed" if new else "unchanged", "version": str(version),
+            "new": new, "images": {"total": len(prepared.session.images)}, "left_out": [],
             "head_versions": list(heads)}
+
+
+@contextlib.contextmanager
+def _rig_mapper(address: str | None):
+    """``mapper(function, *iterables)`` of :func:`fieldcal.rig_run.measure_rig` on the Dask
+    cluster at ``address`` (None: no cluster, measured in this thread)."""
+    if address is None:
+        yield None
+        return
+    import distributed
+
+    with distributed.Client(address, timeout=60) as client:
+        yield lambda fn, *its: client.gather(client.map(fn, *its, pure=False))
 
 
 def _worth_retrying(outcome) -> bool:

@@ -157,7 +157,7 @@ def _markdown(result: dict, cal, recorded: dict, verdict: str) -> str:
              "calibration included)", ""]
     comp = recorded.get("comparison")
     if comp and "error" not in comp:
-        from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
+        from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
 
         lines += [f"Change since `{recorded['previous']}`: "
                   f"{judge(comp, DEFAULT_TOLERANCE_UM, DEFAULT_ALPHA)['verdict']}", ""]
@@ -177,7 +177,7 @@ def _markdown(result: dict, cal, recorded: dict, verdict: str) -> str:
 
 
 def _verdict(recorded: dict) -> str:
-    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
+    from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
 
     acc = recorded.get("assessment") or {}
     comp = recorded.get("comparison")
@@ -190,7 +190,7 @@ def _verdict(recorded: dict) -> str:
 def _emit_moved(result: dict, recorded: dict) -> bool:
     from prefect.events import emit_event
 
-    from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
+    from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, judge
 
     comp = recorded.get("comparison")
     if not comp or "error" in comp:
@@ -219,9 +219,9 @@ def publish_version(lake_url: str, storage_options: dict | None, result: dict, o
     write its report and certificate into the lake, publish the artifacts and, when the
     camera moved, the event (module docstring). Never fails the run: a step that fails is
     logged. Returns ``verdict``, ``moved``, ``links``."""
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.report import residual_statistics
     from fieldcal.products.status import record_commit
-    from fieldcal.products.uncertainty import Calibration
 
     logger = get_run_logger()
     lake = Lake(lake_url, storage_options)

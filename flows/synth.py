@@ -32,11 +32,12 @@ def check_synthetic(method: str, scenario: str | None) -> str:
 def _goniometer(out: Path, scenario: str, seed: int, raster_scale: float, camera_id, session_id):
     from fieldcal.goniometer import method as goniometer
     from fieldcal.model.camera import PARAM_NAMES
+    from fieldcal.session.frames import read_frames_csv
     from fieldcal.synthetic.goniometer import write_session
 
     gt = write_session(out, scenario, seed=seed, raster_scale=raster_scale, camera_id=camera_id,
                        session_id=session_id)
-    frames = goniometer.read_frames_csv(out / "frames.csv")
+    frames = read_frames_csv(out / "frames.csv")
     ref = goniometer.calibrate(gt.sensor, frames, gt.exact_measurements(),
                                nominal_focal_mm=gt.scenario.nominal_focal_mm)
     return gt.camera, {n: float(v) for n, v in zip(PARAM_NAMES, ref.parameters, strict=True)}

@@ -1,5 +1,6 @@
-"""The package's shape: no Prefect in the library, no import cycles, no private names
-imported across modules, and no function longer than the limit (issue 12)."""
+"""The package's shape: layers that point one way (issue 25), no Prefect in the library, no
+import cycles, no private names imported across modules, and no function longer than the
+limit (issue 12)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,26 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ROOT / "fieldcal"
 MAX_FUNCTION_LINES = 100  # issue 12: long functions broken into their named steps
+
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # bottom: the contract every layer may name
+    ("contract", ("fieldcal", "fieldcal.errors", "fieldcal.contract", "fieldcal.progress")),
+    ("model", ("fieldcal.model", "fieldcal.robust")),
+    ("solver", ("fieldcal.solver",)),
+    ("measure", ("fieldcal.measure",)),
+    ("session", ("fieldcal.session",)),
+    ("analysis", ("fieldcal.analysis",)),
+    ("methods", ("fieldcal.field", "fieldcal.goniometer", "fieldcal.rig")),
+    ("lake", ("fieldcal.lake",)),
+    ("runs", ("fieldcal.pipeline", "fieldcal.rig_run", "fieldcal.batch", "fieldcal.fleet")),
+    ("products", ("fieldcal.products",)),
+    ("tools", ("fieldcal.synthetic", "fieldcal.precompile")),
+    ("flows", ("flows",)),
+    # top
+)
+"""fieldcal's layers, bottom first (docs/architecture.md draws them): a module imports from
+its own layer or the layers below it, never from above. A name here is a package or a
+module; a module belongs to the longest name that prefixes it."""
 
 
 def _modules(top: Path, package: str):
@@ -109,6 +130,79 @@ def _cycles(graph):
         if v not in index:
             visit(v)
     return out
+
+
+def layer_of(module: str) -> int:
+    """Index in :data:`LAYERS` of the layer that holds ``module`` (longest prefix wins)."""
+    best, index = "", None
+    for i, (_, names) in enumerate(LAYERS):
+        for name in names:
+            if (module == name or module.startswith(name + ".")) and len(name) > len(best):
+                best, index = name, i
+    if index is None:
+        raise KeyError(f"{module} is in no layer of LAYERS")
+    return index
+
+
+def _known_modules():
+    return dict(_modules(LIBRARY, "fieldcal")) | dict(_modules(ROOT / "flows", "flows"))
+
+
+def test_every_module_has_a_layer():
+    assert [m for m in _known_modules() if _layer_or_none(m) is None] == []
+
+
+def _layer_or_none(module: str):
+    try:
+        return layer_of(module)
+    except KeyError:
+        return None
+
+
+def test_the_architecture_page_draws_every_layer():
+    """docs/architecture.md shows each package or module of :data:`LAYERS` (as ``name/`` or
+    ``name.py``), so the page cannot fall behind the table."""
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    mods = _known_modules()
+    missing = []
+    for _, names in LAYERS:
+        for name in names:
+            if name == "fieldcal":
+                continue
+            short = name.split(".")[-1]
+            shown = f"{short}/" if (name + ".__init__") in mods or any(m.startswith(name + ".") for m in mods) \
+                else f"{short}.py"
+            if shown not in page:
+                missing.append(shown)
+    assert missing == []
+
+
+def test_every_import_points_down_or_sideways():
+    """Module-level and deferred imports (inside functions) alike, in fieldcal/ and flows/."""
+    mods = _known_modules()
+    upward = []
+    for m, path in mods.items():
+        for target, names, line in _imports(m, path):
+            if not target.startswith(("fieldcal", "flows")):
+                continue
+            imported = next((c for c in [f"{target}.{n}" for n in names] + [target] if c in mods), target)
+            if layer_of(imported) > layer_of(m):
+                upward.append(f"{path.relative_to(ROOT)}:{line}: {LAYERS[layer_of(m)][0]} imports "
+                              f"{imported} ({LAYERS[layer_of(imported)][0]})")
+    assert upward == []
+
+
+def test_no_cycles_between_packages():
+    """The subpackages (and top-level modules) of fieldcal, one node each: sideways imports
+    within a layer never close a loop either (issue 25: they all reached each other)."""
+    def unit(m):
+        return ".".join(m.split(".")[:2])
+
+    graph = {}
+    for m, targets in _graph().items():
+        graph.setdefault(unit(m), set()).update(unit(t) for t in targets if unit(t) != unit(m))
+    graph = {u: {t for t in ts if t != "fieldcal"} for u, ts in graph.items()}   # the root: __version__
+    assert _cycles(graph) == []
 
 
 def test_no_import_cycles_in_the_library():

@@ -10,8 +10,8 @@ import shutil
 import pytest
 
 from fieldcal import batch, pipeline
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.lake.store import Lake
-from fieldcal.session.fingerprint import sha256_file
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.session_writer import write_field_session
@@ -88,6 +88,15 @@ def test_images_are_pulled_one_full_frame_or_a_quarter_second_of_small_frames_at
     # tiny files still cost their fixed part: 63 per pull, not all in one piece
     assert len(batch.pull_chunks(names * 3, batch.image_seconds([5_500] * 216))[0]) == 63
     assert batch.pull_chunks(names, 0.0) == [names]           # nothing known to cost: one piece
+    # several tasks on one queue: each gets pieces even when the estimate is low (12 small
+    # field frames, ~0.15 s each, estimated at 0.023 s: one piece, one task for 2 workers)
+    twelve = names[:12]
+    small = batch.image_seconds([5_600_000] * 12)
+    assert batch.pull_chunks(twelve, small) == [twelve]
+    assert [len(c) for c in batch.pull_chunks(twelve, small, n_tasks=2)] == [2] * 6
+    assert [len(c) for c in batch.pull_chunks(names * 3, 0.005, n_tasks=2)] == [27] * 8
+    assert batch.pull_chunks(names, 0.3, n_tasks=2) == [[n] for n in names]
+    assert batch.pull_chunks(twelve[:1], 0.0, n_tasks=8) == [twelve[:1]]
     assert batch.pull_chunks([], 0.3) == []
 
 

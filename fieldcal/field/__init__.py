@@ -4,5 +4,6 @@ Initial values (:mod:`.dlt`, :mod:`.resection`, :mod:`.distortion_init`), the bu
 model (:mod:`.bundle`), identification of measured targets (:mod:`.identify`,
 :mod:`.eccentricity`), the self-calibrating adjustment with blunder rejection and
 parameter selection (:mod:`.adjustment`) and the whole chain from images
-(:mod:`.from_images`). :mod:`.data` holds the field's data structures.
+(:mod:`.from_images`). The field's data structures
+are the session's (:mod:`fieldcal.session.data`).
 """

@@ -12,6 +12,9 @@ Procedure (METHODS part A, with the safeguards a production calibration needs)
    residuals of all images, exterior orientations, interior parameters and (by default)
    the targets, whose surveyed coordinates enter as observations weighted by their sigma
    (a self-calibrating bundle; ``targets_adjusted=False`` holds them fixed as the paper does).
+   A **planar board** (observed targets all surveyed and coplanar to 1 um: nominal coordinates,
+   :mod:`fieldcal.field.board`) is by default held fixed up to a low-order warp whose three
+   coefficients are unknowns of this adjustment (``board_model``; ``stats.board``).
 3. **Blunders**: first gross rejection on residuals normalised by a robust scale
    (``robust_k`` times 1.4826 MAD), then data snooping: the test statistic of each image
    point (2-D), each survey (3-D) and each scale bar (1-D) ``T = v^T Q_vv^-1 v / sigma0^2`` with
@@ -59,9 +62,9 @@ import scipy.linalg
 from scipy.special import chdtri  # chi2.isf(p, k) = chdtri(k, p), without scipy.stats' import
 
 from fieldcal.errors import GeometryError, InputError
+from fieldcal.field.board import BOARD_MODELS, BoardWarp, board_warp, facing, is_planar_board, resolve_board_model
 from fieldcal.field.bundle import BundleModel, image_residuals
 from fieldcal.field.check_points import CheckPoints, check_point_mask, evaluate_check_points
-from fieldcal.field.data import FieldData
 from fieldcal.field.datum import MIN_CONTROL_POINTS, minimal_constraints, to_minimum_trace
 from fieldcal.field.initial import CORE_PARAMS, InitialValues, initial_values
 from fieldcal.field.scale_bars import BarObservations, bar_ends, covariance_blocks, usable
@@ -77,6 +80,7 @@ from fieldcal.field.variance_components import (
 )
 from fieldcal.model.camera import FIELD_PARAMS, Camera
 from fieldcal.robust import robust_sigma
+from fieldcal.session.data import FieldData
 from fieldcal.solver.blocksparse import (
     BlockSparseJacobian,
     ResidualBlock,
@@ -143,6 +147,14 @@ class AdjustmentOptions:
     max_rel_sigma_f : float
         When the principal distance is determined worse than this (relative sigma), the
         additional parameter that inflates the sigma of f, xp, yp most is fixed first.
+    datum : str
+        ``"auto"`` or ``"free"`` (:mod:`fieldcal.field.datum`).
+    board_model : str
+        How a planar board's nominal coordinates enter (:mod:`fieldcal.field.board`):
+        ``"auto"`` (default: ``"warp"`` on a planar board, ``"rigid"`` when
+        ``targets_adjusted`` is False, nothing on another field), ``"warp"``, ``"rigid"``
+        or ``"points"``. ``"warp"`` and ``"rigid"`` hold the targets fixed, ``"points"``
+        adjusts them.
     """
 
     targets_adjusted: bool = True
@@ -164,6 +176,7 @@ class AdjustmentOptions:
     check_fraction: float = 0.0
     check_seed: int = 0
     datum: str = "auto"
+    board_model: str = "auto"
 
     def to_dict(self) -> dict:
         return {"targets_adjusted": self.targets_adjusted,
@@ -175,7 +188,8 @@ class AdjustmentOptions:
                 "max_correlation": self.max_correlation, "min_t": self.min_t,
                 "max_rel_sigma_f": self.max_rel_sigma_f, "variance_components": self.variance_components,
                 "check_points": list(self.check_points), "check_fraction": self.check_fraction,
-                "check_seed": self.check_seed, **({"datum": self.datum} if self.datum != "auto" else {})}
+                "check_seed": self.check_seed, **({"datum": self.datum} if self.datum != "auto" else {}),
+                **({"board_model": self.board_model} if self.board_model != "auto" else {})}
 
 
 # ---------------------------------------------------------------------------- validation
@@ -387,6 +401,7 @@ class FieldResult:
     variance_components: VarianceComponents = field(default_factory=VarianceComponents)
     check_points: CheckPoints | None = None
     datum: dict = field(default_factory=dict)
+    board: dict = field(default_factory=dict)     # stats.board: the planar board's model (empty: not a board)
 
     @property
     def camera(self) -> Camera:
@@ -418,6 +433,7 @@ class FieldResult:
             "rejected_surveys": [str(t) for t in self.data.targets.ids[observed][rejected]],
             **self.unsurveyed_stats(),
             **({"datum": self.datum} if self.datum else {}),
+            **({"board": self.board} if self.board else {}),
             "n_left_out": int(((~used) & (self.obs_reason != "blunder") & (self.obs_reason != CHECK_POINT)).sum()),
             "iterations_total": int(self.iterations_total),
             "lsq_status": self.lsq.message,
@@ -427,22 +443,10 @@ class FieldResult:
         }
 
     def unsurveyed_stats(self) -> dict:
-        """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
-        adjustment estimated, the ids targets.csv does not list, and each one's adjusted
-        coordinates and sigmas (``{}`` when every target is surveyed)."""
-        t = self.data.targets
-        observed = np.unique(self.data.obs.target[self.obs_used])
-        uns = observed[~t.surveyed[observed]]
-        unlisted = list(self.data.meta.get("unlisted_targets", []))
-        if not len(uns) and not unlisted:
-            return {}
-        sigma = (self.sigma_targets_m[uns] * 1000.0 if self.sigma_targets_m is not None
-                 else np.full((len(uns), 3), np.nan))
-        return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
-                "unlisted_targets": unlisted,
-                "unsurveyed_targets": [{"id": str(t.ids[j]), "xyz_m": [float(v) for v in self.targets_m[j]],
-                                        "sigma_mm": [float(v) for v in sig]}
-                                       for j, sig in zip(uns, sigma, strict=True)]}
+        """The document's account of the unsurveyed targets (:func:`unsurveyed_account`)."""
+        return unsurveyed_account(self.data.targets, self.data.obs.target[self.obs_used],
+                                  self.data.meta.get("unlisted_targets", []), self.targets_m,
+                                  self.sigma_targets_m)
 
     def images_section(self) -> list[dict]:
         """The document's ``images`` list (docs/conventions.md section 4)."""
@@ -498,6 +502,8 @@ class _Solver:
         self.model: BundleModel | None = None
         self.problem: FieldProblem | None = None
         self.free = False                                  # a free network (fieldcal.field.datum)
+        self.warp: BoardWarp | None = None                 # a planar board's warp model (fieldcal.field.board)
+        self.warp_mm = np.zeros(0)
         bars = data.scale_bars
         self.bar_active = np.ones(len(bars) if bars is not None else 0, bool)   # not rejected
         self.sigma_px0 = data.obs.sigma_px.copy()          # the session's a-priori sigmas
@@ -528,8 +534,9 @@ class _Solver:
         model = BundleModel(self.data, self.params, estimate, self.R,
                             targets_adjusted=o.targets_adjusted, obs_active=obs_active,
                             survey_active=survey_active,
-                            global_targets=bar_ends(bars, self.bar_active, seen) if used is not None else None)
-        x0 = model.pack(self.params, self.C, self.X)
+                            global_targets=bar_ends(bars, self.bar_active, seen) if used is not None else None,
+                            warp=self.warp)
+        x0 = model.pack(self.params, self.C, self.X, self.warp_mm if self.warp is not None else None)
         self.model = model
         problem = FieldProblem(model, like=self.problem,
                                bars=BarObservations(bars, used, model) if used is not None else None)
@@ -550,6 +557,7 @@ class _Solver:
         if not np.all(np.isfinite(result.r)):
             raise GeometryError("the adjustment diverged (points behind a camera)")
         self.params, self.R, self.C, X = model.unpack(result.x)
+        self.warp_mm = model.warp_mm(result.x)
         if o.targets_adjusted:
             self.X = X
         # the next solve starts at this one's solution, a few points or a weight away from its
@@ -580,13 +588,18 @@ class _Solver:
         x[j] = 0.0
         if np.all(np.isfinite(x)):
             self.params, self.R, self.C, X = model.unpack(x)
+            self.warp_mm = model.warp_mm(x)
             if self.options.targets_adjusted:
                 self.X = X
         self.params[model.int_index[j]] = 0.0
 
+    def targets_now(self):
+        """The targets (n, 3) [m] at the current state: with a board warp, displaced by it."""
+        return self.X if self.warp is None else self.warp.displaced(self.warp_mm, self.X)
+
     def residuals_all(self):
         """Measured minus predicted pixels of every observation at the current state."""
-        return image_residuals(self.data, self.params, self.R, self.C, self.X)
+        return image_residuals(self.data, self.params, self.R, self.C, self.targets_now())
 
 
 def _robust_scale(z):
@@ -1183,6 +1196,9 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     """:func:`adjust_field` of the data without check points."""
     validate_field_data(data)
     local, origin = centred(data)
+    board = _board_model(local, o)
+    if board is not None:      # recorded as resolved: a re-adjustment (cross-validation) uses the same model
+        o = replace(o, targets_adjusted=board == "points", board_model=board)
     full = tuple(p for p in FIELD_PARAMS if o.estimate is None or p in o.estimate)
     fixed = {p: "session" for p in FIELD_PARAMS if p not in full}
     _check_unsurveyed(data, o)
@@ -1200,6 +1216,12 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     if initial_targets_m is not None and o.targets_adjusted:
         solver.X = np.array(initial_targets_m, float).reshape(-1, 3) - origin
     _start_unsurveyed(solver, flags)
+    if board == "warp":
+        observed = np.unique(local.obs.target)
+        solver.warp = facing(board_warp(local.targets.xyz_m[observed]), init.center_m)
+        solver.warp_mm = np.zeros(len(solver.warp.names))
+    if progress and board is not None:
+        progress(f"planar board: board model {board!r}")
     solver.free = _free_network(local, flags, o, progress, init.free_frame)
     solver.X_start = solver.X.copy()
     estimate = list(full)
@@ -1226,9 +1248,49 @@ def _adjust(data: FieldData, o: AdjustmentOptions, progress, initial, initial_ta
     # everything not used: reason 'initial outlier' left -> it is a blunder
     flags.reason[(flags.reason == "initial outlier")] = "blunder"
     res = _field_result(data, o, origin, solver, flags, model, result, (cov, s, corr), estimate, fixed, init)
+    if board is not None:
+        res = replace(res, board=_board_stats(board, solver, model, cov, origin))
     if progress:
         progress(_outcome_line(res, result.sigma0, bool(solver.vc.rounds)))
     return res
+
+
+def _board_model(data: FieldData, o: AdjustmentOptions) -> str | None:
+    """The board model of this adjustment (:func:`fieldcal.field.board.resolve_board_model`):
+    a planar board is a field whose observed targets are all surveyed and coplanar to 1 um
+    (:func:`fieldcal.field.board.is_planar_board`); a free datum adjusts the points."""
+    observed = np.unique(data.obs.target)
+    planar = bool(data.targets.surveyed[observed].all()) and is_planar_board(data.targets.xyz_m[observed])
+    if planar and o.datum == "free" and o.board_model == "auto":
+        return "points"
+    board = resolve_board_model(o.board_model, planar, o.targets_adjusted)
+    if board in ("warp", "rigid") and o.datum == "free":
+        raise InputError(f"board_model {board!r} holds the targets fixed: a free network (datum 'free') adjusts "
+                         "them; use board_model 'points' or the survey's datum", "adjustment options")
+    return board
+
+
+def _board_stats(board: str, solver, model, cov, origin) -> dict:
+    """``stats.board``: the board model and, for the warp, its frame and fitted coefficients with
+    their a-posteriori sigmas and correlations (docs/uncertainty.md section 2c)."""
+    out = {"model": board, "planar_board": True}
+    if board != "warp":
+        return out
+    w, j = solver.warp, slice(model.n_cam, model.n_int)
+    c = solver.warp_mm
+    C = cov[j, j]
+    s = np.sqrt(np.diag(C))
+    observed = np.unique(model.tgt)
+    defl = w.deflection_mm(c, solver.X[observed])
+    frame = w.to_dict()
+    frame["origin_m"] = (w.origin_m + origin).tolist()
+    return {**out, "deflection": "w(u, v) = warp_uu_mm (1 - u^2) + warp_vv_mm (1 - v^2) + warp_uv_mm u v "
+                                 "along the normal (u, v in [-1, 1] over the targets)",
+            "frame": frame,
+            "coefficients_mm": {n: float(v) for n, v in zip(w.names, c, strict=True)},
+            "sigma_mm": {n: float(v) for n, v in zip(w.names, s, strict=True)},
+            "correlation": (C / np.outer(s, s)).tolist(),
+            "peak_to_valley_mm": float(np.ptp(defl)) if len(defl) else 0.0}
 
 
 UNPLACED = "unsurveyed target not intersected"
@@ -1289,6 +1351,9 @@ def _outcome_line(res: FieldResult, last_sigma0: float, reweighted: bool) -> str
 
 
 def _check_options(o: AdjustmentOptions) -> None:
+    if o.board_model not in BOARD_MODELS:
+        raise InputError(f"board_model must be one of {', '.join(map(repr, BOARD_MODELS))}, got {o.board_model!r}",
+                         "adjustment options")
     if o.datum not in ("auto", "free"):
         raise InputError(f"datum must be 'auto' or 'free', got {o.datum!r}", "adjustment options")
     if o.datum == "free" and (o.check_points or o.check_fraction > 0):
@@ -1424,9 +1489,10 @@ def _bar_report(solver, result, bars) -> dict:
 def _field_result(data, o, origin, solver, flags, model, result, stats, estimate, fixed, init) -> FieldResult:
     """The :class:`FieldResult`, centres and targets translated back to the data's frame."""
     cov, s, corr = stats
+    s, corr = s[: model.n_cam], corr[: model.n_cam, : model.n_cam]     # the camera's (a board warp follows)
     params, R, C, _ = model.unpack(result.x)
     ne = result.jac.normal_equations()
-    X, var_X = solver.X, None
+    X, var_X = solver.targets_now(), None
     datum = {"type": "weighted control", "n_control": int(len(model.survey_k))}
     bars = solver.problem.bars
     if solver.free:
@@ -1471,3 +1537,21 @@ def _field_result(data, o, origin, solver, flags, model, result, stats, estimate
         survey_used=flags.survey_active.copy(), survey_residual_mm=survey_res, lsq=result,
         iterations_total=solver.iterations, initial=init, rounds=solver.rounds, variance_components=solver.vc,
         datum=datum)
+
+
+def unsurveyed_account(targets, observed_targets, unlisted, targets_m, sigma_targets_m) -> dict:
+    """The document's account of the unsurveyed targets (CONTRACT section 3): how many the
+    adjustment estimated among ``observed_targets`` (indices of the points in use), the ids
+    targets.csv does not list, and each one's adjusted coordinates [m] and sigmas [mm] (``{}``
+    when every target is surveyed). The single camera's and the rig's documents share it."""
+    observed = np.unique(observed_targets)
+    uns = observed[~targets.surveyed[observed]]
+    unlisted = list(unlisted)
+    if not len(uns) and not unlisted:
+        return {}
+    sigma = (sigma_targets_m[uns] * 1000.0 if sigma_targets_m is not None else np.full((len(uns), 3), np.nan))
+    return {"n_unsurveyed_targets": int(len(uns)), "n_unlisted_targets": len(unlisted),
+            "unlisted_targets": unlisted,
+            "unsurveyed_targets": [{"id": str(targets.ids[j]), "xyz_m": [float(v) for v in targets_m[j]],
+                                    "sigma_mm": [float(v) for v in sig]}
+                                   for j, sig in zip(uns, sigma, strict=True)]}

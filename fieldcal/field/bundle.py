@@ -2,7 +2,8 @@
 
 Unknowns (the layout of the parameter vector ``x``)::
 
-    x = [ interior (the estimated subset of PARAM_NAMES)      n_int
+    x = [ interior (the estimated subset of PARAM_NAMES)      n_cam
+          board warp (fieldcal.field.board, fixed targets)    n_warp    (n_int = n_cam + n_warp)
           exterior: per image  w (3, rotation increment) C (3, m)   6 n_images
           targets: per adjusted target  X (3, m)               3 n_adjusted ]
 
@@ -37,7 +38,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldcal.field import bundle_kernel
-from fieldcal.field.data import FieldData
 from fieldcal.model.camera import (
     INDEX,
     NEWTON_MAX_ITER,
@@ -48,6 +48,7 @@ from fieldcal.model.camera import (
     ideal_point_columns,
 )
 from fieldcal.model.rotations import R_from_rotvec, left_jacobian_so3
+from fieldcal.session.data import FieldData
 
 __all__ = ["BundleModel", "ObservationJacobian", "image_residuals"]
 
@@ -121,16 +122,24 @@ class BundleModel:
         Targets whose slots come first (``n_global`` of them, those adjusted): the ends of
         scale bars, which the solver keeps among its dense unknowns
         (:mod:`fieldcal.field.scale_bars`).
+    warp : fieldcal.field.board.BoardWarp, optional
+        A planar board's warp model (fixed targets only): its coefficients [mm] are unknowns
+        after the camera's, inside the interior block (``n_int = n_cam + n_warp``); the
+        targets are ``X0 + n 1e-3 (B c)`` (:mod:`fieldcal.field.board`). The derivative of an
+        image residual by ``c_j`` is its derivative by the target times ``1e-3 n B_j``.
     """
 
     def __init__(self, data: FieldData, params0, estimate, R0, *, targets_adjusted=True,
-                 obs_active=None, survey_active=None, global_targets=None):
+                 obs_active=None, survey_active=None, global_targets=None, warp=None):
         self.data = data
         self.params0 = np.asarray(params0, dtype=float).copy()
         self.estimate = tuple(estimate)
         self.int_index = np.array([INDEX[n] for n in self.estimate], dtype=np.int64)
         self.R0 = np.array(R0, dtype=float)
         self.targets_adjusted = bool(targets_adjusted)
+        if warp is not None and self.targets_adjusted:
+            raise ValueError("a board warp is estimated with the targets held fixed")
+        self.warp = warp
         m = len(data.obs)
         self.obs_active = np.ones(m, bool) if obs_active is None else np.asarray(obs_active, bool)
         n_t = len(data.targets)
@@ -138,7 +147,9 @@ class BundleModel:
                               else np.asarray(survey_active, bool))
         self.n_images = len(data.images)
         self.n_targets = n_t
-        self.n_int = len(self.estimate)
+        self.n_cam = len(self.estimate)
+        self.n_warp = len(warp.names) if warp is not None else 0
+        self.n_int = self.n_cam + self.n_warp
         self.n_reduced = self.n_int + 6 * self.n_images
         k = np.flatnonzero(self.obs_active)
         k = k[np.argsort(data.obs.image[k], kind="stable")]   # grouped by image (contiguous slices)
@@ -158,6 +169,8 @@ class BundleModel:
         self.tgt_slot = self.t_slot[self.tgt]
         self.n_params = self.n_reduced + 3 * len(self.target_index)
         self.X_base = data.targets.xyz_m.copy()       # coordinates of the targets not adjusted
+        self._warp_basis = (1e-3 * warp.basis(self.X_base)[:, None, :] * warp.normal[None, :, None]
+                            if warp is not None else None)            # (n_t, 3, n_warp) [m/mm]
         self.survey_k = (self.target_index[self.survey_active[self.target_index]] if self.targets_adjusted
                          else np.zeros(0, np.int64))
         self.sigma_m = data.targets.sigma_mm / 1000.0
@@ -185,14 +198,16 @@ class BundleModel:
         return sub
 
     # ------------------------------------------------------------------ packing
-    def pack(self, params, center_m, targets_m=None):
-        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3).
+    def pack(self, params, center_m, targets_m=None, warp_mm=None):
+        """The parameter vector for camera params (13,), centres (n_images, 3), targets (n, 3)
+        and (with a board warp) its coefficients (n_warp,) [mm] (default 0).
 
         ``targets_m`` holds all targets; the ones not adjusted keep these coordinates.
         """
         parts = [np.asarray(params, float)[self.int_index], np.zeros((self.n_images, 6))]
         parts[1][:, 3:] = center_m
-        x = [parts[0], parts[1].ravel()]
+        warp = np.zeros(self.n_warp) if warp_mm is None else np.asarray(warp_mm, float).reshape(self.n_warp)
+        x = [parts[0], warp, parts[1].ravel()]
         if self.targets_adjusted:
             self.X_base = np.array(targets_m, float).reshape(-1, 3)
             x.append(self.X_base[self.target_index].ravel())
@@ -202,14 +217,20 @@ class BundleModel:
         """``(params (13,), R_world_to_camera (n_images,3,3), center_m (n_images,3), targets_m (n,3))``."""
         x = np.asarray(x, float)
         params = self.params0.copy()
-        params[self.int_index] = x[: self.n_int]
+        params[self.int_index] = x[: self.n_cam]
         ext = x[self.n_int:self.n_reduced].reshape(self.n_images, 6)
         R = R_from_rotvec(ext[:, :3]) @ self.R0
         C = ext[:, 3:].copy()
         X = self.X_base.copy()
         if self.targets_adjusted:
             X[self.target_index] = x[self.n_reduced:].reshape(-1, 3)
+        if self.warp is not None:
+            X = X + self._warp_basis @ self.warp_mm(x)
         return params, R, C, X
+
+    def warp_mm(self, x):
+        """The board warp's coefficients (n_warp,) [mm] in ``x`` (empty without a warp)."""
+        return np.asarray(x, float)[self.n_cam:self.n_int]
 
     def rebase(self, x):
         """Fold the rotation increments of ``x`` into ``R0`` and return the equivalent ``x``."""
@@ -239,16 +260,24 @@ class BundleModel:
         res = np.empty((m, 2))
         combined = None
         if jacobian:   # one array, the blocks side by side (the order of FieldProblem's columns)
-            n_int = self.n_int
+            n_int, n_cam = self.n_int, self.n_cam
             combined = np.empty((m, 2, n_int + 6 + (3 if self.targets_adjusted else 0)))
             d_int, d_ext = combined[:, :, :n_int], combined[:, :, n_int:n_int + 6]
             d_tgt = combined[:, :, n_int + 6:] if self.targets_adjusted else np.empty((m, 2, 3))
+            d_cam = d_int[:, :, :n_cam] if self.n_warp else d_int
         else:
-            d_int = d_ext = d_tgt = np.empty((0, 2, 0))
+            d_int = d_ext = d_tgt = d_cam = np.empty((0, 2, 0))
         kern(params, self.int_index, R, Jl, np.ascontiguousarray(C), np.ascontiguousarray(X), self.img,
              self.tgt, self.uv, self.sigma_px, self._start_mm, float(s.width_px), float(s.height_px),
-             float(s.pixel_mm), NEWTON_TOL_MM, NEWTON_MAX_ITER, bool(jacobian), res, d_int, d_ext, d_tgt)
+             float(s.pixel_mm), NEWTON_TOL_MM, NEWTON_MAX_ITER, bool(jacobian), res, d_cam, d_ext, d_tgt)
+        if jacobian and self.n_warp:
+            d_int[:, :, self.n_cam:] = self._warp_columns(d_tgt)
         return res, (ObservationJacobian(d_int, d_ext, d_tgt, combined) if jacobian else None)
+
+    def _warp_columns(self, d_tgt):
+        """``d r / d c`` (m, 2, n_warp): the residuals' derivative by the target (m, 2, 3) times
+        ``dX/dc = 1e-3 n B`` (module docstring of :mod:`fieldcal.field.board`)."""
+        return np.einsum("kab,kbj->kaj", d_tgt, self._warp_basis[self.tgt])
 
     def _predict(self, x, jacobian):
         params, _, C, X = self.unpack(x)
@@ -273,7 +302,7 @@ class BundleModel:
         w = -1.0 / (self.sigma_px * s.pixel_mm * (g00 * g11 - g01 * g10))
         a00, a01, a10, a11 = w * g11, -w * g01, w * g10, -w * g00
         # interior: dx'/dp = G^-1 (dq/dp - Q), with dq/df = q/f
-        cols_t = np.empty((self.n_int, 2, len(z)))      # filled column by column (contiguous rows)
+        cols_t = np.empty((self.n_cam, 2, len(z)))      # filled column by column (contiguous rows)
         cols = ideal_point_columns(xb, yb, params, (g00, g01, g10, g11), r2, xy_, self.int_index)
         for j, (c0, c1) in enumerate(cols):
             e0, e1 = -c0, -c1
@@ -304,6 +333,8 @@ class BundleModel:
             d_ext[sl, :, :3] = (bw[sl].reshape(n2, 3) @ Jl[i]).reshape(-1, 2, 3)
             d_tgt[sl] = (B[sl].reshape(n2, 3) @ R[i]).reshape(-1, 2, 3)
         d_ext[:, :, 3:] = -d_tgt
+        if self.n_warp:
+            d_int = np.concatenate([d_int, self._warp_columns(d_tgt)], axis=2)
         return uv, ObservationJacobian(d_int, d_ext, d_tgt)
 
     def residuals_and_blocks(self, x, jacobian=True, *, implementation: str = "auto"):
@@ -342,7 +373,7 @@ class BundleModel:
 
     def column_names(self) -> list[str]:
         """Names of the columns of ``x`` (for covariance/correlation tables)."""
-        names = list(self.estimate)
+        names = list(self.estimate) + (list(self.warp.names) if self.warp is not None else [])
         for im in self.data.images:
             names += [f"{im.file}:{c}" for c in ("w_x", "w_y", "w_z", "X_m", "Y_m", "Z_m")]
         for t in self.data.targets.ids[self.target_index]:

@@ -11,7 +11,7 @@ observations with every intermediate in registers: ``Xc``, ``q``, the Newton ite
 the three derivative blocks. The contract test (``tests/field/test_bundle.py``) runs both
 implementations on the same inputs.
 
-Compilation, caching and the fallback are :mod:`fieldcal.solver.compiled`'s: when Numba is
+Compilation, caching and the fallback are :mod:`fieldcal.contract.compiled`'s: when Numba is
 missing or cannot compile on a platform, or the environment sets ``FIELDCAL_NUMBA=0``,
 :func:`kernel` returns ``None`` and the bundle uses the NumPy reference; :func:`status`
 says which and why (one line).
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fieldcal.contract import compiled
 from fieldcal.model.camera import correction_terms
-from fieldcal.solver import compiled
 
 __all__ = ["kernel", "residuals_kernel", "status", "evaluate_reference_inputs"]
 

@@ -52,7 +52,7 @@ from scipy.special import chdtrc, chdtri  # chi2.sf(x, k), chi2.isf(p, k) withou
 
 from fieldcal.errors import InputError
 from fieldcal.field.bundle import BundleModel
-from fieldcal.field.data import FieldData, TargetField
+from fieldcal.session.data import FieldData, TargetField
 
 __all__ = ["CheckPoints", "check_point_mask", "stratified_check_points", "evaluate_check_points",
            "GAUSS_NEWTON_ITERATIONS", "MAX_INTERSECTION_CONDITION"]

@@ -20,14 +20,14 @@ mirror (the two products are bit for bit the same); the order of the additions i
 is that of the loop over all ordered pairs unless a target has two points in one image.
 
 The contract test (``tests/field/test_honest_uncertainty.py``) runs both implementations.
-Compilation, caching and the fallback: :mod:`fieldcal.solver.compiled`.
+Compilation, caching and the fallback: :mod:`fieldcal.contract.compiled`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from fieldcal.solver import compiled
+from fieldcal.contract import compiled
 
 __all__ = ["kernel", "status"]
 

@@ -7,17 +7,17 @@ covariance of the *difference* says. For nested least squares with the same weig
 the full estimate is the efficient one and the difference ``theta_s - theta`` has the
 covariance ``D = Sigma_s - Sigma`` (the Hausman test's identity: the difference is
 uncorrelated with the efficient estimate). Over a grid of the sensor, with the landing
-Jacobian ``J`` of :func:`fieldcal.products.uncertainty.landing_jacobian` at the full
+Jacobian ``J`` of :func:`fieldcal.analysis.uncertainty.landing_jacobian` at the full
 calibration:
 
-* the move ``d(uv) = uv_s(ray(uv)) - uv`` [px] (:func:`fieldcal.products.compare.ray_difference_px`),
+* the move ``d(uv) = uv_s(ray(uv)) - uv`` [px] (:func:`fieldcal.analysis.compare.ray_difference_px`),
   summarised as ``rms_px`` and ``max_px``;
 * its prediction ``sigma_rms_px = sqrt(mean tr(J D J^T))`` [px] (the RMS of the 1-sigma
   size over the grid);
 * the map test ``chi2 = |S_r^-1 U_r^T d|^2`` with ``J L = U S V^T`` (``L L^T = D``, the
   negative eigenvalues round-off leaves clipped), over the ``r`` directions that move the
   grid by more than ``min_sigma_px`` RMS, and its p-value (chi-square with ``r`` degrees of
-  freedom), as the change test does (:mod:`fieldcal.products.compare`).
+  freedom), as the change test does (:mod:`fieldcal.analysis.compare`).
 
 A station whose images are all of one place carries its own lever arm: without it the
 others may no longer hold the camera (a :class:`~fieldcal.errors.GeometryError`), which is
@@ -36,11 +36,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.special import chdtrc  # chi2.sf(x, k) = chdtrc(k, x), without scipy.stats' import
 
+from fieldcal.analysis.compare import ray_difference_px
+from fieldcal.analysis.uncertainty import landing_jacobian, remove_rotation_part
 from fieldcal.errors import GeometryError
 from fieldcal.field.adjustment import FieldResult, InitialValues, adjust_field
-from fieldcal.field.data import FieldData
-from fieldcal.products.compare import ray_difference_px
-from fieldcal.products.uncertainty import landing_jacobian, remove_rotation_part
+from fieldcal.session.data import FieldData
 
 __all__ = ["StationMove", "CrossValidation", "cross_validate_by_station", "station_groups"]
 

@@ -62,7 +62,7 @@ from fieldcal.field.geometry import (
     plane_frame,
     singular_values_centred,
 )
-from fieldcal.model.camera import Sensor
+from fieldcal.model.camera import Sensor, principal_point_mm
 from fieldcal.model.opencv_frames import FLIP_YZ
 from fieldcal.robust import MAD_TO_SIGMA, robust_sigma
 
@@ -209,10 +209,11 @@ def _decompose(P, X, uv, sensor: Sensor, inliers, where: str) -> DltResult:
     rms = float(np.sqrt(np.mean(np.sum(res[inliers] ** 2, axis=1))))
     d = sensor.pixel_mm
     alpha, beta = K[0, 0], K[1, 1]
+    xp_mm, yp_mm = principal_point_mm(sensor, K[0, 2], K[1, 2])
     return DltResult(
         f_mm=float(0.5 * (alpha + beta) * d),
-        xp_mm=float((K[0, 2] - (sensor.width_px - 1) / 2.0) * d),
-        yp_mm=float(-(K[1, 2] - (sensor.height_px - 1) / 2.0) * d),
+        xp_mm=float(xp_mm),
+        yp_mm=float(yp_mm),
         aspect=float(beta / alpha),
         skew=float(K[0, 1] / alpha),
         R_world_to_camera=FLIP_YZ @ R_cv,
@@ -709,12 +710,14 @@ def _fast_paths(views, sensor: Sensor, k_sigma, floor_px, detrend_degree, tol_re
     ok &= ~(_near(np.abs(aspect - 1.0), MAX_FAST_PATH_AFFINE) | _near(np.abs(skew), MAX_FAST_PATH_AFFINE))
     d = sensor.pixel_mm
     R_world = FLIP_YZ @ R_cv
-    for b in np.flatnonzero(ok):
+    solved = np.flatnonzero(ok)
+    pp_mm = principal_point_mm(sensor, K[solved, 0, 2], K[solved, 1, 2])
+    for j, b in enumerate(solved):
         k = n[b]
         out[idx[b]] = DltResult(
             f_mm=float(0.5 * (alpha[b] + beta[b]) * d),
-            xp_mm=float((K[b, 0, 2] - (sensor.width_px - 1) / 2.0) * d),
-            yp_mm=float(-(K[b, 1, 2] - (sensor.height_px - 1) / 2.0) * d),
+            xp_mm=float(pp_mm[j, 0]),
+            yp_mm=float(pp_mm[j, 1]),
             aspect=float(aspect[b]),
             skew=float(skew[b]),
             R_world_to_camera=R_world[b],

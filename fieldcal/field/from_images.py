@@ -4,6 +4,10 @@ The measuring step (:func:`fieldcal.pipeline.measure`, one ``measurements`` tabl
 image) knows nothing of the targets' identities. This module turns those tables into a
 calibration (:func:`calibrate_from_measurements`):
 
+0. **A thin survey** (fewer than 6 surveyed targets, :func:`fieldcal.field.thin_start.is_thin`) with
+   marks.csv: the identification by projection cannot work; every image is resected from its
+   marked control points and the network grown by automatic referencing instead
+   (:func:`fieldcal.field.thin_start.start_from_marks`; the steps below are not taken).
 1. **First identification, nominal camera.** Every image is identified
    (:func:`fieldcal.field.identify.identify_images`, all images at once) with the camera the
    session describes: the nominal focal length (``lens.nominal_focal_mm``), principal point at
@@ -87,17 +91,18 @@ from fieldcal.field.adjustment import (
     InitialValues,
     adjust_field,
 )
-from fieldcal.field.data import FieldData, FieldObservations, TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
-from fieldcal.field.referencing import ReferencingOptions, reference_discs
+from fieldcal.field.referencing import ReferencingOptions, reference_discs, track_ids
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
+from fieldcal.field.thin_start import is_thin, start_from_marks
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
-from fieldcal.session.loader import Session
+from fieldcal.session.data import FieldData, FieldObservations, TargetField
+from fieldcal.session.loader import Session, scale_bars_among
 
 __all__ = ["calibrate_from_measurements", "nominal_camera", "target_normals_of", "identification_summary",
            "reason_category"]
@@ -221,7 +226,7 @@ def _assemble(session, targets, images, keep, idents, measurements, names, uv_ov
         meta["eccentricity_bound_px"] = bound
     data = FieldData(sensor=session.sensor, targets=targets, images=[images[i] for i in keep], obs=obs,
                      nominal_focal_mm=session.nominal_focal_mm, default_sigma_px=session.default_sigma_px,
-                     meta=meta)
+                     meta=meta, scale_bars=scale_bars_among(session, targets))
     return data, marker
 
 
@@ -294,10 +299,9 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     estimate_normals : bool
         Estimate the unknown normals of a 3-D field (:mod:`fieldcal.field.normals`); False
         leaves them unknown (their discs uncorrected, with the eccentricity bound in their sigmas).
-    identify : IdentifyOptions, optional
-        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``).
-    priors : PriorOptions, optional
-        Settings of :func:`fieldcal.field.identify_session.identify_remaining`.
+    identify, priors : IdentifyOptions, PriorOptions, optional
+        Settings of :func:`fieldcal.field.identify.identify_image` (gates, ``min_identified``) and
+        of :func:`fieldcal.field.identify_session.identify_remaining`.
     referencing : ReferencingOptions, optional
         Automatic referencing (step 7; off when None): the discs no target names are matched
         across the adjusted images (:func:`fieldcal.field.referencing.reference_discs`), get
@@ -305,10 +309,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
 
     Returns
     -------
-    data : FieldData
-        The observations of the final adjustment (eccentricity removed where applied).
-    result : FieldResult
-        The final adjustment.
+    data, result : FieldData, FieldResult
+        The final adjustment and its observations (eccentricity removed where applied).
     report : list of dict
         One entry per image of the session (module docstring).
 
@@ -317,13 +319,15 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     InputError
         Not a field session, no nominal focal length, unreadable targets.csv / marks.csv.
     GeometryError
-        Fewer than 3 images could be identified from their seeds (the message lists why), or
-        the adjustment cannot calibrate.
+        Fewer than 3 images could be identified from their seeds or, with a thin survey, resected
+        from their marks (the message lists why), or the adjustment cannot calibrate.
     """
     if session.method != "field":
         raise InputError("not a field-method session", session.manifest_where)
     run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
                identify or IdentifyOptions(), priors or PriorOptions())
+    if is_thin(run.targets) and run.marks:
+        return _thin(run, referencing)
     first, keep1, marker1, res1 = _first_pass(run)
     state = _Oriented(run, res1, keep1, first)
     starts = {i: "seeds" for i in keep1}
@@ -363,6 +367,22 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
             "".join(f"; left out, {k}: {v}" for k, v in summary["left_out"].items()) +
             " (started from: " + ", ".join(f"{k} {v}" for k, v in summary["started_from"].items()) + ")")
     return data, result, report
+
+
+def _thin(run: _Run, referencing: ReferencingOptions | None):
+    """0: a survey too thin to identify targets by projection (:func:`fieldcal.field.thin_start.is_thin`):
+    the images are resected from their marked control points and the network grown by automatic
+    referencing (:func:`fieldcal.field.thin_start.start_from_marks`); scale_bars.csv joins."""
+    sess = run.session
+    bars = None if sess.scale_bars_path is None else (lambda targets: scale_bars_among(sess, targets))
+    st = start_from_marks(sess, run.measurements, run.targets, run.marks, run.options, run.working_options,
+                          run.nominal, referencing=referencing, scale_bars=bars, say=run.say, progress=run.progress)
+    data = st.data
+    data.meta.update(referenced_targets=st.n_tracks, marker_sigma_factor=1.0, identifications={},
+                     eccentricity=st.eccentricity, target_normals=None)
+    data.meta["identification"] = summary = identification_summary(st.report)
+    run.say(f"images used: {summary['used']} of {summary['images']} (started from the marked control points)")
+    return data, st.result, st.report
 
 
 def _with_eccentricity_bound(run, data: FieldData, result: FieldResult, ecc_summary: dict) -> FieldResult:
@@ -438,10 +458,6 @@ def _admit(fixed, candidates, attempt):
     return outcome, rejected
 
 
-REFERENCED_PREFIX = "AR"
-"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``)."""
-
-
 def _referenced(run, data: FieldData, result: FieldResult, second, keep, options: ReferencingOptions | None):
     """7: automatic referencing (:mod:`fieldcal.field.referencing`). The usable discs of the
     images ``keep`` (``data``'s images, in order) that the identification ``second`` left
@@ -464,13 +480,7 @@ def _referenced(run, data: FieldData, result: FieldResult, second, keep, options
     data.meta["referenced_targets"] = len(tracks)
     if not len(tracks):
         return data, result
-    taken = set(data.targets.ids.tolist())
-    ids, k = [], 0
-    while len(ids) < len(tracks):
-        k += 1
-        name = f"{REFERENCED_PREFIX}{k:04d}"
-        if name not in taken:
-            ids.append(name)
+    ids = track_ids(len(tracks), run.all_targets.ids.tolist() + data.targets.ids.tolist())
     first = len(data.targets)
     new = FieldObservations(tracks.image, first + tracks.track,
                             np.stack([uv[m][p] for m, p in zip(tracks.image, tracks.point, strict=True)]),
@@ -486,7 +496,7 @@ def _adjust_with(run, data: FieldData, result: FieldResult, new: FieldObservatio
     old = data.obs
     obs = FieldObservations(np.concatenate([old.image, new.image]), np.concatenate([old.target, new.target]),
                             np.concatenate([old.uv_px, new.uv_px]), np.concatenate([old.sigma_px, new.sigma_px]))
-    data = replace(data, obs=obs)
+    data = replace(data, obs=obs, scale_bars=scale_bars_among(run.session, data.targets))
     bound = data.meta.get("eccentricity_bound_px")
     if bound is not None and len(bound) == len(old):        # the new points: markers and discs with no bound
         data.meta["eccentricity_bound_px"] = np.concatenate([bound, np.zeros(len(new))])

@@ -64,13 +64,13 @@ import pyarrow as pa
 from scipy.spatial import cKDTree
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.data import TargetField
 from fieldcal.field.geometry import is_collinear
 from fieldcal.field.matching import ViewMatcher, local_correction, mutual_nearest
 from fieldcal.field.pose_search import grunert_distances
 from fieldcal.field.resection import resect
 from fieldcal.model.camera import Camera
 from fieldcal.model.opencv_frames import FLIP_YZ, ideal_pixels, opencv_camera_matrix, pose_from_opencv
+from fieldcal.session.data import TargetField
 
 __all__ = ["ImageIdentification", "IdentifyOptions", "identify_image", "identify_images", "identify_from_poses",
            "identify_views", "mutual_nearest", "local_correction", "measured_points", "DEFAULT_MIN_IDENTIFIED"]

@@ -66,7 +66,6 @@ import numpy as np
 import pyarrow as pa
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from fieldcal.field.data import TargetField
 from fieldcal.field.geometry import plane_frame
 from fieldcal.field.identify import (
     IdentifyOptions,
@@ -85,6 +84,7 @@ from fieldcal.field.pose_search import (
     poses_pose_free,
 )
 from fieldcal.model.camera import Camera
+from fieldcal.session.data import TargetField
 
 __all__ = ["identify_remaining", "evidence", "Evidence", "PriorOptions", "REASON_AMBIGUOUS", "REASON_NO_START"]
 

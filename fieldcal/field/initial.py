@@ -28,7 +28,6 @@ import numpy as np
 
 from fieldcal.errors import GeometryError
 from fieldcal.field.bundle import BundleModel, image_residuals
-from fieldcal.field.data import FieldData
 from fieldcal.field.distortion_init import distortion_lsq
 from fieldcal.field.dlt import dlt_robust, dlt_robust_many, zhang_focal
 from fieldcal.field.geometry import is_coplanar
@@ -36,6 +35,7 @@ from fieldcal.field.intersection import intersect_targets
 from fieldcal.field.relative_orientation import orient_pair
 from fieldcal.field.resection import planar_pose, resect
 from fieldcal.model.camera import INDEX, Camera
+from fieldcal.session.data import FieldData
 
 __all__ = ["InitialValues", "initial_values", "refine_poses", "per_image", "CORE_PARAMS"]
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fieldcal.field.data import FieldData
 from fieldcal.model.camera import Camera
+from fieldcal.session.data import FieldData
 
 __all__ = ["intersect_targets"]
 

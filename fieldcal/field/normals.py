@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fieldcal.field.data import TargetField
 from fieldcal.field.eccentricity import correction_px, rim_px
 from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.model.camera import Camera
+from fieldcal.session.data import TargetField
 
 __all__ = ["SOURCES", "TargetNormals", "resolve_normals", "estimate_normals", "local_planes", "choose_by_shapes",
            "shape_vectors", "measured_shape_vectors", "eccentricity_bound_px", "normals_summary", "hemisphere"]

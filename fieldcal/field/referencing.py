@@ -42,7 +42,25 @@ from scipy.spatial import cKDTree
 
 from fieldcal.model.camera import Camera, correct, project, unproject
 
-__all__ = ["ReferencingOptions", "Tracks", "reference_discs"]
+__all__ = ["REFERENCED_PREFIX", "ReferencingOptions", "Tracks", "reference_discs", "track_ids"]
+
+REFERENCED_PREFIX = "AR"
+"""Ids of the targets automatic referencing finds: the prefix and a number (``AR0001``).
+
+A track is never given an id targets.csv lists: a listed unsurveyed plain target has no
+coordinates to predict where it is, and plain discs carry no identity, so nothing in the images
+ties a disc to a listed id (docs/conventions.md section 3, referenced targets)."""
+
+
+def track_ids(n: int, taken) -> list[str]:
+    """``n`` ids ``AR0001, AR0002, ...`` skipping those in ``taken``."""
+    taken, ids, k = set(taken), [], 0
+    while len(ids) < n:
+        k += 1
+        name = f"{REFERENCED_PREFIX}{k:04d}"
+        if name not in taken:
+            ids.append(name)
+    return ids
 
 
 @dataclass(frozen=True)

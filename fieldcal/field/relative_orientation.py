@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 
 from fieldcal.errors import GeometryError
-from fieldcal.field.data import FieldData
 from fieldcal.model.camera import Camera
+from fieldcal.session.data import FieldData
 
 __all__ = ["orient_pair", "MIN_PAIR_POINTS"]
 

@@ -48,7 +48,7 @@ class BarObservations:
 
     Parameters
     ----------
-    bars : fieldcal.field.data.ScaleBars
+    bars : fieldcal.session.data.ScaleBars
     used : (b,) bool
         The bars that enter (both ends global targets of ``model``).
     model : fieldcal.field.bundle.BundleModel

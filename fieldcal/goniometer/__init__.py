@@ -5,17 +5,17 @@ spot of each frame, the mean per angle), :mod:`~fieldcal.goniometer.minsum` (pri
 distance and point per sweep, eq. 1-7), :mod:`~fieldcal.goniometer.chain` (the distortion
 fit, eq. 8-10, and the precision), :mod:`~fieldcal.goniometer.result` (the calibration) and
 :mod:`~fieldcal.goniometer.method` (:func:`calibrate`, the steps in order);
-:mod:`~fieldcal.goniometer.schema` the columns of a frame's measurement.
+:mod:`~fieldcal.contract.goniometer_schema` the columns of a frame's measurement.
 """
 
 import importlib
 
-_EXPORTS = {"along_axis_difference_px": "chain", "MEASUREMENT_SCHEMA": "schema", "average_frames": "frames",
+_EXPORTS = {"along_axis_difference_px": "chain", "MEASUREMENT_SCHEMA": "frames", "average_frames": "frames",
             "measure_frame": "frames", "measure_session": "frames", "measurements_table": "frames",
-            "read_frames_csv": "frames", "calibrate": "method", "min_sum_linear": "minsum",
+            "calibrate": "method", "min_sum_linear": "minsum",
             "min_sum_rigorous": "minsum", "GoniometerResult": "result"}
 """Names of the package and the module that defines each, imported on first use (PEP 562):
-importing a light module of the package (:mod:`~fieldcal.goniometer.schema`) does not
+importing a light module of the package (:mod:`~fieldcal.contract.goniometer_schema`) does not
 import the method's SciPy and OpenCV."""
 
 __all__ = sorted(_EXPORTS)

@@ -22,7 +22,9 @@ its centre column (``y`` sweep); several frames per angle (docs/conventions.md s
 4. :mod:`fieldcal.goniometer.result`: the calibration with its statistics and tables.
 
 This module re-exports the public names of those modules for existing callers
-(``from fieldcal.goniometer import method as gon; gon.read_frames_csv(...)``).
+(``from fieldcal.goniometer import method as gon; gon.measure_session(...)``). The session's
+``frames.csv`` is read by :func:`fieldcal.session.frames.read_frames_csv`; the method is handed
+the table.
 """
 
 from __future__ import annotations
@@ -50,7 +52,6 @@ from fieldcal.goniometer.frames import (
     measure_frame,
     measure_session,
     measurements_table,
-    read_frames_csv,
 )
 from fieldcal.goniometer.minsum import min_sum_linear, min_sum_rigorous
 from fieldcal.goniometer.result import RESIDUAL_SCHEMA, GoniometerResult
@@ -59,7 +60,7 @@ from fieldcal.model.camera import PARAM_NAMES, Sensor
 
 __all__ = [
     "FRAME_FLAGS", "MEASUREMENT_SCHEMA", "FIT_PARAMS", "RESIDUAL_SCHEMA", "GoniometerResult",
-    "read_frames_csv", "measure_frame", "measurements_table", "measure_session",
+    "measure_frame", "measurements_table", "measure_session",
     "average_frames", "min_sum_linear", "min_sum_rigorous", "calibrate",
     "along_axis_difference_px",
 ]

@@ -106,7 +106,7 @@ class GoniometerResult:
         axis; then one row per rejected frame (``used`` false, ``reason`` its flag and
         reason, NaN positions).
         """
-        from fieldcal.session.schemas import arrow_schema
+        from fieldcal.contract.schemas import arrow_schema
 
         rows = []
         for r in self.residuals.to_pylist():

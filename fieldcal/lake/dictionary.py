@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.lake.tables import PARTITIONS, TABLES, goniometer_spot_schema, table_schema
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["data_dictionary", "column_docs", "HISTORY_DOCS"]
 
@@ -25,9 +25,12 @@ _TABLE_DOCS = {
                           "the pixels. A row with row = -1 marks an image measured with no result.",
     "observations_goniometer": "The spot measured in each goniometer frame: the same cache for "
                                "the goniometer method. row = -1 as above.",
-    "rigs": "One row per committed version of a rig (CONTRACT section 3, Rig sessions): its heads' calibration "
-            "versions (each a row of `catalog`), committed in one transaction of `catalog` before this row; the "
-            "rig document (relative orientations, sigmas, covariance) at `document_path`.",
+    "rigs": "One row per version of a rig (CONTRACT section 3, Rig sessions): its heads' calibration "
+            "versions (each a row of `catalog`) and the rig document (relative orientations, sigmas, "
+            "covariance) at `document_path`. The row is written first; the heads' catalog rows, in one "
+            "transaction, are the rig version's commit point: a row is a committed rig version only when "
+            "every version in `head_versions` is in `catalog` (keep only those: `WHERE NOT EXISTS (SELECT 1 "
+            "FROM UNNEST(head_versions) h(v) WHERE v NOT IN (SELECT version FROM catalog))`).",
     "comparisons": "The change test of a version against the previous calibration of its camera "
                    "(fieldcal.lake.order), computed at the commit (and by `fieldcal lake fill`), read by "
                    "history --fleet and the dashboard; keyed by the pair, so a backfill adds the new "

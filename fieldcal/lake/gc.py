@@ -3,9 +3,11 @@
 A commit that failed or was killed before its catalog row leaves parts nobody sees: its
 document and Zarr group under ``calibrations/`` and its rows in ``residuals`` (hidden by the
 residuals view, which keeps only rows of catalogued versions), and on a local lake temporary
-files of interrupted writes. A rig commit interrupted after its rig document
-(``rigs/R/S/V.json``) and before its row in the ``rigs`` table leaves that document: it is
-removed as a calibration's is (a rerun of the rig's inputs writes a new one). :func:`gc`
+files of interrupted writes. A rig commit interrupted before its heads' catalog rows (its
+commit point, :meth:`fieldcal.lake.store.Lake.commit_rig`) leaves the heads' parts and the rig
+document (``rigs/R/S/V.json``), maybe with its row in ``rigs``, which no reader sees: they are
+removed as a calibration's are (a rerun of the rig's inputs completes the version when its parts
+are whole, else writes a new one). :func:`gc`
 removes those older than a grace period (which must exceed the longest commit in progress).
 It lists folders one level at a time and never uses a path as a glob pattern, so a lake at
 ``x/lake[ab]`` cannot touch ``x/lakea``. Delta's own unreferenced files are
@@ -142,7 +144,9 @@ def gc(lake, grace_s: float = 86400.0, *, dry_run: bool = False) -> list[str]:
     if not (grace_s >= 0):
         raise InputError(f"grace_s must be >= 0, got {grace_s}", "gc")
     committed = set(lake.tables.scan("catalog", columns=["version"])["version"].to_pylist())
-    rigs = set(lake.tables.scan("rigs", columns=["version"])["version"].to_pylist())
+    # committed rig versions only: the row of an interrupted rig commit (its heads not in the
+    # catalog) does not keep its document (Lake.commit_rig)
+    rigs = set(lake.rig_catalog()["version"].to_pylist())
     if lake.problems:
         raise LakeError(f"gc stops: the catalog or the rigs table of {lake.url} is damaged "
                         f"({lake.problems[0]}); run `fieldcal lake check`")

@@ -41,9 +41,9 @@ import duckdb
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.order import ORDER_SQL, ORDER_SQL_DESC, SESSION_SQL
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["connect", "sql", "camera_history", "rig_history", "fleet", "fleet_pairs", "pick_columns",
            "DEFAULT_COLUMNS",
@@ -74,6 +74,9 @@ def _register(con, lake, name: str, as_of, only: dict | None = None) -> None:
         if only:
             con.register("catalog", lake.catalog(as_of=as_of, filter=f, equal=only, sort=False))
             return
+    if name == "rigs":          # committed rig versions only (Lake.rig_catalog: their heads in the catalog)
+        con.register("rigs", lake.rig_catalog(as_of=as_of))
+        return
     dataset, rest = lake.tables.lazy(name, as_of=as_of)
     con.register(f"_{name}_recent", rest)
     if dataset is not None:

@@ -20,8 +20,8 @@ import secrets
 
 import numpy as np
 
+from fieldcal.contract.fingerprint import is_fingerprint
 from fieldcal.errors import InputError
-from fieldcal.session.fingerprint import is_fingerprint
 
 __all__ = ["check_id", "check_image_name", "check_version", "new_version", "version_time",
            "observations_key", "parse_time", "iso", "utcnow", "plain_json", "ID_PATTERN",
@@ -83,7 +83,7 @@ def new_version(fingerprint: str, when: dt.datetime | None = None) -> str:
     Parameters
     ----------
     fingerprint : str
-        ``"sha256:<64 hex>"`` of the inputs (:func:`fieldcal.session.fingerprint.fingerprint`).
+        ``"sha256:<64 hex>"`` of the inputs (:func:`fieldcal.contract.fingerprint.fingerprint`).
     when : datetime, optional
         The commit time (default: now); naive times are taken as UTC.
     """

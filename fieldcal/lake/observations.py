@@ -3,7 +3,7 @@
 Two Delta tables, one schema each (:func:`fieldcal.lake.tables.table_schema`):
 ``observations_field`` (targets measured in a field image,
 ``schemas/measurements.arrow.json``) and ``observations_goniometer`` (the spot of a
-goniometer frame, :data:`fieldcal.goniometer.method.MEASUREMENT_SCHEMA`). Each row also
+goniometer frame, :data:`fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA`). Each row also
 holds ``camera_id``, ``session_id``, ``image`` (the session-relative name), ``key`` (the
 cache key: the image's content hash, or a hash of it and the measuring settings), the
 image's own ``image_sha256`` and the ``measure_settings`` (JSON) when known (the schema
@@ -33,8 +33,8 @@ _EXTRA = ("camera_id", "session_id", "image", "key", "image_sha256", "measure_se
 
 def _own_schema(kind: str) -> pa.Schema:
     """The measuring step's schema of a kind (with its documentation)."""
+    from fieldcal.contract.schemas import arrow_schema
     from fieldcal.lake.tables import goniometer_spot_schema
-    from fieldcal.session.schemas import arrow_schema
 
     return arrow_schema("measurements") if kind == "observations_field" else goniometer_spot_schema()
 
@@ -52,7 +52,7 @@ def kind_of(table: pa.Table, where: str) -> str:
         if needed <= names:
             return kind
     raise InputError("observations must have the columns of schemas/measurements.arrow.json "
-                     "(field) or of fieldcal.goniometer.method.MEASUREMENT_SCHEMA (goniometer); "
+                     "(field) or of fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA (goniometer); "
                      f"got {sorted(names)}", where)
 
 

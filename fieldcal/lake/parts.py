@@ -20,11 +20,10 @@ from collections.abc import Mapping
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError, one_line
 from fieldcal.lake.ids import parse_time, plain_json
-from fieldcal.model.camera import PARAM_NAMES, Sensor
-from fieldcal.products.correction import correction_grid
-from fieldcal.session.schemas import arrow_schema
+from fieldcal.model.camera import PARAM_NAMES
 
 __all__ = ["conform_residuals", "prepare_arrays", "catalog_row", "array_digest", "reason",
            "KNOWN_ARRAYS", "KEY_COLUMNS"]
@@ -48,8 +47,8 @@ KNOWN_ARRAYS = {
     "exterior/sigma_center_m": "(n_images, 3) [m] sigmas of the centres, NaN where null. "
                                "Derived from a field document when not given.",
     "correction_field": "(ny, nx, 2) [px] the model's correction (dx, dy) of docs/conventions.md section 2 "
-                        "at grid pixels, in pixels along u and v: (dx / d, -dy / d). Derived "
-                        "from the parameters on a 41 x 31 grid when not given.",
+                        "at grid pixels, in pixels along u and v: (dx / d, -dy / d). Stored as given "
+                        "(fieldcal.analysis.correction.correction_arrays); none when not given.",
     "grid_u_px": "(nx,) [px] column coordinates of the correction_field grid.",
     "grid_v_px": "(ny,) [px] row coordinates of the correction_field grid.",
 }
@@ -245,12 +244,10 @@ def _put_correction_field(group: _Group, given: dict, doc: dict) -> None:
     field = given.pop("correction_field", None)
     grid_u = given.pop("grid_u_px", None)
     grid_v = given.pop("grid_v_px", None)
-    if field is None:
+    if field is None:           # the lake stores what it is given (analysis.correction makes it)
         if grid_u is not None or grid_v is not None:
             raise InputError("grid_u_px / grid_v_px given without correction_field", group.where)
-        s = doc["sensor"]
-        sensor = Sensor(int(s["width_px"]), int(s["height_px"]), float(s["pixel_size_um"]))
-        field, grid_u, grid_v = correction_grid(sensor, group.out["parameters"][0])
+        return
     if grid_u is None or grid_v is None:
         raise InputError("correction_field needs grid_u_px (nx,) and grid_v_px (ny,)", group.where)
     if grid_u.ndim != 1 or grid_v.ndim != 1 or field.shape != (grid_v.size, grid_u.size, 2):

@@ -79,6 +79,8 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401 - pa.compute
 import pyarrow.dataset as ds
 
+from fieldcal.contract.fingerprint import code_version, is_fingerprint
+from fieldcal.contract.schemas import validate_json
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake import observations as obs
 from fieldcal.lake import order
@@ -97,13 +99,10 @@ from fieldcal.lake.ids import (
 from fieldcal.lake.parts import KNOWN_ARRAYS, array_digest, catalog_row, conform_residuals, prepare_arrays, reason
 from fieldcal.lake.storage import Storage
 from fieldcal.lake.tables import DEFAULT_MAINTAIN_EVERY, Tables
-from fieldcal.products.correction import CORRECTION_GRID
-from fieldcal.session.fingerprint import code_version, is_fingerprint
 from fieldcal.session.loader import check_acquired_not_ahead
-from fieldcal.session.schemas import validate_json
 
 __all__ = ["Lake", "Committed", "new_version", "version_time", "observations_key",
-           "KNOWN_ARRAYS", "CORRECTION_GRID"]
+           "KNOWN_ARRAYS"]
 
 
 class Committed(str):
@@ -497,16 +496,23 @@ class Lake:
         return f"rigs/{rig_id}/{session_id}/{version}.json"
 
     def commit_rig(self, heads, rig_document: Mapping, *, force: bool = False) -> tuple[Committed, list[str]]:
-        """Store one version of a rig: a calibration version per head and the rig document.
+        """Store one version of a rig: a calibration version per head and the rig document,
+        atomically (a reader sees every part of the rig version or none).
 
         ``heads``: one ``{"document", "arrays", "array_attrs", "residuals"}`` per head, as for
         :meth:`commit`; ``rig_document``: the ``fieldcal.rig/1`` document, its heads' versions
         filled in here. Everything is checked in memory first; then every head's document, Zarr
-        group and residuals, and the rig document, are written; then **one** transaction of
-        ``catalog`` adds every head's row (the heads appear together or not at all), and last
-        the ``rigs`` row. A crash after the catalog's transaction leaves the heads committed
-        and the rig row missing: a rerun of the same inputs finds the heads' versions by their
-        fingerprints and writes the rig row (nothing is solved twice).
+        group and residuals are written and read back, then the rig document and its ``rigs``
+        row, and last **one** transaction of ``catalog`` with every head's row: **the commit
+        point** of the rig version. Readers see a head version only through its catalog row and
+        a rig version only when every head version its row lists is in the catalog
+        (:meth:`rig_catalog`, as of the same time), so an interruption anywhere before the
+        catalog's transaction leaves only invisible parts (the rig row included), which
+        :meth:`gc` removes as any uncommitted part; one after it has committed the whole rig.
+        A rerun of the same inputs completes an interrupted rig version whose parts read back
+        whole (:meth:`complete_rig`: nothing is solved twice, one version per fingerprint).
+        A lake from before, whose heads' rows were committed before the rig row, keeps working:
+        when every head's fingerprint is committed, only the rig row is written.
 
         Returns ``(rig version, head versions)``; ``.new`` False when the rig was committed already.
         """
@@ -521,13 +527,16 @@ class Lake:
         rig = plain_json(dict(rig_document), "rig document")
         fp = rig["inputs"]["fingerprint"]
         if not force:
-            hit = self.rig_catalog(fingerprint=fp)
-            if hit.num_rows:
-                return Committed(hit["version"][-1].as_py(), new=False), hit["head_versions"][-1].as_py()
+            done = self.complete_rig(fp)
+            if done is not None:
+                return done
             found = [self.find_committed(p[0]["inputs"]["fingerprint"]) for p in prepared]
-            if all(found):
-                return self._commit_rig_row(rig, list(found), now), list(found)
-        return self._write_rig(prepared, rig, force, now)
+            if all(found):      # a lake from before: the heads' rows committed, the rig row not
+                return self._write_rig_row(rig, list(found), now, []), list(found)
+        try:
+            return self._write_rig(prepared, rig, force, now)
+        except OSError as e:
+            raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
 
     def _write_rig(self, prepared, rig: dict, force: bool, now) -> tuple[Committed, list[str]]:
         written: list[str] = []
@@ -545,15 +554,16 @@ class Lake:
                     residual_versions.append(version)
                     self.tables.append("residuals", _with_keys(res, doc), dict(meta, action="residuals",
                                                                                version=version))
+                self._read_back(doc, paths, res.num_rows)
                 rows.append(catalog_row(doc, utcnow(), force, paths, f"calibration {doc['camera_id']}"))
                 versions.append(version)
-            # the heads' fingerprints recorded (not exclusive: the rig checked them before), so
-            # that a later commit of one of them finds it in the log (module docstring)
-            heads_fp = [p[0]["inputs"]["fingerprint"] for p in prepared]
-            self.tables.append_once("catalog", pa.concat_tables(rows), heads_fp,
-                                    dict(meta, action="commit rig", versions=",".join(versions)), exclusive=False)
+            version = self._write_rig_row(rig, versions, now, written, pending=True)
+            self._commit_heads(pa.concat_tables(rows), [p[0]["inputs"]["fingerprint"] for p in prepared], version,
+                               dict(meta, action="commit rig", versions=",".join(versions), rig_version=version))
             done = True
-        except OSError as e:
+        except Exception as e:
+            if isinstance(e, (OSError, LakeError, InputError)):
+                raise
             raise LakeError(f"cannot commit to {self.url}: {reason(e)}") from None
         finally:
             if not done:       # the files, then each head's residual rows (invisible without catalog rows)
@@ -561,10 +571,23 @@ class Lake:
                 for v in residual_versions:
                     self._discard([], v)
         self._write_dictionary()
-        return self._commit_rig_row(rig, versions, now), versions
+        return version, versions
 
-    def _commit_rig_row(self, rig: dict, versions: list[str], now) -> Committed:
-        """Write the rig document (its heads' versions filled in) and its ``rigs`` row."""
+    def _commit_heads(self, rows: pa.Table, fingerprints: list[str], rig_version: str, meta: dict, *,
+                      exclusive: bool = False) -> bool:
+        """The rig version's commit point: every head's catalog row in one transaction; True when
+        appended. The heads' fingerprints and ``rig:<rig version>`` are recorded as the
+        transaction's identifiers (so that a later commit of one of them finds it in the log,
+        module docstring); ``exclusive`` (completing an interrupted rig version): nothing is
+        appended when one of them is committed already (a concurrent completion won)."""
+        return self.tables.append_once("catalog", rows, [*fingerprints, f"rig:{rig_version}"], meta,
+                                       exclusive=exclusive)
+
+    def _write_rig_row(self, rig: dict, versions: list[str], now, written: list, *,
+                       pending: bool = False) -> Committed:
+        """Write the rig document (its heads' versions filled in) and its ``rigs`` row (visible
+        once every head version it lists is in the catalog; ``pending``: they are not yet)."""
+        from fieldcal.lake.tables import RIGS_SCHEMA
         from fieldcal.rig.document import validate_rig_document
 
         for head, v in zip(rig["heads"], versions, strict=True):
@@ -575,6 +598,7 @@ class Lake:
             rel = self.rig_path(rig["rig_id"], rig["session_id"], rig["version"])
             try:
                 self._store.write(rel, json.dumps(rig, indent=2).encode("utf-8"), exclusive=True)
+                written.append(rel)
                 break
             except FileExistsError:
                 continue
@@ -584,15 +608,59 @@ class Lake:
                "fingerprint": rig["inputs"]["fingerprint"], "camera_ids": [h["camera_id"] for h in rig["heads"]],
                "head_versions": list(versions), "n_exposures": rig["stats"].get("n_exposures"),
                "sigma0": rig["stats"].get("sigma0"), "document_path": rel}
-        from fieldcal.lake.tables import RIGS_SCHEMA
-
         self.tables.append("rigs", pa.Table.from_pylist([row], schema=RIGS_SCHEMA),
-                           dict(_who(), action="commit", version=rig["version"]))
+                           dict(_who(), action="pending" if pending else "commit", version=rig["version"]))
         return Committed(rig["version"], new=True)
+
+    def complete_rig(self, fingerprint: str) -> tuple[Committed, list[str]] | None:
+        """``(rig version, head versions)`` of the rig version of these inputs: the committed one
+        (``.new`` False), or an interrupted one completed now (its rig row written, its heads' catalog
+        rows not: those rows are committed in one transaction when every part reads back whole;
+        ``.new`` True); None when there is neither (:meth:`commit_rig`)."""
+        hit = self.rig_catalog(fingerprint=fingerprint)
+        if hit.num_rows:
+            return Committed(hit["version"][-1].as_py(), new=False), hit["head_versions"][-1].as_py()
+        raw = self.tables.scan("rigs", filter=ds.field("fingerprint") == fingerprint).to_pylist()
+        for row in sorted(raw, key=lambda r: (r["committed"], r["version"]), reverse=True):
+            rows = self._pending_heads(row)
+            if rows is None:
+                continue
+            fps = rows["fingerprint"].to_pylist()
+            if any(self.find_committed(f) is not None for f in fps):
+                continue        # a head of it committed meanwhile by another rig version
+            meta = dict(_who(), action="commit rig", rig_id=row["rig_id"], session_id=row["session_id"],
+                        rig_version=row["version"], versions=",".join(row["head_versions"]), completed=True)
+            if not self._commit_heads(rows, fps, row["version"], meta, exclusive=True):
+                hit = self.rig_catalog(fingerprint=fingerprint)
+                if hit.num_rows:
+                    return Committed(hit["version"][-1].as_py(), new=False), hit["head_versions"][-1].as_py()
+                continue
+            self._write_dictionary()
+            return Committed(row["version"], new=True), list(row["head_versions"])
+        return None
+
+    def _pending_heads(self, row: Mapping) -> pa.Table | None:
+        """The catalog rows of an interrupted rig version's heads (from their stored documents),
+        or None when a part of it (the rig document, a head's document or Zarr group) does not
+        read back whole or a head version is in the catalog already."""
+        from fieldcal.lake.check import read_back
+
+        if not self._store.exists(row["document_path"]):
+            return None
+        rows = []
+        for cid, v in zip(row["camera_ids"], row["head_versions"], strict=True):
+            paths = self.paths(cid, row["session_id"], v)
+            if self._is_committed(v) or read_back(self, v, paths["document"], paths["zarr"]) is not None:
+                return None
+            doc = json.loads(self._store.read(paths["document"]))
+            rows.append(catalog_row(doc, utcnow(), False, paths, f"calibration {cid}"))
+        return pa.concat_tables(rows)
 
     def rig_catalog(self, *, rig_id: str | None = None, fingerprint: str | None = None, as_of=None) -> pa.Table:
         """Committed rig versions (the ``rigs`` table), oldest first; of one rig or fingerprint;
-        ``as_of``: as the table was at that time."""
+        ``as_of``: as the tables were at that time. A row is a committed rig version when every
+        head version it lists is in the catalog (as of the same time): the row of an interrupted
+        commit (:meth:`commit_rig`) is not."""
         f = None
         if rig_id is not None:
             f = ds.field("rig_id") == rig_id
@@ -600,10 +668,19 @@ class Lake:
             g = ds.field("fingerprint") == fingerprint
             f = g if f is None else f & g
         t = self.tables.scan("rigs", filter=f, as_of=_as_of(as_of))
+        if t.num_rows:
+            t = t.filter(pa.array(self._heads_committed(t, as_of)))
         if t.num_rows < 2:
             return t
         return t.take(pa.compute.sort_indices(t.select(["committed", "version"]),
                                               [("committed", "ascending"), ("version", "ascending")]))
+
+    def _heads_committed(self, rigs: pa.Table, as_of) -> list[bool]:
+        """Per ``rigs`` row, whether every head version it lists has its catalog row."""
+        wanted = sorted({v for vs in rigs["head_versions"].to_pylist() for v in vs})
+        have = set(self.catalog(as_of=as_of, filter=ds.field("version").isin(wanted), sort=False)
+                   .column("version").to_pylist())
+        return [all(v in have for v in vs) for vs in rigs["head_versions"].to_pylist()]
 
     def rig_of(self, document: Mapping) -> dict | None:
         """The rig document of the rig version a head's calibration ``document`` belongs to (its
@@ -807,7 +884,7 @@ class Lake:
         """Cache an image's observations (one Delta append); returns the table's name.
 
         ``table`` is a field image's measurements (``schemas/measurements.arrow.json``) or a
-        goniometer frame's (:data:`fieldcal.goniometer.method.MEASUREMENT_SCHEMA`);
+        goniometer frame's (:data:`fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA`);
         the kind is told by the columns. Its schema metadata ``fieldcal.image_sha256``
         (the image's own hash) is kept.
         """

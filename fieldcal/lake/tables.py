@@ -45,9 +45,9 @@ import pyarrow as pa
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake.parts import reason
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["Tables", "Problem", "TABLES", "table_schema", "PARTITIONS", "DEFAULT_MAINTAIN_EVERY"]
 
@@ -104,7 +104,7 @@ def _plain(schema: pa.Schema) -> list[pa.Field]:
 
 def goniometer_spot_schema() -> pa.Schema:
     """The columns of a goniometer frame's measurement (``fieldcal.goniometer``)."""
-    from fieldcal.goniometer.schema import MEASUREMENT_SCHEMA
+    from fieldcal.contract.goniometer_schema import MEASUREMENT_SCHEMA
 
     return MEASUREMENT_SCHEMA
 

@@ -28,7 +28,7 @@ machine; loading ~0.25 s after Numba's own start-up, 1-6 s there depending on th
 :func:`warm_up` compiles (or loads) them for uint8 and uint16 images; a Dask worker calls
 it when it starts (``flows.worker``) so no task pays for compilation. If Numba is missing
 or cannot compile on a platform, or the environment sets ``FIELDCAL_NUMBA=0`` (the
-package's one switch, :mod:`fieldcal.solver.compiled`), :func:`available` says so in one
+package's one switch, :mod:`fieldcal.contract.compiled`), :func:`available` says so in one
 logged line (:func:`problem`) and the detector uses the NumPy reference. ``make`` fills
 the cache once after installing (:mod:`fieldcal.precompile`).
 """
@@ -879,7 +879,7 @@ def warm_up() -> bool:
     per process before the first image (a Dask worker does, ``flows.worker``). Returns
     :func:`available`.
     """
-    from fieldcal.solver import compiled
+    from fieldcal.contract import compiled
 
     if numba is None:
         return _fail(_IMPORT_PROBLEM)

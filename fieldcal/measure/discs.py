@@ -12,7 +12,9 @@ full-image labelling is made (figures for a 8208 x 6280 frame: bench/README_extr
    morphological black (white) top-hat, with a square wider than the largest disc,
    removes the background; samples more than a few noise sigmas above it are grouped
    into connected components, one per candidate; top-hat-weighted moments give a first
-   position and size.
+   position and size. A component too large for a disc (a disc joined to shading, a
+   shadow, clutter or, for a ringed target's dot, its ring's segments) is thresholded
+   again within itself, higher, until its discs stand alone (``_split``).
 2. **Windows** (per candidate). A square window around each candidate, sized from its
    coarse extent, is cut out; same-size windows are stacked and measured together
    (vectorised over windows, no loop per target or per pixel) by the NumPy reference
@@ -152,17 +154,12 @@ class _Candidates:
     extent: np.ndarray   # (n,) upper bound of the blob's extent [px]
 
 
-def _component_sums(hat, thr, base):
-    """The 8-connected components of ``hat > thr`` (OpenCV) and their top-hat-weighted sums
+def _sums(hat, idx, lab, m, base):
+    """Top-hat-weighted sums of the samples ``idx`` (flat indices) of components ``lab`` (0..m-1):
     ``sum w, sum w c, sum w r, sum w^2``, then about the weighted mean ``sum w dc dc,
     sum w dr dr, sum w dc dr`` (``w = hat - base``; c column, r row); each (m,)."""
-    binary = (hat > thr).view(np.uint8)
-    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
-    idx = np.flatnonzero(binary)
-    lab = labels.ravel()[idx] - 1
     hv = hat.ravel()[idx].astype(np.float64) - base
     r, c = np.divmod(idx, hat.shape[1])
-    m = n - 1
 
     def total(w):
         return np.bincount(lab, weights=w, minlength=m)
@@ -172,6 +169,85 @@ def _component_sums(hat, thr, base):
         sc, sr = total(hv * c), total(hv * r)
         dc, dr = c - (sc / sh)[lab], r - (sr / sh)[lab]
         return sh, sc, sr, total(hv * hv), total(hv * dc * dc), total(hv * dr * dr), total(hv * dc * dr)
+
+
+def _component_sums(hat, thr, base):
+    """The 8-connected components of ``hat > thr`` (OpenCV) and their sums (:func:`_sums`)."""
+    binary = (hat > thr).view(np.uint8)
+    n, labels = cv2.connectedComponents(binary, connectivity=8, ltype=cv2.CV_32S)
+    idx = np.flatnonzero(binary)
+    return _sums(hat, idx, labels.ravel()[idx] - 1, n - 1, base)
+
+
+def _moments(sums, step, off):
+    """Position, extent and span [px] of components from their sums (:func:`_component_sums`)."""
+    sh, sc, sr, shh, scc, srr, scr = sums
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mc, mr = sc / sh, sr / sh
+        vcc, vrr, vcr = scc / sh, srr / sh, scr / sh
+        peak = shh / sh
+        # samples' worth of full contrast -> the area, and the diameter of a disc of that area
+        d_est = 2.0 * step * np.sqrt(sh / peak / math.pi)
+        # extent along the longest axis: 4 sigma (a disc's diameter; 1.15 x a bar's length)
+        lam = 0.5 * (vcc + vrr) + np.sqrt(0.25 * (vcc - vrr) ** 2 + vcr**2)
+        span = 4.0 * step * np.sqrt(lam)
+    u, v = off + step * mc, off + step * mr
+    extent = np.maximum(1.1 * d_est, span + 2.0)
+    return u, v, extent, span
+
+
+MAX_SPLIT_LEVELS = 8
+"""How many times the candidate threshold is doubled to split a component too large for a disc."""
+SPLIT_RISE = 1.5
+"""A part found by splitting is a candidate when it rises well above the level it was cut at
+(its hat-weighted mean height at least this times the level's height): a disc does, by its
+contrast; a fragment of a line or an edge cut near its own crest does not."""
+
+
+def _split(hat, thr, base, step, off, max_span_px):
+    """Candidates inside the components of ``hat > thr`` too large for a disc.
+
+    A disc whose top-hat touches shading, a shadow's edge, clutter or (the dot of a ringed
+    target, e.g. PhotoModeler's coded targets) its ring's segments through a gap a little
+    darker than the paper joins them in one component above the first threshold, too
+    large to be kept. Where the image's noise is at the estimator's floor (a JPEG's flat
+    areas: 0.3 DN) that threshold is a few DN, and many discs of a shaded sheet are lost
+    so. Such components are thresholded again at twice the height above ``base``
+    (``thr' = base + 2 (thr - base)``) within their own samples, and again within the parts
+    still too large, up to :data:`MAX_SPLIT_LEVELS` times; every part of a disc's size
+    found on the way that rises above its level (:data:`SPLIT_RISE`) is a candidate (each
+    sample is in at most one; the window stage measures it and its filters decide).
+    Returns ``(u, v, extent)`` [px].
+    """
+    max_area = 0.5 * math.pi * (max_span_px / step) ** 2      # twice the largest disc's [samples]
+    binary = hat > thr
+    found = []
+    level = float(thr)
+    top = float(hat.max())
+    for k in range(MAX_SPLIT_LEVELS + 1):
+        n, labels = cv2.connectedComponents(binary.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        idx = np.flatnonzero(binary)
+        lab = labels.ravel()[idx] - 1
+        # a component of more than twice the largest disc's area is too large without its
+        # moments (the shaded floor beside a sheet); the moments of the others
+        huge = np.bincount(lab, minlength=n - 1) > max_area
+        sel = ~huge[lab]
+        sums = _sums(hat, idx[sel], lab[sel], n - 1, base)
+        u, v, extent, span = _moments(sums, step, off)
+        big = huge | ~(span <= max_span_px)
+        if k:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                height = sums[3] / sums[0]                  # hat-weighted mean height above base
+            ok = ~big & np.isfinite(u) & np.isfinite(v) & (height >= SPLIT_RISE * (level - base))
+            found.append((u[ok], v[ok], extent[ok]))
+        level = base + 2.0 * (level - base)
+        if not big.any() or level >= top:
+            break
+        in_big = np.concatenate([[False], big])
+        binary = (hat > int(math.ceil(level))) & in_big[labels]
+    if not found:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    return tuple(np.concatenate(c) for c in zip(*found, strict=True))
 
 
 def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contrast_dn, engine="numpy"):
@@ -195,23 +271,17 @@ def _coarse_candidates(img, step, max_diameter_px, threshold_dn, sign, min_contr
     thr = int(min(math.ceil(base + max(threshold_dn, 0.5 * min_contrast_dn)),
                   np.iinfo(img.dtype).max))
     if engine == "numba":
-        sums = disc_kernel.component_sums(hat, thr, base)
-        sh, sc, sr, shh, scc, srr, scr = sums.T
+        sums = tuple(disc_kernel.component_sums(hat, thr, base).T)
     else:
-        sh, sc, sr, shh, scc, srr, scr = _component_sums(hat, thr, base)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mc, mr = sc / sh, sr / sh
-        vcc, vrr, vcr = scc / sh, srr / sh, scr / sh
-        peak = shh / sh
-        # samples' worth of full contrast -> the area, and the diameter of a disc of that area
-        d_est = 2.0 * step * np.sqrt(sh / peak / math.pi)
-        # extent along the longest axis: 4 sigma (a disc's diameter; 1.15 x a bar's length)
-        lam = 0.5 * (vcc + vrr) + np.sqrt(0.25 * (vcc - vrr) ** 2 + vcr**2)
-        span = 4.0 * step * np.sqrt(lam)
-    u, v = off + step * mc, off + step * mr
-    extent = np.maximum(1.1 * d_est, span + 2.0)
-    keep = (span <= max_diameter_px + 2 * step) & np.isfinite(u) & np.isfinite(v)
+        sums = _component_sums(hat, thr, base)
+    u, v, extent, span = _moments(sums, step, off)
+    max_span = max_diameter_px + 2 * step
+    keep = (span <= max_span) & np.isfinite(u) & np.isfinite(v)
     cand = _Candidates(u[keep], v[keep], extent[keep])
+    if np.any(span > max_span):                 # only then: a frame of separate discs costs nothing more
+        su, sv, sext = _split(hat, thr, base, step, off, max_span)
+        cand = _Candidates(np.concatenate([cand.u, su]), np.concatenate([cand.v, sv]),
+                           np.concatenate([cand.extent, sext]))
     return cand, min_contrast_dn
 
 

@@ -9,7 +9,7 @@ The pixel array is returned in its stored unsigned dtype (no float copy of a 100
 image is made here); measurement code converts small windows as it needs them.
 
 **One pass per image.** The lake's observation cache and the inputs' fingerprint are keyed
-by the SHA-256 of each image file's bytes (:mod:`fieldcal.session.fingerprint`). Hashing
+by the SHA-256 of each image file's bytes (:mod:`fieldcal.contract.fingerprint`). Hashing
 the file and then decoding it would read a 100 MB file twice; :func:`read_file` reads it
 once into memory and hashes those bytes as they arrive, and :func:`read_image` decodes
 from them (an :class:`ImageFile` is accepted wherever a path is). An uncompressed image
@@ -111,7 +111,7 @@ class ImageFile:
         The file's content.
     sha256 : str
         SHA-256 of ``data``, 64 lower-case hex digits (as
-        :func:`fieldcal.session.fingerprint.sha256_file` gives for the file).
+        :func:`fieldcal.contract.fingerprint.sha256_file` gives for the file).
     stamp : (int, int, int, int, int) or None
         :func:`stat_stamp` of the open file before it was read, so a cache of hashes can
         tell whether the file was rewritten since (None: not a local file).

@@ -16,8 +16,8 @@ import math
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["empty_measurements", "measurements_table", "apriori_sigma", "SIGMA_FLOOR_PX"]
 

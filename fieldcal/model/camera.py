@@ -5,6 +5,9 @@ Frames
 - pixel ``(u, v)``: u right (column), v down (row), centre of the top-left pixel at (0, 0).
 - image plane ``(x, y)`` [mm]: origin at the sensor centre, x right, y **up**;
   ``x = (u - (W-1)/2) d``, ``y = -(v - (H-1)/2) d`` with ``d = pixel_size_um / 1000``.
+- the principal point in pixels: ``u0 = (W-1)/2 + xp/d``, ``v0 = (H-1)/2 - yp/d``
+  (:func:`principal_point_px`, :attr:`Camera.principal_point_px`; the inverse
+  :func:`principal_point_mm`).
 - ideal image point ``q`` [mm]: the measured point corrected for distortion, relative to
   the principal point, ``q = (xb + dx, yb + dy)`` with ``xb = x - xp``, ``yb = y - yp``;
   it obeys the collinearity equations ``q = -f (Xc, Yc) / Zc`` for the point
@@ -101,6 +104,45 @@ class Sensor:
                 "pixel_size_um": float(self.pixel_size_um)}
 
 
+def principal_point_px(sensor: Sensor, xp_mm, yp_mm) -> np.ndarray:
+    """The principal point in pixel coordinates: ``(u0, v0) = ((W-1)/2 + xp/d, (H-1)/2 - yp/d)``.
+
+    Parameters
+    ----------
+    sensor : Sensor
+        The pixel grid (``W x H``, pitch ``d`` [mm]).
+    xp_mm, yp_mm : float or array_like
+        The principal point [mm] in the image plane (docs/conventions.md section 1: from the
+        sensor centre, x right, y up).
+
+    Returns
+    -------
+    (..., 2) ndarray
+        ``(u0, v0)`` [px]: column right, row down (:meth:`Sensor.mm_to_pixel` of the point).
+    """
+    return sensor.mm_to_pixel(np.stack(np.broadcast_arrays(np.asarray(xp_mm, dtype=float),
+                                                            np.asarray(yp_mm, dtype=float)), axis=-1))
+
+
+def principal_point_mm(sensor: Sensor, u0_px, v0_px) -> np.ndarray:
+    """The inverse of :func:`principal_point_px`: ``(xp, yp) = ((u0 - (W-1)/2) d, -(v0 - (H-1)/2) d)``.
+
+    Parameters
+    ----------
+    sensor : Sensor
+        The pixel grid (``W x H``, pitch ``d`` [mm]).
+    u0_px, v0_px : float or array_like
+        The principal point [px] (e.g. ``cx, cy`` of an OpenCV camera matrix).
+
+    Returns
+    -------
+    (..., 2) ndarray
+        ``(xp, yp)`` [mm] (:meth:`Sensor.pixel_to_mm` of the point).
+    """
+    return sensor.pixel_to_mm(np.stack(np.broadcast_arrays(np.asarray(u0_px, dtype=float),
+                                                            np.asarray(v0_px, dtype=float)), axis=-1))
+
+
 def params_from_dict(values: dict) -> np.ndarray:
     """A length-13 parameter vector from a mapping of names (missing names are 0)."""
     unknown = set(values) - set(PARAM_NAMES)
@@ -134,6 +176,11 @@ class Camera:
     @property
     def f_mm(self) -> float:
         return float(self.params[F])
+
+    @property
+    def principal_point_px(self) -> np.ndarray:
+        """``(u0, v0)`` [px], the principal point in pixel coordinates (:func:`principal_point_px`)."""
+        return principal_point_px(self.sensor, self.params[XP], self.params[YP])
 
     def to_dict(self) -> dict:
         return params_to_dict(self.params)

@@ -24,17 +24,9 @@ def opencv_camera_matrix(camera: Camera) -> np.ndarray:
     ``fx = fy = f/d``, ``cx = (W-1)/2 + xp/d``, ``cy = (H-1)/2 - yp/d`` (docs/conventions.md section 1).
     Use it with :func:`ideal_pixels` and no distortion coefficients.
     """
-    s = camera.sensor
-    d = s.pixel_mm
-    xp, yp = camera.params[1], camera.params[2]
-    fx = camera.f_mm / d
-    return np.array(
-        [
-            [fx, 0.0, (s.width_px - 1) / 2.0 + xp / d],
-            [0.0, fx, (s.height_px - 1) / 2.0 - yp / d],
-            [0.0, 0.0, 1.0],
-        ]
-    )
+    fx = camera.f_mm / camera.sensor.pixel_mm
+    cx, cy = camera.principal_point_px
+    return np.array([[fx, 0.0, cx], [0.0, fx, cy], [0.0, 0.0, 1.0]])
 
 
 def ideal_pixels(uv_px, camera: Camera) -> np.ndarray:

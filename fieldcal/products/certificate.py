@@ -30,7 +30,7 @@ certificate (identity, conditions, traceability, uncertainty with its coverage f
    instrument, its date and accuracy; the procedure and its reference) and the
    environmental conditions;
 8. the change since the previous calibration of the same camera in the lake, with its
-   significance (:func:`fieldcal.products.compare.compare_calibrations`);
+   significance (:func:`fieldcal.analysis.compare.compare_calibrations`);
 9. acceptance: each criterion with its threshold, the value and PASS / FAIL / not assessed,
    the verdict (PASS when nothing fails) and the signatures.
 
@@ -97,12 +97,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.analysis.compare import compare_calibrations
+from fieldcal.analysis.uncertainty import Calibration, uncertainty_map
 from fieldcal.errors import InputError, LakeError
 from fieldcal.products import certificate_sections as sections
 from fieldcal.products import content
 from fieldcal.products.certificate_sections import COVERAGE_FACTOR
-from fieldcal.products.compare import compare_calibrations
-from fieldcal.products.uncertainty import Calibration, uncertainty_map
 
 __all__ = ["DEFAULT_CONFIG", "REQUIRED", "COVERAGE_FACTOR", "FILES", "load_config", "missing_items",
            "acceptance", "certificate_html", "write_certificate", "check_outputs"]
@@ -301,7 +301,7 @@ def acceptance(cal: Calibration, residuals, config: dict, change=None) -> dict:
 def certificate_html(cal: Calibration, residuals, config: dict, *, change=None, previous_label=None,
                      issued: dt.datetime | None = None, rig: dict | None = None) -> str:
     """The certificate's HTML (module docstring); ``change`` a
-    :class:`fieldcal.products.compare.Comparison` with the previous calibration or None;
+    :class:`fieldcal.analysis.compare.Comparison` with the previous calibration or None;
     ``rig`` the rig document of the rig version this calibration is a head of, or None."""
     issued = issued or dt.datetime.now(dt.UTC)
     return sections.page(cal, residuals, config, acceptance(cal, residuals, config, change),

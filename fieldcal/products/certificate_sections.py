@@ -16,10 +16,10 @@ import math
 
 import numpy as np
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.model.camera import INDEX, PARAM_NAMES
 from fieldcal.products import content, plots
 from fieldcal.products import focal_length as fl
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["page", "UNITS", "COVERAGE_FACTOR", "focal_lengths"]
 
@@ -313,6 +313,8 @@ def _adjustment(cal: Calibration, residuals) -> list[str]:
                      f'<td class="num">{E(fig)}</td>']]),
             *([f'<p id="eccentricity">{E(ecc[0].upper() + ecc[1:])}.</p>']
               if (ecc := content.eccentricity_text(cal)) else []),
+            *([f'<p id="board">{E(board[0].upper() + board[1:])}.</p>']
+              if (board := content.board_text(cal)) else []),
             _coverage(cal, residuals)]
 
 

@@ -1,6 +1,6 @@
 r"""The numbers a calibration report and a certificate show, as plain rows.
 
-Computed from a :class:`fieldcal.products.uncertainty.Calibration` (the document, its
+Computed from a :class:`fieldcal.analysis.uncertainty.Calibration` (the document, its
 covariance and arrays) and the version's residual table; :mod:`fieldcal.products.report`
 and :mod:`fieldcal.products.certificate` only lay them out.
 
@@ -9,7 +9,7 @@ and :mod:`fieldcal.products.certificate` only lay them out.
   ``u0 = (W - 1)/2 + xp / d``, ``v0 = (H - 1)/2 - yp / d`` (docs/conventions.md).
 - :func:`distortion_table`: the radial distortion and the decentering profile at field
   angles or radii, with 1-sigma from the covariance
-  (:func:`fieldcal.products.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
+  (:func:`fieldcal.analysis.uncertainty.radial_curve`, ``decentering_curve``). Tabulated as
   *distortion*, ``Delta r = -dr`` (measured minus ideal radius, positive away from the
   principal point), the sign of USGS calibration reports; the model's correction ``dr`` is
   its negative (docs/conventions.md section 2).
@@ -35,12 +35,13 @@ import math
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.uncertainty import Calibration, decentering_curve, radial_curve
 from fieldcal.model.camera import INDEX
-from fieldcal.products.uncertainty import Calibration, decentering_curve, radial_curve
 
 __all__ = ["MODEL_EQUATIONS", "METHOD_NAMES", "interior_rows", "distortion_table", "field_angles_deg",
            "radii_mm", "adjustment_figures", "coverage", "data_radius_mm", "previous_version",
-           "check_points", "parse_time", "residual_format", "sig", "rig_rows", "eccentricity_text"]
+           "check_points", "parse_time", "residual_format", "sig", "rig_rows", "eccentricity_text",
+           "board_text", "BOARD_MODEL_TEXT"]
 
 MODEL_EQUATIONS = """\
 xb = x' - xp        yb = y' - yp        r^2 = xb^2 + yb^2
@@ -74,6 +75,7 @@ def interior_rows(cal: Calibration) -> list[dict]:
     p = cal.camera.params
     f, xp, yp = (float(p[INDEX[n]]) for n in ("f_mm", "xp_mm", "yp_mm"))
     sf, sx, sy = (_sigma(cal, n) for n in ("f_mm", "xp_mm", "yp_mm"))
+    u0, v0 = cal.camera.principal_point_px
 
     def px(v):
         return None if v is None else v / d
@@ -85,9 +87,9 @@ def interior_rows(cal: Calibration) -> list[dict]:
         {"name": "principal point yp", "mm": yp, "sigma_mm": sy, "px": yp / d, "sigma_px": px(sy),
          "note": "from the sensor centre, y up"},
         {"name": "principal point u0", "mm": None, "sigma_mm": None,
-         "px": (s.width_px - 1) / 2 + xp / d, "sigma_px": px(sx), "note": "pixel column"},
+         "px": float(u0), "sigma_px": px(sx), "note": "pixel column"},
         {"name": "principal point v0", "mm": None, "sigma_mm": None,
-         "px": (s.height_px - 1) / 2 - yp / d, "sigma_px": px(sy), "note": "pixel row (down)"},
+         "px": float(v0), "sigma_px": px(sy), "note": "pixel row (down)"},
     ]
 
 
@@ -260,6 +262,31 @@ def eccentricity_text(cal: Calibration) -> str | None:
     elif isinstance(ecc.get("bias_bound"), dict) and ecc["bias_bound"].get("f_mm") is not None:
         text += (f"; discs of undetermined normal (eccentricity up to {sig(bound)} px) not corrected: the bias "
                  f"they can cause, up to {sig(1000 * ecc['bias_bound']['f_mm'])} µm in f, is in the sigmas")
+    return text
+
+
+BOARD_MODEL_TEXT = {
+    "warp": "the board's nominal coordinates held fixed up to a low-order warp estimated in the adjustment",
+    "rigid": "the board's nominal coordinates held fixed (a rigid, flat board)",
+    "points": "every board point adjusted, its nominal coordinates weighted by their sigma",
+}
+"""How each board model (:mod:`fieldcal.field.board`) is named in the report and certificate."""
+
+
+def board_text(cal: Calibration) -> str | None:
+    """One sentence on a planar board's model (docs/uncertainty.md section 2c) and, for the warp
+    model, its fitted shape with sigmas; None when the field is not a planar board."""
+    b = (cal.document.get("stats") or {}).get("board")
+    if cal.method != "field" or not isinstance(b, dict) or b.get("model") not in BOARD_MODEL_TEXT:
+        return None
+    text = f"planar board, board model '{b['model']}': {BOARD_MODEL_TEXT[b['model']]}"
+    c, s = b.get("coefficients_mm") or {}, b.get("sigma_mm") or {}
+    if b["model"] == "warp" and c:
+        terms = {"warp_uu_mm": "bow along the first axis", "warp_vv_mm": "bow along the second axis",
+                 "warp_uv_mm": "twist"}
+        shape = "; ".join(f"{terms.get(k, k)} {sig(1000 * v)} ± {sig(1000 * s.get(k, float('nan')), 2)} µm"
+                          for k, v in c.items())
+        text += f" ({shape}; peak to valley over the targets {sig(1000 * b.get('peak_to_valley_mm', float('nan')))} µm)"
     return text
 
 

@@ -33,11 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, check_level, judge
 from fieldcal.errors import InputError
 from fieldcal.lake import order
 from fieldcal.products import status
 from fieldcal.products.certificate import load_config
-from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, check_level, judge
 from fieldcal.products.svgplot import series_plot
 
 __all__ = ["CameraState", "fleet_state", "write_dashboard", "COLUMNS"]

@@ -64,9 +64,9 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import ConvergenceError, InputError
 from fieldcal.model.camera import Camera
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["EXACT_PX", "OPENCV_MODELS", "FORMATS", "ModelFit", "normalised_rays",
            "opencv_project", "opencv_jacobian", "metashape_project", "fit_opencv", "fit_metashape",
@@ -333,7 +333,7 @@ def _fit_opencv_model(camera: Camera, model: str, start: ModelFit | None = None)
     uv = _fit_grid(camera)
     n = normalised_rays(camera, uv)
     f_px = camera.f_mm / s.pixel_mm
-    c0 = s.mm_to_pixel(camera.params[1:3])
+    c0 = camera.principal_point_px
 
     def unpack(x):
         K = np.array([[x[0], 0.0, x[2]], [0.0, x[1], x[3]], [0.0, 0.0, 1.0]])
@@ -412,7 +412,7 @@ def fit_metashape(camera: Camera) -> ModelFit:
     uv = _fit_grid(camera)
     n = normalised_rays(camera, uv)
     f_px = camera.f_mm / s.pixel_mm
-    c0 = s.mm_to_pixel(camera.params[1:3])
+    c0 = camera.principal_point_px
     names = METASHAPE_PARAMS
 
     def project(nn, x):

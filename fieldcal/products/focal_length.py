@@ -35,7 +35,7 @@ terms. Positive distortion: the image lies farther from the principal point than
 pinhole image of focal length ``c`` (the sign of the USGS reports).
 
 Standard uncertainties are propagated to first order from the interior covariance
-(:class:`fieldcal.products.uncertainty.Calibration`) through central differences of each
+(:class:`fieldcal.analysis.uncertainty.Calibration`) through central differences of each
 figure with respect to the estimated parameters.
 """
 
@@ -45,8 +45,8 @@ import math
 
 import numpy as np
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.model.camera import INDEX, distort
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["BALANCE_ANGLES", "DIAGONALS", "effective_focal", "balanced_focal", "semi_diagonal_table",
            "distortion_relative", "diagonal_directions"]

@@ -5,8 +5,8 @@ state, safe in threads and servers); :func:`to_png` renders one to PNG bytes. Pi
 coordinates follow docs/conventions.md section 1 (u right, v down: sensor plots have v increasing
 downwards); image-plane quantities are in mm or um as their labels say.
 
-The numbers drawn come from :mod:`fieldcal.products.uncertainty` (propagated uncertainty and
-distortion curves), :mod:`fieldcal.products.compare` (comparison maps) and the lake's tables; this
+The numbers drawn come from :mod:`fieldcal.analysis.uncertainty` (propagated uncertainty and
+distortion curves), :mod:`fieldcal.analysis.compare` (comparison maps) and the lake's tables; this
 module only draws.
 """
 
@@ -18,9 +18,9 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from fieldcal.analysis.uncertainty import Calibration, decentering_curve, radial_curve, uncertainty_map
 from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
-from fieldcal.products.uncertainty import Calibration, decentering_curve, radial_curve, uncertainty_map
 
 __all__ = ["to_png", "to_svg", "certificate_distortion", "residual_vectors", "residuals_per_image", "stations_3d",
            "distortion_curves", "uncertainty_figure", "correlation_figure",
@@ -336,7 +336,7 @@ def uncertainty_figure(calibration: Calibration, *, grid: tuple[int, int] = (41,
 
     Left: propagated from the interior covariance as it is; right: without the part a
     common rotation of the camera frame absorbs (the calibration's shape uncertainty,
-    :func:`fieldcal.products.uncertainty.uncertainty_map`). The measured points (a seeded subset)
+    :func:`fieldcal.analysis.uncertainty.uncertainty_map`). The measured points (a seeded subset)
     are dotted on both, so thin data show where the uncertainty grows. The colour scale is
     logarithmic when the map spans more than a factor of 20.
     """
@@ -450,7 +450,7 @@ def compare_figure(comparison, sensor: Sensor) -> Figure:
 
     Left: ``|d|`` where the same ray lands in both [px] with the vectors ``d`` (magnified);
     middle: the 1-sigma that the two uncertainties explain; right: their ratio. The title
-    gives the test and the verdict (:class:`fieldcal.products.compare.Comparison`).
+    gives the test and the verdict (:class:`fieldcal.analysis.compare.Comparison`).
     """
     import textwrap
 

@@ -16,7 +16,7 @@ as ``<out>/<name>.png``. The report holds:
   (magnified, with the scale), mean residuals per image (the field paper's Fig. 5), camera
   stations and the target field in 3D (its Fig. 6); both methods -- radial and
   decentering distortion curves with their uncertainty bands, the projection-uncertainty
-  map (:mod:`fieldcal.products.uncertainty`), the correlation matrix; goniometer method -- the
+  map (:mod:`fieldcal.analysis.uncertainty`), the correlation matrix; goniometer method -- the
   distortion along each swept axis before and after the fit (the lab paper's Figs. 4-7).
 
 :func:`fleet_summary` gives every camera's latest calibration against its previous one (the
@@ -37,12 +37,12 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.analysis.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, check_level, compare_calibrations, judge
+from fieldcal.analysis.uncertainty import Calibration, uncertainty_map
 from fieldcal.errors import InputError, LakeError
 from fieldcal.model.camera import INDEX, PARAM_NAMES, correction
 from fieldcal.products import content, plots
 from fieldcal.products import report_sections as sections
-from fieldcal.products.compare import DEFAULT_ALPHA, DEFAULT_TOLERANCE_UM, check_level, compare_calibrations, judge
-from fieldcal.products.uncertainty import Calibration, uncertainty_map
 
 __all__ = ["FIELD_FIGURES", "GONIOMETER_FIGURES", "UNITS", "ReportFiles", "parameter_rows",
            "inputs_summary", "goniometer_axis_table", "image_table", "build_figures",
@@ -60,7 +60,7 @@ SIGNIFICANCE_SIGMAS = 3.0
 COVARIANCE_SOURCES = {"covariance": "propagated from the version's stored covariance of the parameters",
                       "sigmas": "from the parameters' sigmas only: this version stores no covariance, "
                                 "so their correlations are unknown"}
-"""How the report names :attr:`fieldcal.products.uncertainty.Calibration.covariance_source`."""
+"""How the report names :attr:`fieldcal.analysis.uncertainty.Calibration.covariance_source`."""
 METHOD_SETS = {"field": ("f_mm", "xp_mm", "yp_mm", "k1", "k2", "k3", "p1", "p2", "a1", "a2"),
                "goniometer": ("f_mm", "xp_mm", "yp_mm", "k0", "k1", "k2", "k3", "p1", "p2",
                               "b1", "b2")}
@@ -184,6 +184,8 @@ def inputs_summary(cal: Calibration, residuals: pa.Table) -> dict:
                        if st.get("targets_adjusted") else "surveyed target coordinates held fixed")
         if (ecc := content.eccentricity_text(cal)) is not None:
             went_in.append(ecc)
+        if (board := content.board_text(cal)) is not None:
+            went_in.append(board)
         detailed = st.get("left_out") if isinstance(st.get("left_out"), list) else None
         named = set()
         for item in detailed or []:
@@ -662,11 +664,11 @@ FLEET_SCHEMA = pa.schema([
 ``sensor``, or ``axes`` when a goniometer calibration is involved) and in both units of the
 same numbers; ``chi2, dof`` are the map test's, ``p_value`` the family's (Holm) and
 ``changed`` the quantities that changed significantly
-(:class:`fieldcal.products.compare.Comparison`)."""
+(:class:`fieldcal.analysis.compare.Comparison`)."""
 
 
 def _fleet_columns(record: dict, tolerance_um: float, alpha: float) -> dict:
-    """The fleet columns of a stored change test (:func:`fieldcal.products.compare.judge`)."""
+    """The fleet columns of a stored change test (:func:`fieldcal.analysis.compare.judge`)."""
     if "error" in record:
         return {"significant": False, "exceeds_tolerance": False, "flagged": False,
                 "verdict": f"cannot compare: {record['error']}"}

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.model.rotations import opk_from_R_world_to_camera
 from fieldcal.products import content
-from fieldcal.products.uncertainty import Calibration
 
 __all__ = ["interior_px", "model_equations", "exterior_table", "targets_section", "previous_section",
            "table", "validation_section", "rig_section"]

@@ -12,7 +12,7 @@ The two calibrations are independent sessions, so the covariance of a change is
 ``C = C_A + C_B`` (each document's covariance block of that head's rotation or lever arm),
 and ``Delta^T C^-1 Delta`` is chi-square with 3 degrees of freedom when nothing changed. The
 p-values of all heads' tests are combined by Holm's step-down procedure
-(:mod:`fieldcal.products.change`), which keeps the family-wise level ``alpha``. As for a
+(:mod:`fieldcal.analysis.change`), which keeps the family-wise level ``alpha``. As for a
 camera, the rig is ``significant`` when some Holm-adjusted p-value is below ``alpha``,
 ``exceeds_tolerance`` when some head's rotation change (its angle) exceeds
 ``tolerance_arcsec`` or its lever-arm change (its length) ``tolerance_mm``, and ``flagged``
@@ -24,9 +24,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import chdtrc
 
+from fieldcal.analysis.change import holm
 from fieldcal.errors import InputError
 from fieldcal.model.rotations import rotvec_from_R
-from fieldcal.products.change import holm
 
 __all__ = ["compare_rigs", "DEFAULT_TOLERANCE_ARCSEC", "DEFAULT_TOLERANCE_MM", "rig_comparison_text"]
 

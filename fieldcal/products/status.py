@@ -5,10 +5,10 @@ the dashboard (:mod:`fieldcal.products.dashboard`) show, so that they read it in
 computing it (a comparison needs both calibrations' documents and Zarr groups: 0.1-0.3 s
 each from a local lake, ~2.7 s from S3):
 
-- ``comparisons``: the change test (:func:`fieldcal.products.compare.compare_calibrations`)
+- ``comparisons``: the change test (:func:`fieldcal.analysis.compare.compare_calibrations`)
   of a version against the previous calibration of its camera, as its
-  :meth:`~fieldcal.products.compare.Comparison.record` (independent of the level and the
-  tolerance: :func:`fieldcal.products.compare.judge` gives the verdict at any). Keyed by the
+  :meth:`~fieldcal.analysis.compare.Comparison.record` (independent of the level and the
+  tolerance: :func:`fieldcal.analysis.compare.judge` gives the verdict at any). Keyed by the
   pair: "previous" follows :mod:`fieldcal.lake.order` (acquisition time, ties by commit
   order), and a commit out of order (a backfill) adds the pairs of its new neighbours; a
   reader picks the pair of the current order.
@@ -32,11 +32,11 @@ import json
 
 import numpy as np
 
+from fieldcal.analysis.compare import compare_calibrations
+from fieldcal.analysis.uncertainty import Calibration, radial_curve
 from fieldcal.errors import InputError, LakeError, one_line
 from fieldcal.lake import order
 from fieldcal.products.certificate import DEFAULT_CONFIG, acceptance
-from fieldcal.products.compare import compare_calibrations
-from fieldcal.products.uncertainty import Calibration, radial_curve
 
 __all__ = ["COMPARISON_TEST", "COMPARISON_SETTINGS", "RADII_FRACTIONS", "record_commit", "changes",
            "assessments", "assessment_settings", "assess", "fill"]

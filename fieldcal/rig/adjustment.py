@@ -74,8 +74,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from fieldcal.errors import GeometryError, InputError
-from fieldcal.field.adjustment import AdjustmentOptions, FieldResult, adjust_field, snooped, snooping_statistic
+from fieldcal.field.adjustment import (
+    UNPLACED,
+    AdjustmentOptions,
+    FieldResult,
+    adjust_field,
+    snooped,
+    snooping_statistic,
+    unsurveyed_account,
+)
 from fieldcal.field.bundle import BundleModel
+from fieldcal.field.datum import MIN_CONTROL_POINTS
 from fieldcal.field.variance_components import (
     MIN_GROUP_REDUNDANCY,
     WEIGHT_TOLERANCE,
@@ -227,6 +236,7 @@ class RigResult:
     iterations_total: int
     rounds: list = field(default_factory=list)
     variance_components: dict = field(default_factory=dict)
+    sigma_targets_m: np.ndarray | None = None
 
     def relative_names(self) -> list[str]:
         """Names of the relative-orientation parameters, as in ``covariance_names``."""
@@ -257,8 +267,18 @@ class RigResult:
                 "sigma0": float(self.sigma0), "iterations": int(self.lsq.iterations),
                 "iterations_total": int(self.iterations_total), "solver": self.options.method,
                 "targets_adjusted": bool(self.options.targets_adjusted),
-                "variance_components": self.variance_components,
+                "variance_components": self.variance_components, **self.unsurveyed_stats(),
                 "heads": {hd.camera_id: self.head_stats(h) for h, hd in enumerate(self.data.heads)}}
+
+    def unsurveyed_stats(self, h: int | None = None) -> dict:
+        """The account of the unsurveyed targets (as the single camera's
+        :meth:`~fieldcal.field.adjustment.FieldResult.unsurveyed_stats`) over every head's points in
+        use, or head ``h``'s: how many were estimated, the ids targets.csv does not list, each one's
+        adjusted coordinates and sigmas (``{}`` when every target is surveyed)."""
+        heads = range(self.data.n_heads) if h is None else [h]
+        observed = np.concatenate([self.data.head_data[g].obs.target[self.obs_used[g]] for g in heads])
+        return unsurveyed_account(self.data.targets, observed, self.data.meta.get("unlisted_targets", []),
+                                  self.state.targets_m, self.sigma_targets_m)
 
 
 _REL_COMPONENTS = ("rot_x", "rot_y", "rot_z", "t_x_m", "t_y_m", "t_z_m")
@@ -286,6 +306,10 @@ def initial_rig(data: RigData, options: RigOptions | None = None, *,
         except GeometryError as err:
             raise GeometryError(f"camera {data.heads[h].camera_id!r} cannot be calibrated alone for the rig's "
                                 f"initial values: {err}") from None
+        if res.datum.get("type") == "free network":
+            raise GeometryError(f"camera {data.heads[h].camera_id!r} alone sees too few surveyed targets to be "
+                                "placed in the survey's frame for the rig's initial values (its calibration alone is "
+                                "a free network)")
         if progress:
             progress(f"{data.heads[h].camera_id}: alone, rmse {res.stats()['rmse_px']:.3f} px, "
                      f"{len(keep_img)} of {len(d.images)} images")
@@ -324,6 +348,9 @@ def _start_from_solo(data: RigData, solo, R_img, C_img) -> RigStart:
         if todo.any():
             R_wr[todo], C_r[todo] = rig_pose_from_head(R_img[h, todo], C_img[h, todo], R_cr[h], t[h])
     X = solo[ref].targets_m.copy()
+    for h in range(n_h):            # unsurveyed targets: placed by the reference, else by the first head that did
+        todo = ~np.isfinite(X).all(axis=1)
+        X[todo] = solo[h].targets_m[todo]
     return RigStart(params=[s.params.copy() for s in solo], estimate=[tuple(s.estimate) for s in solo],
                     fixed_parameters=[dict(s.fixed_parameters) for s in solo], R_camera_to_rig=R_cr,
                     t_camera_in_rig_m=t, R_world_to_rig=R_wr, C_rig_m=C_r, targets_m=X, solo=list(solo))
@@ -372,7 +399,7 @@ class RigProblem:
         self.n_params = self.n_reduced + 3 * len(seen)
         self.X_base = start.targets_m.copy()
         self.sigma_m = data.targets.sigma_mm / 1000.0
-        self.survey_k = seen
+        self.survey_k = seen[data.targets.surveyed[seen]]          # unsurveyed targets: no survey row
         self.row_off = np.concatenate([[0], np.cumsum([m.n_rows_image for m in self.models])]).astype(np.int64)
         self.n_rows_image = int(self.row_off[-1])
         self.n_rows = self.n_rows_image + 3 * len(self.survey_k)
@@ -563,7 +590,12 @@ def adjust_rig(data: RigData, options: RigOptions | None = None, *,
         raise InputError(f"method must be 'lmqn' or 'lm', got {o.method!r}", "rig options")
     if o.estimate is not None and (bad := [p for p in o.estimate if p not in FIELD_PARAMS]):
         raise InputError(f"estimate names {bad}, not in the field method's set {list(FIELD_PARAMS)}", "rig options")
+    _check_unsurveyed(data, o)
+    _check_control(data, [np.ones(len(d.obs), bool) for d in data.head_data])
     start = start if start is not None else initial_rig(data, o, progress=progress)
+    placed = np.isfinite(start.targets_m).all(axis=1)
+    if not placed.all():            # unsurveyed targets no head placed alone: their points left out
+        start = replace(start, targets_m=np.where(placed[:, None], start.targets_m, 0.0))
     oriented = np.isfinite(start.C_rig_m).all(axis=1)
     counts = np.zeros(len(data.exposures), np.int64)
     for h, d in enumerate(data.head_data):
@@ -579,7 +611,31 @@ def adjust_rig(data: RigData, options: RigOptions | None = None, *,
         reason.append(np.where(exposure_used[data.image_exposure[h][d.obs.image]], "", LEFT_OUT).astype(object))
         if start.solo:
             reason[h][solo_bad & (reason[h] == "")] = "blunder"
+        lost = ~placed[d.obs.target] & (reason[h] == "")
+        active[h] &= ~lost
+        reason[h][lost] = UNPLACED
+    _check_control(data, active)
     return _iterate(data, o, start, active, reason, exposure_used, progress)
+
+
+def _check_unsurveyed(data: RigData, o: RigOptions) -> None:
+    """Unsurveyed targets are unknowns: they cannot be held fixed (as for one camera)."""
+    t = data.targets
+    observed = np.unique(np.concatenate([d.obs.target for d in data.head_data]))
+    uns = observed[~t.surveyed[observed]]
+    if len(uns) and not o.targets_adjusted:
+        raise InputError(f"{len(uns)} observed target(s) are unsurveyed (e.g. {str(t.ids[uns[0]])!r}); their "
+                         "coordinates must be adjusted: targets cannot be held fixed", "targets")
+
+
+def _check_control(data: RigData, active) -> None:
+    """The datum: the surveyed targets the rig's points see, weighted control (at least
+    :data:`~fieldcal.field.datum.MIN_CONTROL_POINTS`; a free network is the single camera's only)."""
+    seen = np.unique(np.concatenate([d.obs.target[a] for d, a in zip(data.head_data, active, strict=True)]))
+    n = int(data.targets.surveyed[seen].sum())
+    if n < MIN_CONTROL_POINTS:
+        raise GeometryError(f"the rig's points see {n} surveyed target(s): a rig needs at least "
+                            f"{MIN_CONTROL_POINTS} as its datum (a free network is supported for single cameras only)")
 
 
 def _solo_blunders(res: FieldResult, d) -> np.ndarray:
@@ -597,7 +653,7 @@ def _solo_blunders(res: FieldResult, d) -> np.ndarray:
 def _iterate(data, o: RigOptions, start, active, reason, exposure_used, progress) -> RigResult:
     """Solve, reject, readmit, re-weight until nothing changes (module docstring, steps 2-3b)."""
     state, tau, total, rounds = start, o.tau, 0, []
-    floors = np.zeros(data.n_heads)
+    floors, factor = np.zeros(data.n_heads), 1.0
     vc = {"rounds": 0}
     weighted = data
     for rnd in range(o.max_rounds):
@@ -624,15 +680,16 @@ def _iterate(data, o: RigOptions, start, active, reason, exposure_used, progress
         redundancy = _snoop(problem, result, active, reason, o)
         if redundancy is None:
             continue
-        new = _head_floors(data, problem, res_px, redundancy, floors, vc, o)
+        new = _components(data, problem, result, res_px, redundancy, floors, factor, vc, o)
         if new is None:
             break
-        floors = new
-        weighted = _reweighted(data, floors)
+        floors, factor = new
+        weighted = _reweighted(data, floors, factor)
         vc["rounds"] += 1
         if progress:
             progress("re-weighting the heads' image points: floors "
-                     + ", ".join(f"{hd.camera_id} {f:.3f} px" for hd, f in zip(data.heads, floors, strict=True)))
+                     + ", ".join(f"{hd.camera_id} {f:.3f} px" for hd, f in zip(data.heads, floors, strict=True))
+                     + f"; survey sigmas x {factor:.3g}")
     out = _result(data, o, problem, result, state, res_px, active, reason, exposure_used, total, rounds)
     out.variance_components = vc
     return out
@@ -678,14 +735,20 @@ def _snoop(problem: RigProblem, result, active, reason, o: RigOptions):
         rho = np.full(len(active[h]), np.nan)
         rho[m.k] = red[h]
         out.append(rho)
-    return None if any(w.any() for w in worst) else out
+    red_sur = np.zeros(0)
+    if problem.targets_adjusted and len(problem.survey_k):     # the survey block follows the heads'
+        red_sur = np.einsum("kii->k", np.eye(3) - ne.group_covariance(b))
+    return None if any(w.any() for w in worst) else (out, red_sur)
 
 
-def _head_floors(data, problem: RigProblem, res_px, redundancy, floors, vc: dict, o: RigOptions):
-    """Every head's image floor and factor at a clean solution (step 3b) into ``vc``; the new
-    floors when some weight moved by more than the tolerance (solve again), else None."""
+def _components(data, problem: RigProblem, result, res_px, redundancy, floors, survey_factor: float, vc: dict,
+                o: RigOptions):
+    """Every head's image floor and factor and the survey factor at a clean solution (step 3b)
+    into ``vc``; ``(floors, survey factor)`` when some weight moved by more than the tolerance
+    (solve again), else None."""
     if not (o.variance_components and o.targets_adjusted):
         return None
+    redundancy, red_sur = redundancy
     new = floors.copy()
     heads, change = {}, 0.0
     for h, (d, m) in enumerate(zip(data.head_data, problem.models, strict=True)):
@@ -699,14 +762,23 @@ def _head_floors(data, problem: RigProblem, res_px, redundancy, floors, vc: dict
                                           "image_factor": float(factor) if np.isfinite(factor) else None}
         change = max(change, weight_change(s0, floors[h], new[h]))
     vc["heads"] = heads
+    new_factor = survey_factor
+    if len(red_sur):                # the surveyed targets' factor, as the single camera's (step 4b)
+        rel = group_factor(result.r[problem.n_rows_image:problem.n_rows], red_sur)
+        new_factor = survey_factor * rel if np.isfinite(rel) else survey_factor
+        vc.update(survey_factor=float(survey_factor), survey_redundancy=float(np.sum(red_sur)),
+                  survey_factor_estimate=float(new_factor))
+        change = max(change, abs(new_factor / survey_factor - 1.0))
     if change <= WEIGHT_TOLERANCE or vc["rounds"] >= MAX_COMPONENT_ROUNDS:
         return None
-    return new
+    return new, new_factor
 
 
-def _reweighted(data: RigData, floors) -> RigData:
-    """``data`` with every head's image sigmas ``sqrt(sigma^2 + floor_h^2)``."""
-    heads = [d.with_obs(replace(d.obs, sigma_px=np.sqrt(d.obs.sigma_px**2 + f**2)))
+def _reweighted(data: RigData, floors, survey_factor: float = 1.0) -> RigData:
+    """``data`` with every head's image sigmas ``sqrt(sigma^2 + floor_h^2)`` and the survey sigmas
+    times ``survey_factor``."""
+    targets = replace(data.targets, sigma_mm=data.targets.sigma_mm * survey_factor)
+    heads = [replace(d.with_obs(replace(d.obs, sigma_px=np.sqrt(d.obs.sigma_px**2 + f**2))), targets=targets)
              for d, f in zip(data.head_data, floors, strict=True)]
     return replace(data, head_data=heads)
 
@@ -716,7 +788,8 @@ def _result(data, o, problem: RigProblem, result, state, res_px, active, reason,
     x = problem.rebase(result.x)
     _, J = problem.evaluate(x, True)
     try:
-        cov = J.normal_equations().covariance_reduced() * result.sigma0**2
+        ne = J.normal_equations()
+        cov = ne.covariance_reduced() * result.sigma0**2
     except SingularSystemError as err:
         raise GeometryError(f"the rig's covariance is singular: {err}") from None
     names = problem.column_names()
@@ -731,11 +804,17 @@ def _result(data, o, problem: RigProblem, result, state, res_px, active, reason,
         k = problem.rel_off[h]
         s_rot[h] = s[k:k + 3] * ARCSEC_PER_RAD
         s_t[h] = s[k + 3:k + 6] * 1000.0
+    sigma_X = None
     if o.targets_adjusted is False:
         state.targets_m = data.targets.xyz_m.copy()
+    else:
+        sigma_X = np.full((len(data.targets), 3), np.nan)      # NaN: not adjusted (no point in use sees it)
+        var = np.einsum("kii->ki", ne.covariance_elim_blocks())
+        sigma_X[problem.target_index] = np.sqrt(var) * result.sigma0
+        state.targets_m[~data.targets.surveyed & ~np.isin(np.arange(len(data.targets)), problem.target_index)] = np.nan
     return RigResult(data=data, options=o, state=state, sigma=sigma, sigma0=float(result.sigma0),
                      sigma_rotation_arcsec=s_rot, sigma_t_mm=s_t, covariance=cov, covariance_names=names,
                      residual_px=res_px, obs_used=[a.copy() for a in active],
                      obs_reason=[r.astype(str) for r in reason], exposure_used=exposure_used, lsq=result,
-                     iterations_total=total, rounds=rounds)
+                     iterations_total=total, rounds=rounds, sigma_targets_m=sigma_X)
 

@@ -1,7 +1,7 @@
 """A rig's data: its heads, its exposures, and per head the field data of its images
 (CONTRACT section 3, "Rig sessions").
 
-Every head's images are a :class:`fieldcal.field.data.FieldData` of their own (the head's
+Every head's images are a :class:`fieldcal.session.data.FieldData` of their own (the head's
 sensor, the session's shared targets, the head's observations), so a head can be calibrated
 alone exactly as a single camera is; ``image_exposure[h][i]`` names the exposure of image
 ``i`` of head ``h`` (an index into ``exposures``). A head has at most one image per exposure.
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import FieldData
 from fieldcal.model.camera import Sensor
+from fieldcal.session.data import FieldData
 
 __all__ = ["RigHead", "RigData"]
 

@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import validate_json
 from fieldcal.model.rotations import skew
 from fieldcal.rig.adjustment import ARCSEC_PER_RAD, RigResult
 from fieldcal.rig.poses import head_pose
 from fieldcal.session.document import calibration_document, utc_now_iso
-from fieldcal.session.schemas import validate_json
 
 __all__ = ["RIG_SCHEMA", "head_document", "head_arrays", "head_residual_table", "rig_document",
            "validate_rig_document", "relative_units", "document_names", "DOCUMENT_COMPONENTS"]
@@ -71,7 +71,8 @@ def head_document(res: RigResult, h: int, *, session_id: str, fingerprint: str, 
              "mean_abs_u_px": float(np.mean(np.abs(du[:, 0]))), "mean_abs_v_px": float(np.mean(np.abs(du[:, 1]))),
              "sigma0": float(res.sigma0), "iterations": int(res.lsq.iterations), "solver": res.options.method,
              "targets_adjusted": bool(res.options.targets_adjusted),
-             "fixed_parameters": dict(st.fixed_parameters[h]), "initial_values": "the head calibrated alone"}
+             "fixed_parameters": dict(st.fixed_parameters[h]), "initial_values": "the head calibrated alone",
+             **res.unsurveyed_stats(h)}
     role = "reference" if h == d.reference else "head"
     return calibration_document(
         camera_id=d.heads[h].camera_id, session_id=session_id, version="", method="field", sensor=hd.sensor,

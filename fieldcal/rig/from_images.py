@@ -34,13 +34,13 @@ import pyarrow as pa
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import MIN_POINTS_PER_IMAGE, AdjustmentOptions
-from fieldcal.field.data import FieldData, FieldObservations
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.field.identify import identify_images, measured_points
 from fieldcal.model.camera import Camera
 from fieldcal.rig.data import RigData
 from fieldcal.rig.poses import head_pose
 from fieldcal.rig.session import RigSession
+from fieldcal.session.data import FieldData, FieldObservations
 from fieldcal.session.loader import Session
 
 __all__ = ["head_session", "measure_rig_image", "rig_data_from_measurements", "REASON_FROM_RIG"]

@@ -9,7 +9,10 @@ each failure one :class:`~fieldcal.errors.InputError` naming the file and the JS
 - the manifest against ``schemas/session.schema.json`` (which holds the rig's shape);
 - head ids unique, the reference one of them, every image's ``camera`` a head of the rig;
 - a head has at most one image per exposure, every head and the reference at least one image;
-- paths as for one camera (:func:`fieldcal.session.loader.safe_path`, one photograph listed once).
+- paths as for one camera (:func:`fieldcal.session.loader.safe_path`, one photograph listed once);
+- no free network (``field.datum``) and no ``scale_bars.csv``: a rig's datum is its surveyed
+  targets (weighted control); unsurveyed targets (empty X, Y, Z, or ids targets.csv does not list
+  unless ``field.strict_targets``) are estimated as for one camera.
 
 The observations (``observations.csv``) name images as the manifest lists them; each point
 must lie on its own head's sensor.
@@ -24,13 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.contract.names import normal_file_name
+from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.model.camera import FIELD_PARAMS, Sensor
 from fieldcal.rig.data import RigData, RigHead
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, FieldObservations
 from fieldcal.session.loader import (
     MANIFEST,
     OBSERVATIONS,
+    SCALE_BARS,
     check_distinct_files,
     default_session_id,
     parse_acquired,
@@ -39,8 +45,7 @@ from fieldcal.session.loader import (
     read_targets_csv,
     safe_path,
 )
-from fieldcal.session.names import normal_file_name
-from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.store import SessionStore, is_url
 
 __all__ = ["RigSession", "load_rig_session", "rig_data_from_observations", "is_rig_session"]
 
@@ -75,11 +80,19 @@ class RigSession:
     target_diameter_mm: float | None = None
     target_polarity: str = "dark"
     coded: dict | None = None
+    strict_targets: bool = False
+    store: SessionStore | None = None
     _read: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def where(self) -> str:
         return str(self.folder / MANIFEST)
+
+    def read_image(self, name: str):
+        """An image of a session on an object store, read from the store (the bytes hashed as they
+        arrive, :meth:`fieldcal.session.store.SessionStore.read_image`); None for a local session
+        (its file is read where it is measured)."""
+        return self.store.read_image(name) if self.store is not None else None
 
     def targets(self):
         """targets.csv, read once (a fresh copy every call)."""
@@ -88,17 +101,36 @@ class RigSession:
         return copy.deepcopy(self._read["targets"])
 
 
-def is_rig_session(folder) -> bool:
+def is_rig_session(folder, storage_options: dict | None = None, resolve=None) -> bool:
     """Whether ``folder/session.json`` is a JSON object with a ``rig`` (False when unreadable:
-    the single-camera loader then reports what is wrong)."""
+    the single-camera loader then reports what is wrong); ``folder`` may be an fsspec URL
+    (``storage_options``: its store's; ``resolve``: as :class:`~fieldcal.session.store.SessionStore`'s,
+    e.g. :func:`fieldcal.lake.secrets.resolve`)."""
+    if is_url(str(folder)):
+        return _is_rig_on_store(str(folder), storage_options, resolve)
     try:
         return "rig" in read_manifest(Path(folder))
     except InputError:
         return False
 
 
-def load_rig_session(folder) -> RigSession:
-    """Read and validate a rig session (module docstring).
+def _is_rig_on_store(url: str, storage_options: dict | None, resolve) -> bool:
+    import json
+
+    import fsspec
+
+    options = resolve(storage_options) if resolve is not None else storage_options
+    try:
+        fs, path = fsspec.core.url_to_fs(f"{url.rstrip('/')}/{MANIFEST}", **(options or {}))
+        manifest = json.loads(fs.cat_file(path))
+    except Exception:  # noqa: BLE001 - unreadable: the single-camera loader says what is wrong
+        return False
+    return isinstance(manifest, dict) and "rig" in manifest
+
+
+def load_rig_session(folder, store: SessionStore | None = None) -> RigSession:
+    """Read and validate a rig session (module docstring); ``store``: the session is on an object
+    store and ``folder`` holds its small files (as :func:`fieldcal.session.loader.load_session`).
 
     Raises
     ------
@@ -133,8 +165,9 @@ def load_rig_session(folder) -> RigSession:
     targets_path = safe_path(folder, fld["targets"], "field.targets")
     if not targets_path.is_file():
         raise InputError(f"the targets file {fld['targets']!r} does not exist (at /field/targets)", where)
-    check_distinct_files(folder, [im.file for im in images], where)
+    check_distinct_files(folder, [im.file for im in images], where, store=store)
     obs_path = safe_path(folder, OBSERVATIONS, OBSERVATIONS)
+    _refuse_single_camera_only(folder, fld, where)
     return RigSession(
         folder=folder, manifest=manifest, rig_id=rig["rig_id"],
         session_id=default_session_id(manifest, folder),
@@ -144,7 +177,19 @@ def load_rig_session(folder) -> RigSession:
         estimate=tuple(estimate) if estimate is not None else None, targets_path=targets_path,
         observations_path=obs_path if obs_path.is_file() else None,
         target_diameter_mm=fld.get("target_diameter_mm"), target_polarity=fld.get("target_polarity", "dark"),
-        coded=fld.get("coded"))
+        coded=fld.get("coded"), strict_targets=bool(fld.get("strict_targets", False)), store=store)
+
+
+def _refuse_single_camera_only(folder: Path, fld: dict, where: str) -> None:
+    """Bad input (for now): what only the single camera's adjustment handles -- a free network
+    (``field.datum`` 'free') and scale bars (``scale_bars.csv``); a rig's datum is its surveyed
+    targets as weighted control (:func:`fieldcal.rig.adjustment.adjust_rig`)."""
+    if fld.get("datum", "auto") != "auto":
+        raise InputError(f"field.datum {shown(fld['datum'])} is for single cameras only: a rig's datum is its "
+                         "surveyed targets (at /field/datum)", where)
+    if safe_path(folder, SCALE_BARS, SCALE_BARS).is_file():
+        raise InputError("scale bars are supported for single cameras only: a rig's datum is its surveyed targets "
+                         f"(remove {SCALE_BARS} from the rig session)", str(folder / SCALE_BARS))
 
 
 def _heads(rig: dict, where: str) -> list[RigHead]:
@@ -196,13 +241,10 @@ def rig_data_from_observations(sess: RigSession) -> RigData:
         raise InputError("no observations.csv in the rig session", str(sess.folder))
     targets = sess.targets()
     images = list(sess.images)
+    unlisted = None if sess.strict_targets else []      # ids targets.csv does not list: unsurveyed, as for one camera
     obs = read_observations_csv(sess.observations_path, targets, images, default_sigma_px=sess.default_sigma_px,
-                                allow_new_images=False)
-    unsurveyed = ~targets.surveyed[np.unique(obs.target)]
-    if unsurveyed.any():
-        first = str(targets.ids[np.unique(obs.target)][unsurveyed][0])
-        raise InputError(f"target {first!r} is unsurveyed (empty X, Y, Z): a rig session needs surveyed "
-                         "targets (unsurveyed ones are supported in single-camera sessions)", str(sess.targets_path))
+                                allow_new_images=False, unlisted=unlisted)
+    targets = targets.with_unsurveyed(unlisted or [])
     head_data, head_exp = [], []
     for h, head in enumerate(sess.heads):
         idx = np.flatnonzero(sess.image_head == h)
@@ -222,5 +264,6 @@ def rig_data_from_observations(sess: RigSession) -> RigData:
                                    nominal_focal_mm=head.nominal_focal_mm, default_sigma_px=sess.default_sigma_px,
                                    meta={"camera_id": head.camera_id, "session_id": sess.session_id}))
         head_exp.append(sess.image_exposure[idx])
+    meta = {"session_id": sess.session_id, **({"unlisted_targets": list(unlisted)} if unlisted else {})}
     return RigData(sess.rig_id, list(sess.heads), sess.reference, list(sess.exposures), head_data, head_exp,
-                   meta={"session_id": sess.session_id})
+                   meta=meta)

@@ -1,3 +1,4 @@
-"""Sessions on disk (docs/conventions.md section 3): loading and validation, schemas, the
-calibration document (section 4) and the fingerprint of a session's inputs.
+"""Sessions on disk (docs/conventions.md section 3): the session's input types, loading and
+validation, its tables and the calibration document (section 4). The schemas, names and
+fingerprint they follow are the contract's (:mod:`fieldcal.contract`).
 """

@@ -9,7 +9,7 @@ columns, unique ids and finite numbers (errors name file and row).
 - ``session_id`` defaults to the name of the session folder as given (not following a
   link): :func:`default_session_id`, the one place that says so.
 - An image is named by its path relative to the session folder in one spelling
-  (:func:`fieldcal.session.names.normal_file_name`). Two entries that are one photograph
+  (:func:`fieldcal.contract.names.normal_file_name`). Two entries that are one photograph
   are refused: the same name spelled twice (``images/a.tif``, ``images/./a.tif``), the same
   file reached twice (a symbolic or hard link), or two files with the same bytes (a copy).
   Copies are found by size, then a 64 KiB sample from the middle of the file, then the
@@ -45,13 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.contract.fingerprint import sha256_file
+from fieldcal.contract.names import normal_file_name
+from fieldcal.contract.schemas import shown, validate_json
 from fieldcal.errors import InputError
-from fieldcal.field.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.measure.imageio import ImageFile, read_file
 from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, Sensor
-from fieldcal.session.fingerprint import sha256_file
-from fieldcal.session.names import normal_file_name
-from fieldcal.session.schemas import shown, validate_json
+from fieldcal.session.data import DEFAULT_SIGMA_PX, FieldData, FieldImage, ScaleBars, TargetField, normal_problem
 from fieldcal.session.store import SessionStore, distinct_by_md5, glob_names, sample_digest
 from fieldcal.session.tables import (
     MARKS_COLUMNS,
@@ -119,6 +119,7 @@ class Session:
     scale_bars_path: Path | None = None
     strict_targets: bool = False
     datum: str = "auto"
+    board_model: str = "auto"
     _read: dict = field(default_factory=dict, repr=False, compare=False)   # tables read once
 
     def targets(self) -> TargetField:
@@ -438,7 +439,7 @@ def _unique_keys(pairs):
 
 def _check_frame_paths(folder: Path, frames_path: Path, store: SessionStore | None = None) -> None:
     """Every frame that frames.csv names stays inside the session folder (path checks only)."""
-    from fieldcal.goniometer.method import read_frames_csv
+    from fieldcal.session.frames import read_frames_csv
 
     check_size(frames_path, "frames.csv")
     frames = read_frames_csv(frames_path, strict=False)
@@ -550,6 +551,7 @@ def load_session(folder, store: SessionStore | None = None) -> Session:
         sess.check_points = tuple(str(t) for t in manifest.get("check_points") or ())
         sess.strict_targets = bool(fld.get("strict_targets", False))
         sess.datum = str(fld.get("datum", "auto"))
+        sess.board_model = str(fld.get("board_model", "auto"))     # fieldcal.field.board (beyond the contract)
         if sess.coded is not None:
             from fieldcal.measure.coded import aruco_dictionary
 
@@ -604,3 +606,21 @@ def scale_bars_of(sess: Session, targets: TargetField) -> ScaleBars | None:
     if sess.scale_bars_path is None:
         return None
     return read_scale_bars_csv(sess.scale_bars_path, targets)
+
+
+def scale_bars_among(sess: Session, targets: TargetField) -> ScaleBars | None:
+    """The bars of ``scale_bars.csv`` (over the session's targets.csv, :func:`scale_bars_of`)
+    whose two ends are among ``targets`` (by id), as indices into ``targets``: from photographs
+    the adjustment holds the targets found in the images, a subset (None: no file or no such
+    bar)."""
+    listed = sess.targets()
+    bars = scale_bars_of(sess, listed)
+    if bars is None:
+        return None
+    index = targets.index()
+    a = np.array([index.get(str(listed.ids[k]), -1) for k in bars.from_target], np.int64)
+    b = np.array([index.get(str(listed.ids[k]), -1) for k in bars.to_target], np.int64)
+    keep = (a >= 0) & (b >= 0)
+    if not keep.any():
+        return None
+    return ScaleBars(a[keep], b[keep], bars.length_mm[keep], bars.sigma_mm[keep])

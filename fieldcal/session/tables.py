@@ -2,7 +2,7 @@
 
 Each table is read once, in one pass, into Arrow string columns with the line number of
 every row, and then checked column by column (vectorised): required columns, names as the
-schema defines them (:mod:`fieldcal.session.names`), unique ids, finite numbers, positive
+schema defines them (:mod:`fieldcal.contract.names`), unique ids, finite numbers, positive
 sigmas, known targets and images. Every refusal is an :class:`InputError` of one line that
 names the file and the line (``targets.csv:325: duplicate target id 'W0005' (first on line
 6)``).
@@ -52,8 +52,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
+from fieldcal.contract.names import check_name, first_invalid, normal_file_name
+from fieldcal.contract.schemas import shown
 from fieldcal.errors import InputError
-from fieldcal.field.data import (
+from fieldcal.model.camera import Sensor
+from fieldcal.session.data import (
     DEFAULT_TARGET_SIGMA_MM,
     FieldImage,
     FieldObservations,
@@ -61,9 +64,6 @@ from fieldcal.field.data import (
     TargetField,
     normal_problem,
 )
-from fieldcal.model.camera import Sensor
-from fieldcal.session.names import check_name, first_invalid, normal_file_name
-from fieldcal.session.schemas import shown
 
 __all__ = ["MAX_BYTES", "MAX_ROWS", "MAX_IMAGES", "CsvTable", "check_size", "read_csv_table",
            "read_targets_csv", "read_observations_csv", "read_marks_csv", "read_scale_bars_csv"]
@@ -377,7 +377,7 @@ def read_targets_csv(path, *, tokeniser: str = "auto") -> TargetField:
 
     ``X, Y, Z`` [m], all three empty for an unsurveyed target (NaN); an empty ``sigma_mm`` is
     5 mm; an empty ``code`` a plain target. Ids are
-    names of the kind ``label`` (:mod:`fieldcal.session.names`), unique; codes unique.
+    names of the kind ``label`` (:mod:`fieldcal.contract.names`), unique; codes unique.
     ``tokeniser``: see :func:`read_csv_table`.
     """
     t = read_csv_table(path, ("id", "X", "Y", "Z"), ("sigma_mm", "code") + NORMAL_COLUMNS, kind="targets.csv",

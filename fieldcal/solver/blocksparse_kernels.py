@@ -11,14 +11,14 @@ positions ``red_pos`` are reduced and ``elim_pos`` eliminated:
 - ``V[e[g], local[g, i], local[g, j]] += v[g, :, elim_pos[i]] . v[g, :, elim_pos[j]]``
 - ``W_slots[slot_idx[g, i], local[g, j]] += v[g, :, red_pos[i]] . v[g, :, elim_pos[j]]``
 
-Compilation, caching and the NumPy fallback: :mod:`fieldcal.solver.compiled`.
+Compilation, caching and the NumPy fallback: :mod:`fieldcal.contract.compiled`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from fieldcal.solver import compiled
+from fieldcal.contract import compiled
 
 __all__ = ["assemble", "gradient", "matvec", "schur", "elim_covariances", "group_covariance"]
 

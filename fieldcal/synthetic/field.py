@@ -10,6 +10,11 @@ Two scenarios, both in a world frame with X along the facade (east), Y towards i
     and balconies), 6 stations (3 on the ground, 3 on a roof) at ~60 m, 12 attitudes
     each (aimed across the facade, rolled by multiples of 90 degrees): 72 images seeing
     100-300 targets each.
+``board_field``
+    A planar chessboard (13 x 12 corners, 30 mm squares, as J.-Y. Bouguet's example) seen by a
+    640 x 480 camera with ~35 px of barrel distortion from ~20 poses at 0.5-0.8 m, flat or
+    warped out of its plane (a dome or a fold of tens of microns); the session's targets are
+    the board's nominal (flat) coordinates, the images see the warped board.
 ``wide_field``
     A wide-angle non-metric camera (6000 x 4000 px, 3.9 um, 24 mm, about 20 px of
     barrel distortion in the corners) in front of a 10 m x 4 m wall with up to 1 m of
@@ -26,11 +31,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 
 __all__ = [
-    "IXU150_TABLE1", "WIDE_ANGLE", "SyntheticField", "look_at", "paper_field", "wide_field", "faceted_field",
+    "IXU150_TABLE1", "WIDE_ANGLE", "BOARD_CAMERA", "SyntheticField", "look_at", "paper_field", "wide_field",
+    "faceted_field", "board_field", "board_deflection_mm",
     "add_blunders", "Blunders", "measurements_of", "target_plane_axes", "overlapping_images",
     "MIN_SHARED_TARGETS", "check_point_ids", "with_control_points", "visible_points",
 ]
@@ -48,6 +54,14 @@ WIDE_ANGLE = {
     "p1": 1.0e-5, "p2": -8.0e-6, "a1": 0.0, "a2": 5.0e-5,
 }
 """A non-metric 24 mm camera: about 20 px of barrel distortion in the corners of a 6000 x 4000 sensor."""
+
+BOARD_CAMERA = {
+    "f_mm": 4.862, "xp_mm": -0.12, "yp_mm": 0.06,
+    "k1": 1.05e-2, "k2": -3.0e-4, "k3": 0.0,
+    "p1": 2.0e-5, "p2": -1.5e-5, "a1": 0.0, "a2": 0.0,
+}
+"""A 640 x 480, 7.4 um camera of f = 657 px (Bouguet's example): ~35 px of barrel distortion in
+the corners."""
 
 
 @dataclass
@@ -317,6 +331,73 @@ def faceted_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm
                      settings={"scenario": "faceted"})
 
 
+def board_deflection_mm(shape: str, amplitude_mm: float, u, v):
+    """The out-of-plane deflection [mm] (towards the cameras) of a warped board at normalised
+    board coordinates ``u, v`` in [-1, 1]: ``"flat"`` 0; ``"dome"``
+    ``a (1 - (u^2 + v^2) / 2)`` (the middle ``a`` above the corners; in the warp model's terms,
+    :mod:`fieldcal.field.board`, ``warp_uu = warp_vv = a / 2``, ``warp_uv = 0``); ``"fold"``
+    ``a (1 - |u|)`` (a crease along the middle, ``v`` axis: outside the warp model's terms)."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    if shape == "flat":
+        return np.zeros(np.broadcast(u, v).shape)
+    if shape == "dome":
+        return amplitude_mm * (1.0 - 0.5 * (u * u + v * v))
+    if shape == "fold":
+        return amplitude_mm * (1.0 - np.abs(u)) + 0.0 * v
+    raise ValueError(f"shape must be 'flat', 'dome' or 'fold', got {shape!r}")
+
+
+def board_field(*, seed: int = 0, shape: str = "flat", amplitude_mm: float = 0.05, n_poses: int = 20,
+                image_noise_px: float = 0.1, board_sigma_mm: float = 0.01, camera: Camera | None = None,
+                corners=(13, 12), square_mm: float = 30.0, print_noise_mm: float = 0.0,
+                disc_diameter_mm: float = 12.0) -> SyntheticField:
+    """A planar chessboard seen from ``n_poses`` poses (see the module docstring).
+
+    The board lies in the world's ``Z = 0`` plane (normal ``+Z``, towards the cameras), its
+    corners on a ``square_mm`` grid centred on the origin. The true corners are displaced
+    along ``+Z`` by :func:`board_deflection_mm` (``shape``, ``amplitude_mm``); the session's
+    targets are the nominal flat grid with the stated ``board_sigma_mm``; ``print_noise_mm``
+    moves every true corner by independent Gaussian errors in all three coordinates (a
+    board made worse than stated; drawn after the poses). Poses: the camera
+    0.5-0.8 m from the board's middle, tilted 5-40 degrees from its normal in a random
+    azimuth, aimed within 40 mm of the middle, rolled by multiples of 90 degrees (+- 10);
+    all seeded by ``seed`` (poses, then image noise). For the renderer the corners are discs of
+    ``disc_diameter_mm`` (a disc board).
+    """
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(640, 480, 7.4), BOARD_CAMERA)
+    nx, ny = corners
+    gx = (np.arange(nx) - 0.5 * (nx - 1)) * square_mm / 1000.0
+    gy = (np.arange(ny) - 0.5 * (ny - 1)) * square_mm / 1000.0
+    xx, yy = np.meshgrid(gx, gy)
+    nominal = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], axis=1)
+    u, v = nominal[:, 0] / np.abs(gx).max(), nominal[:, 1] / np.abs(gy).max()
+    true = nominal.copy()
+    true[:, 2] = 1e-3 * board_deflection_mm(shape, amplitude_mm, u, v)
+    ids = np.array([f"B{i + 1:03d}" for i in range(len(true))])
+    normals = np.tile([0.0, 0.0, 1.0], (len(true), 1))
+    targets = TargetField(ids, true, 0.0, np.full(len(true), -1, np.int64), normals)
+    poses, names = [], []
+    for i in range(n_poses):
+        tilt, az = np.radians(rng.uniform(5.0, 40.0)), rng.uniform(0.0, 2 * np.pi)
+        dist = rng.uniform(0.5, 0.8)
+        C = dist * np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+        aim = np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), 0.0])
+        roll = np.radians(90.0 * (i % 4) + rng.normal(0.0, 10.0))
+        poses.append((look_at(C, aim, roll, up=(0.0, 1.0, 0.0)), C))
+        names.append(f"P{i + 1:02d}")
+    if print_noise_mm > 0:
+        true = true + rng.normal(0.0, print_noise_mm / 1000.0, true.shape)
+        targets = replace(targets, xyz_m=true)
+    sf = _simulate("board", cam, targets, poses, names, image_noise_px=image_noise_px, survey_noise_mm=0.0,
+                   seed=seed + 1, margin_px=5.0, target_diameter_mm=disc_diameter_mm, marker_size_mm=20.0,
+                   max_incidence_deg=75.0, nominal_focal_mm=cam.f_mm,
+                   settings={"scenario": "board", "shape": shape, "amplitude_mm": amplitude_mm})
+    sf.data = replace(sf.data, targets=TargetField(ids, nominal, np.full(len(ids), board_sigma_mm),
+                                                   targets.codes, normals))
+    return sf
+
+
 MIN_SHARED_TARGETS = 30
 """Targets an image chosen by :func:`overlapping_images` shares with the images chosen before it
 (when any image does): well above the identification's six."""
@@ -462,7 +543,7 @@ def measurements_of(sf: SyntheticField, image_index: int, *, coded: bool = True,
     """
     import pyarrow as pa
 
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     rng = np.random.default_rng([int(seed), int(image_index)])
     k = np.flatnonzero(sf.data.obs.image == image_index)
@@ -514,6 +595,58 @@ def _marker_corners(sf: SyntheticField, i: int, t: int, sigma_px: float, rng) ->
     P = tt.xyz_m[t] + h * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]]) @ np.stack([e1[0], e2[0]])
     uv = sf.camera.project(P, sf.R_world_to_camera[i], sf.center_m[i])
     return (uv + rng.normal(0.0, sigma_px, uv.shape)).reshape(-1)
+
+
+SHEET_CAMERA = {
+    "f_mm": 7.45, "xp_mm": -0.015, "yp_mm": 0.10,
+    "k1": 4.5e-3, "k2": -2.0e-5, "p1": 1.0e-5, "p2": -2.0e-5, "a2": -5.0e-4,
+}
+"""A compact camera like DBAT's Olympus C-4040Z (issue 26): about 60 px of barrel distortion in
+the corners of a 1136 x 852 sensor of 6.38 um pixels (half the C-4040Z's rows and columns)."""
+SHEET_CONTROL_IDS = ("1001", "1002", "1003", "1004")
+"""The control points of :func:`sheet_field`, at the grid's corners (as the DBAT sheet's)."""
+
+
+def sheet_field(*, seed: int = 0, image_noise_px: float = 0.1, survey_noise_mm: float = 0.0,
+                camera: Camera | None = None, n_side: int = 10, spacing_m: float = 0.1) -> SyntheticField:
+    """A planar calibration sheet photographed like DBAT's (issue 26 goal 6, a truth analogue).
+
+    ``n_side`` x ``n_side`` plain discs (25 mm) ``spacing_m`` apart in the plane ``Z = 0``
+    (normal ``+Z``, towards the cameras), the four corners' ids :data:`SHEET_CONTROL_IDS`
+    (``1001`` at ``(0, s)``, ``1002`` at ``(s, s)``, ``1003`` at the origin, ``1004`` at
+    ``(s, 0)``, ``s`` the grid's side), the others ``2, 3, ...``. Twenty convergent photos: eight
+    azimuths at 40 degrees from the normal (roll 0), the same eight rolled a quarter turn, and four
+    near the normal rolled 0, 90, 180 and 270 degrees, all 1.7 m from the sheet's centre."""
+    rng = np.random.default_rng(seed)
+    cam = camera or Camera.from_dict(Sensor(1136, 852, 6.38), SHEET_CAMERA)
+    side = spacing_m * (n_side - 1)
+    g = np.arange(n_side) * spacing_m
+    xx, yy = (a.ravel() for a in np.meshgrid(g, g))
+    corner = {(0.0, side): "1001", (side, side): "1002", (0.0, 0.0): "1003", (side, 0.0): "1004"}
+    ids, k = [], 2
+    for x, y in zip(xx, yy, strict=True):
+        key = (round(float(x), 9), round(float(y), 9))
+        name = next((v for (a, b), v in corner.items() if abs(a - key[0]) + abs(b - key[1]) < 1e-9), None)
+        if name is None:
+            name, k = str(k), k + 1
+        ids.append(name)
+    xyz = np.stack([xx, yy, np.zeros_like(xx)], axis=1)
+    targets = TargetField(np.array(ids), xyz, 0.0, -1, np.tile([0.0, 0.0, 1.0], (len(ids), 1)))
+    centre = np.array([side / 2, side / 2, 0.0])
+    poses, names = [], []
+    for roll_deg, tilt_deg, azimuths in ((0.0, 40.0, range(0, 360, 45)), (90.0, 40.0, range(22, 360, 45)),
+                                         (None, 8.0, range(0, 360, 90))):
+        for n, az in enumerate(azimuths):
+            a, t = np.radians(az + rng.normal(0, 3.0)), np.radians(tilt_deg + rng.normal(0, 2.0))
+            C = centre + 1.7 * np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+            aim = centre + np.array([rng.normal(0, 0.03), rng.normal(0, 0.03), 0.0])
+            roll = 90.0 * n if roll_deg is None else roll_deg
+            poses.append((look_at(C, aim, np.radians(roll + rng.normal(0, 2.0)), up=(0.0, 1.0, 0.0)), C))
+            names.append(None)
+    return _simulate("sheet", cam, targets, poses, names, image_noise_px=image_noise_px,
+                     survey_noise_mm=survey_noise_mm, seed=seed + 1, margin_px=12.0,
+                     target_diameter_mm=25.0, marker_size_mm=100.0, nominal_focal_mm=7.5,
+                     settings={"scenario": "sheet"})
 
 
 def with_control_points(sf: SyntheticField, spots_m=((-1.5, 1.0), (1.5, 1.0), (-1.5, 3.0), (1.5, 3.0))):

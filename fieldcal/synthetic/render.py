@@ -80,8 +80,8 @@ import pyarrow as pa
 from scipy import ndimage
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import FieldObservations
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.session.data import FieldObservations
 from fieldcal.synthetic.field import SyntheticField, target_plane_axes
 
 __all__ = [

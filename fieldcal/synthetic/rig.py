@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.model.camera import Camera, Sensor
 from fieldcal.model.rotations import R_from_rotvec
 from fieldcal.rig.data import RigData, RigHead
 from fieldcal.rig.poses import head_pose
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.synthetic.field import WIDE_ANGLE, look_at, visible_points, wide_field
 
 __all__ = ["SyntheticRig", "two_head_rig", "oblique_rig", "write_rig_session", "head_field",

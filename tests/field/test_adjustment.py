@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from fieldcal.analysis.compare import ray_difference_px
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field import initial
 from fieldcal.field.adjustment import (
@@ -21,10 +22,9 @@ from fieldcal.field.adjustment import (
     validate_field_data,
 )
 from fieldcal.field.bundle import BundleModel
-from fieldcal.field.data import FieldImage, FieldObservations
 from fieldcal.field.dlt import dlt
 from fieldcal.model.camera import FIELD_PARAMS, INDEX
-from fieldcal.products.compare import ray_difference_px
+from fieldcal.session.data import FieldImage, FieldObservations
 from fieldcal.solver.lsq import scipy_reference, solve
 from fieldcal.synthetic.field import add_blunders, paper_field, wide_field
 from tests.realdata import calib1_field_data, calib1_raw, dbat_field_data

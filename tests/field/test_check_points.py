@@ -138,9 +138,9 @@ def test_a_session_names_its_check_points_and_the_document_carries_them(tmp_path
 
 
 def test_the_report_and_the_certificate_show_check_points_and_the_cross_validation(tmp_path):
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.certificate import acceptance, load_config
     from fieldcal.products.report_sections import validation_section
-    from fieldcal.products.uncertainty import Calibration
     from tests.products.test_report import check_html
 
     sf = wide_field(seed=2)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from fieldcal.analysis.compare import ray_difference_px
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.cross_validation import cross_validate_by_station, station_groups
-from fieldcal.field.data import FieldImage
-from fieldcal.products.compare import ray_difference_px
+from fieldcal.session.data import FieldImage
 from fieldcal.synthetic.field import wide_field
 
 

@@ -9,35 +9,15 @@ calibrated by fieldcal. PhotoModeler's own marks of the same photos are the refe
 centroids (same points) and for the calibration (tests/realdata.py: dbat_field_data()).
 """
 
-import json
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import pytest
-import tifffile
 
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.pipeline import measure, prepare
-from tests.realdata import DBAT, dbat_field_data, require
-
-MARKS_PER_IMAGE = 5
-
-
-def _spread(uv, n):
-    """Indices of ``n`` well-spread points of ``uv`` (farthest-point choice, deterministic)."""
-    chosen = [int(np.argmax(np.linalg.norm(uv - uv.mean(axis=0), axis=1)))]
-    dmin = np.linalg.norm(uv - uv[chosen[0]], axis=1)
-    for _ in range(n - 1):
-        chosen.append(int(np.argmax(dmin)))
-        dmin = np.minimum(dmin, np.linalg.norm(uv - uv[chosen[-1]], axis=1))
-    return np.array(chosen)
-
-
-def _rows(path):
-    return [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
-
+from tests.realdata import dbat_field_data, dbat_image_names, dbat_marks, dbat_rows, require, write_dbat_photo_session
 
 MARKED_IMAGES_FEW = (1, 8, 15)
 """The images that keep their marks in the run with marks in only 3 of the 21 photos."""
@@ -52,7 +32,7 @@ def dbat(tmp_path_factory):
 def dbat_few_marks(dbat, tmp_path_factory):
     """The same photos and measurements, with the marks of only 3 of the 21 photos."""
     folder = tmp_path_factory.mktemp("dbat-few")
-    rows = _rows(dbat["prepared"].session.marks_path)
+    rows = dbat_rows(dbat["prepared"].session.marks_path)
     keep = {dbat["names"][i] for i in MARKED_IMAGES_FEW}
     (folder / "marks.csv").write_text("\n".join(["image,target_id,u,v"] + [r for r in rows[1:]
                                                                            if r.split(",")[0] in keep]) + "\n")
@@ -66,40 +46,11 @@ def dbat_few_marks(dbat, tmp_path_factory):
 
 def _dbat_run(tmp_path_factory):
     require("dbat-camcal")                          # skips every test of the module without the data
-    folder = tmp_path_factory.mktemp("dbat")
-    (folder / "images").mkdir()
-    names = {}
-    for line in _rows(DBAT / "images.txt"):
-        i, path = line.split(",")
-        jpg = path.strip().rsplit("/", 1)[-1]
-        names[int(i)] = "images/" + jpg.replace(".JPG", ".tif")
-        gray = cv2.imread(str(DBAT / "images" / jpg), cv2.IMREAD_GRAYSCALE)     # BT.601 luminance
-        assert gray is not None and gray.shape == (1704, 2272)
-        tifffile.imwrite(folder / names[int(i)], gray, photometric="minisblack")
-    targets = ["id,X,Y,Z,sigma_mm,code"]
-    for line in _rows(DBAT / "objpts-pm.txt"):
-        t = line.split()
-        targets.append(f"{t[0]},{t[1]},{t[2]},{t[3]},{max(float(v) for v in t[4:7]) * 1000.0:.4f},")
-    (folder / "targets.csv").write_text("\n".join(targets) + "\n")
-    # marks: 5 spread plain targets per image, PhotoModeler's centre minus 0.5 px (its pixel
-    # convention puts the centre of the top-left pixel at (0.5, 0.5))
-    pm = np.array([[float(v) for v in line.split(",")] for line in _rows(DBAT / "markpts.txt")])
-    marks = ["image,target_id,u,v"]
-    for i, name in names.items():
-        m = pm[(pm[:, 0] == i) & (pm[:, 1] < 1000)]
-        for k in _spread(m[:, 2:4], MARKS_PER_IMAGE):
-            marks.append(f"{name},{int(m[k, 1])},{m[k, 2] - 0.5:.4f},{m[k, 3] - 0.5:.4f}")
-    (folder / "marks.csv").write_text("\n".join(marks) + "\n")
-    manifest = {
-        "schema": "fieldcal.session/1", "method": "field", "camera_id": "olympus-c4040z",
-        "session_id": "dbat-camcal", "acquired": "2003-08-25",
-        "sensor": {"width_px": 2272, "height_px": 1704, "pixel_size_um": 3.1911},
-        "lens": {"nominal_focal_mm": 7.5},
-        "field": {"targets": "targets.csv", "target_polarity": "dark"},
-        "images": "images/*.tif", "default_sigma_px": 0.1,
-    }
-    (folder / "session.json").write_text(json.dumps(manifest, indent=2))
-
+    folder = tmp_path_factory.mktemp("dbat") / "dbat-camcal"
+    # marks of 5 spread plain targets per photo; PhotoModeler's adjusted points as the survey
+    write_dbat_photo_session(folder, None, list_plain=False, pm_survey=True)
+    names = {i: name for i, (_, name) in dbat_image_names().items()}
+    pm = dbat_marks()
     prepared = prepare(folder)
     measurements = {name: measure(prepared, name) for name in prepared.to_measure}
     lines = []
@@ -121,7 +72,7 @@ def test_every_photo_is_identified_without_a_wrong_identity(dbat):
     targets, the books and the wood grain give no identity."""
     ref, pm = dbat["reference"], _pm_lookup(dbat["reference"])
     assert all(r["status"] == "ok" for r in dbat["report"]), [r["reason"] for r in dbat["report"]]
-    n_same = n_elsewhere = n_pm_measured = n_pm_identified = 0
+    n_same = n_elsewhere = n_pm_measured = n_pm_identified = n_ringed = n_ringed_measured = 0
     res = dbat["result"]
     for name, ident in dbat["data"].meta["identifications"].items():
         table = dbat["measurements"][name]
@@ -149,12 +100,20 @@ def test_every_photo_is_identified_without_a_wrong_identity(dbat):
                 n_elsewhere += 1
         measured = d.min(axis=0) < 1.0
         n_pm_measured += int(measured.sum())
+        ringed = pm_id.astype(int) >= 1000                # the ringed control targets 1001-1004
+        n_ringed += int(ringed.sum())
+        n_ringed_measured += int((measured & ringed).sum())
         ids_found = {str(dbat["data"].targets.ids[t]) for t in ident.target[ident.target >= 0]}
         n_pm_identified += int(sum(pid in ids_found for pid in pm_id[measured]))
     print(f"\nidentified {n_same} blobs that PhotoModeler marked (all with its id) and {n_elsewhere} it did "
           f"not mark; of PhotoModeler's {len(ref.obs)} marks our detector measured {n_pm_measured}, "
           f"of which {n_pm_identified} were identified")
+    print(f"the ringed control targets: {n_ringed_measured} of their {n_ringed} marks measured (their dots)")
     assert n_pm_identified >= 0.99 * n_pm_measured
+    # recall (issue 23): discs joined to the sheet's shading were lost at the candidate stage
+    # (1829 of 2074 measured before; bench/README_dbat_recall.md)
+    assert n_pm_measured >= 0.99 * len(ref.obs)
+    assert n_ringed_measured >= 0.95 * n_ringed
     assert n_elsewhere <= 5
     assert res.stats()["n_images"] == 21
 

@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fieldcal.analysis.uncertainty import Calibration, coverage_fraction, within_region
 from fieldcal.field import consider_kernel
 from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field, centred
 from fieldcal.field.bundle import BundleModel
@@ -25,7 +26,6 @@ from fieldcal.field.variance_components import (
     weight_change,
 )
 from fieldcal.model.camera import INDEX
-from fieldcal.products.uncertainty import Calibration, coverage_fraction, within_region
 from fieldcal.synthetic.field import paper_field, wide_field
 
 CORE = ("f_mm", "xp_mm", "yp_mm")

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import tifffile
 
+from fieldcal.analysis.uncertainty import Calibration, coverage_fraction
 from fieldcal.field.adjustment import AdjustmentOptions
 from fieldcal.field.from_images import calibrate_from_measurements
 from fieldcal.model.camera import INDEX
 from fieldcal.pipeline import measure, prepare
-from fieldcal.products.uncertainty import Calibration, coverage_fraction
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.render import FULL_WELL_E, READ_NOISE_E, scaled_field
 from fieldcal.synthetic.session_writer import write_field_session

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import TargetField
 from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.normals import eccentricity_bound_px, estimate_normals, normals_summary, resolve_normals
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.session.data import TargetField
 from fieldcal.session.loader import load_session
 from fieldcal.synthetic.field import WIDE_ANGLE, faceted_field, look_at, wide_field
 from fieldcal.synthetic.session_writer import write_field_session

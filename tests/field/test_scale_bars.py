@@ -14,9 +14,9 @@ from scipy.special import chdtri
 
 from fieldcal.field.adjustment import AdjustmentOptions, FieldProblem, adjust_field
 from fieldcal.field.bundle import BundleModel
-from fieldcal.field.data import ScaleBars
 from fieldcal.field.scale_bars import BarObservations, bar_ends, usable
 from fieldcal.model.camera import INDEX
+from fieldcal.session.data import ScaleBars
 from fieldcal.synthetic.field import wide_field, with_control_points
 
 CORE = ("f_mm", "xp_mm", "yp_mm", "k1")

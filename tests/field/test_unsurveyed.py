@@ -15,8 +15,8 @@ import pytest
 
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
-from fieldcal.field.data import ScaleBars
 from fieldcal.model.camera import INDEX
+from fieldcal.session.data import ScaleBars
 from fieldcal.session.loader import field_data_from_observations, load_session
 from fieldcal.synthetic.field import wide_field, with_control_points
 from fieldcal.synthetic.session_writer import write_field_session
@@ -223,7 +223,7 @@ def test_a_session_with_unsurveyed_targets_and_scale_bars_runs_through_the_pipel
     """prepare + solve of an observations-only session: 4 surveyed targets, the rest unlisted,
     a free network (session.json field.datum) scaled by scale_bars.csv; the document validates."""
     from fieldcal import pipeline
-    from fieldcal.session.schemas import validate_json
+    from fieldcal.contract.schemas import validate_json
 
     sf, _, control = field
     folder = tmp_path / "free"

@@ -109,7 +109,7 @@ def test_a_missing_images_folder_is_bad_input(tmp_path):
 
 
 def test_version_and_an_unknown_option_with_the_commands_usage(capsys):
-    from fieldcal.session.fingerprint import code_version
+    from fieldcal.contract.fingerprint import code_version
 
     with pytest.raises(SystemExit) as done:
         cli.main(["--version"])

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import tifffile
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.products.export import EXACT_PX, normalised_rays
 from fieldcal.products.report import GONIOMETER_FIGURES
-from fieldcal.products.uncertainty import Calibration
 from flows.cli import main
 from tests.products.test_report import check_html, reports_lake
 

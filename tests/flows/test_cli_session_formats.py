@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from fieldcal import pipeline
 from fieldcal.lake.store import Lake
+from fieldcal.model.camera import INDEX
 from fieldcal.synthetic.field import faceted_field, paper_field, wide_field
 from fieldcal.synthetic.render import scaled_field
 from fieldcal.synthetic.session_writer import write_field_session
@@ -144,3 +145,23 @@ def test_a_strict_session_refuses_an_unlisted_id_in_one_line_before_any_server(t
     assert len(proc.stderr.splitlines()) == 1, proc.stderr
     assert "observations.csv:" in proc.stderr and f"target_id '{missing}' is not in targets.csv" in proc.stderr
     assert not lake.exists()
+
+
+def test_run_on_the_dbat_photos_with_only_four_marked_control_points(tmp_path, prefect_server):
+    """The thin-survey route (issue 26 goal 6) through the command line: marks.csv with the four
+    control points per photo, the 96 other discs found by referencing; the document counts them
+    and gives the library's camera (tests/field/test_dbat_thin.py checks it against PhotoModeler)."""
+    from tests.realdata import write_dbat_photo_session
+
+    folder = tmp_path / "dbat-thin"
+    write_dbat_photo_session(folder, None, list_plain=True)
+    doc = _run(folder, tmp_path, prefect_server)
+    stats = doc["stats"]
+    assert stats["referenced_targets"] == 96 and stats["identification"]["used"] == 21
+    assert stats["identification"]["started_from"] == {"resection from marks": 21}
+    assert stats["datum"]["type"] == "weighted control"
+    prepared = pipeline.prepare(folder)
+    meas = {n: pipeline.measure(prepared, n) for n in prepared.to_measure}
+    lib = pipeline.solve(prepared, meas, fingerprint_="lib").result
+    for name in ("f_mm", "xp_mm", "yp_mm", "k1"):
+        assert doc["parameters"][name] == pytest.approx(lib.params[INDEX[name]], rel=1e-9), name

@@ -20,12 +20,13 @@ import yaml
 import zarr
 
 from fieldcal import batch, progress
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.errors import InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.lake import history
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES
-from fieldcal.session.fingerprint import sha256_file
+from fieldcal.session.frames import read_frames_csv
 from fieldcal.session.loader import Session
 from fieldcal.synthetic.field import paper_field, wide_field
 from fieldcal.synthetic.goniometer import write_session
@@ -52,7 +53,7 @@ def gonio(tmp_path_factory):
     """A rendered goniometer session and the method's values on its noise-free spot positions."""
     folder = tmp_path_factory.mktemp("sessions") / "lab-2026-11-20"
     truth = write_session(folder, "canon5d2", seed=5, raster_scale=0.25, camera_id="cam-gonio")
-    frames = gon.read_frames_csv(folder / "frames.csv")
+    frames = read_frames_csv(folder / "frames.csv")
     ref = gon.calibrate(truth.sensor, frames, truth.exact_measurements(),
                         nominal_focal_mm=truth.scenario.nominal_focal_mm)
     return truth, ref

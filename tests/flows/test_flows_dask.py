@@ -13,6 +13,7 @@ import pytest
 from fieldcal.goniometer import method as gon
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX
+from fieldcal.session.frames import read_frames_csv
 from fieldcal.synthetic.goniometer import write_session
 from flows.calibrate import calibrate_session
 from tests import standalone_dask as standalone
@@ -49,7 +50,7 @@ def test_flow_runs_its_tasks_on_an_existing_scheduler_and_its_two_worker_process
     assert m["n_workers"] == 2
     assert len({t["pid"] for t in m["tasks"]}) == 2 and os.getpid() not in {t["pid"] for t in m["tasks"]}
 
-    frames = gon.read_frames_csv(folder / "frames.csv")
+    frames = read_frames_csv(folder / "frames.csv")
     ref = gon.calibrate(truth.sensor, frames, truth.exact_measurements(),
                         nominal_focal_mm=truth.scenario.nominal_focal_mm)
     doc = Lake(tmp_path / "lake").load_document(out["version"])

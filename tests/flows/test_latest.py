@@ -23,11 +23,11 @@ import tifffile
 
 from fieldcal import fleet as fleet_lib
 from fieldcal import pipeline
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import InputError
 from fieldcal.lake import order
 from fieldcal.lake.store import Lake
 from fieldcal.products import content
-from fieldcal.products.uncertainty import Calibration
 from flows.cli import main
 from tests.field.test_bad_geometry import CONVERGENT, SENSOR, wall, write_obs_session
 

@@ -6,14 +6,21 @@ tests' folders (:func:`tests.standalone_dask.standalone_cluster` with ``hide``):
 is handed a path of the flow's host finds nothing there, as on another machine. Sessions and
 lake are on the moto S3 server on loopback (``tests/conftest_s3.py``); the workers take the
 store's credentials from their environment, and the storage options the flows are given name
-only the endpoint and region. ``fieldcal fleet`` and ``fieldcal run --dask`` go through it;
-a local session given to the same cluster fails, loudly, which shows the disk is hidden.
+only the endpoint and region. ``fieldcal fleet``, ``fieldcal run --dask`` and ``fieldcal serve``
+(its deployment's run, started on the API and run by the serving process) go through it; a
+local session given to the same cluster fails, loudly, which shows the disk is hidden.
 Skipped, with the reason, where a mount namespace cannot be made (not root, no unshare).
 """
 
 import json
 import os
+import re
+import signal
+import subprocess
+import sys
 import tempfile
+import time
+from pathlib import Path
 
 import pytest
 
@@ -29,6 +36,8 @@ from tests.conftest_s3 import REGION
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_server")]
 
+FIELDCAL = str(Path(sys.executable).with_name("fieldcal"))
+ROOT = Path(__file__).resolve().parents[2]
 CREDENTIALS = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing"}
 
 
@@ -119,3 +128,75 @@ def test_fleet_and_run_with_sessions_and_lake_on_s3_and_workers_that_share_no_di
     # the same cluster given a session on the flow's disk: every frame is "file not found" there
     with pytest.raises(GeometryError, match="no goniometer frame could be measured"):
         calibrate_session(str(lab2), lake_url, storage_options=options, dask_address=address, force=True)
+
+
+def _deployment_id(name: str, serving: subprocess.Popen, log: Path, timeout_s: float = 120.0):
+    """The id of deployment ``name`` once the serving process has made it."""
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+
+    deadline = time.monotonic() + timeout_s
+    with get_client(sync_client=True) as client:
+        while True:
+            try:
+                return client.read_deployment_by_name(name).id
+            except ObjectNotFound:
+                assert serving.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+                time.sleep(0.5)
+
+
+def test_serve_runs_its_deployment_with_sessions_and_lake_on_s3_on_workers_that_share_no_disk(
+        isolated_cluster, store, prefect_server, tmp_path):
+    """``fieldcal serve --dask ADDRESS``: a run of its deployment (created on the API, as the
+    scheduler would at the cron's time) runs in the serving process's runner with the
+    deployment's parameters (the S3 root and lake, the storage options without secrets, the
+    isolated cluster), and its image tasks read the frames from S3 on the hidden workers."""
+    from prefect.client.orchestration import get_client
+
+    address, _, _ = isolated_cluster
+    s3, options, lake_url = store
+    local = tmp_path / "sessions"
+    truth = write_session(local / "cam-srv" / "2026-06-01", "h3d", seed=31, raster_scale=0.25,
+                          frames_per_angle=1, camera_id="cam-srv")
+    write_field_session(local / "cam-ws" / "2026-06-02", wide_field(seed=32), images=False,
+                        observations_csv=True, camera_id="cam-ws", acquired="2026-06-02")
+    put(s3, local, f"{lake_url}/sessions")
+    env = dict(os.environ, PREFECT_API_URL=prefect_server, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1",
+               PREFECT_RUNNER_POLL_FREQUENCY="1", **CREDENTIALS)
+    log = tmp_path / "serve.log"
+    name = f"hidden-{tmp_path.name}"[:60]
+    with open(log, "w") as out:
+        serving = subprocess.Popen(
+            [FIELDCAL, "serve", "--lake", lake_url, "--storage-options", json.dumps(options), "--dask", address,
+             "--cron", "0 2 * * *", "--name", name], env=env, cwd=tmp_path, stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True)
+    try:
+        deployment = _deployment_id(f"recalibrate-fleet/{name}", serving, log)
+        with get_client(sync_client=True) as client:
+            params = client.read_deployment(deployment).parameters
+            assert params["dask_address"] == address and params["lake"] == lake_url, params
+            assert "testing" not in json.dumps(params)                  # no secret in the deployment
+            run = client.create_flow_run_from_deployment(deployment)
+            deadline = time.monotonic() + 300
+            while not (state := client.read_flow_run(run.id).state).is_final():
+                assert serving.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+                time.sleep(1)
+        assert state.is_completed(), (state, log.read_text()[-3000:])
+        lake = Lake(lake_url, options)
+        assert {(r["camera_id"], r["session_id"]) for r in lake.catalog().to_pylist()} == {
+            ("cam-srv", "2026-06-01"), ("cam-ws", "2026-06-02")}
+        assert len(lake.cached_keys("cam-srv", "2026-06-01")) == truth.frames.num_rows   # measured on the workers
+        deadline = time.monotonic() + 30                                # the serving process says so
+        while not re.search(r"fieldcal serve: run \S+: completed in [0-9.]+ s: 2 found, 2 committed, 0 failed",
+                            log.read_text()):
+            assert time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.5)
+    finally:
+        if serving.poll() is None:
+            os.killpg(serving.pid, signal.SIGINT)
+        try:
+            serving.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(serving.pid, signal.SIGKILL)
+            serving.wait()
+    assert serving.returncode == 0, log.read_text()[-3000:]             # Ctrl-C stops it cleanly

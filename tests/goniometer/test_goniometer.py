@@ -17,6 +17,7 @@ import pytest
 from fieldcal.errors import GeometryError, InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.model.camera import PARAM_NAMES
+from fieldcal.session.frames import read_frames_csv
 from fieldcal.synthetic.goniometer import FAULTS, SCENARIOS, spot_positions_px, write_session
 
 KEYS = ("f_mm", "xp_mm", "yp_mm")
@@ -26,7 +27,7 @@ KEYS = ("f_mm", "xp_mm", "yp_mm")
 def _session(tmp_path_factory, name, seed):
     folder = tmp_path_factory.mktemp(name)
     truth = write_session(folder, name, seed=seed, raster_scale=0.25)
-    frames = gon.read_frames_csv(folder / "frames.csv")
+    frames = read_frames_csv(folder / "frames.csv")
     meas = gon.measure_session(folder, frames, truth.sensor)
     return truth, frames, meas
 
@@ -95,7 +96,7 @@ def write(tmp_path, text, name="frames.csv"):
 
 def test_read_frames_csv_reads_and_checks(tmp_path):
     p = write(tmp_path, "file,axis,angle_deg\nimages/a.tif,x,-2\n\n\"images/b c.tif\", y ,4.5\n")
-    t = gon.read_frames_csv(p)
+    t = read_frames_csv(p)
     assert t["file"].to_pylist() == ["images/a.tif", "images/b c.tif"]
     assert t["axis"].to_pylist() == ["x", "y"] and t["angle_deg"].to_pylist() == [-2.0, 4.5]
     assert t["problem"].null_count == 2 and t["line"].to_pylist() == [2, 4]   # a blank line 3
@@ -111,9 +112,9 @@ def test_read_frames_csv_reads_and_checks(tmp_path):
 def test_bad_rows_raise_when_strict_and_are_kept_otherwise(tmp_path, text, match):
     p = write(tmp_path, text)
     with pytest.raises(InputError, match=match) as info:
-        gon.read_frames_csv(p)
+        read_frames_csv(p)
     assert str(p) in str(info.value)
-    t = gon.read_frames_csv(p, strict=False)
+    t = read_frames_csv(p, strict=False)
     problems = [x for x in t["problem"].to_pylist() if x]
     assert len(problems) == 1 and "frames.csv line" in problems[0]
 
@@ -128,9 +129,9 @@ def test_bad_rows_raise_when_strict_and_are_kept_otherwise(tmp_path, text, match
 ])
 def test_structural_problems_always_raise(tmp_path, text, match):
     with pytest.raises(InputError, match=match):
-        gon.read_frames_csv(write(tmp_path, text), strict=False)
+        read_frames_csv(write(tmp_path, text), strict=False)
     with pytest.raises(InputError, match="frames file not found"):
-        gon.read_frames_csv(tmp_path / "nope.csv")
+        read_frames_csv(tmp_path / "nope.csv")
 
 
 # --------------------------------------------------------------------------- measuring
@@ -317,8 +318,8 @@ def test_bad_input_is_reported_and_the_calibration_proceeds(tmp_path):
                           faults=FAULTS)
     csv = tmp_path / "bad" / "frames.csv"
     with pytest.raises(InputError, match=r"frames.csv: line \d+ \(images/x_\+10.00_2.tif\): axis 'z'"):
-        gon.read_frames_csv(csv)
-    frames = gon.read_frames_csv(csv, strict=False)
+        read_frames_csv(csv)
+    frames = read_frames_csv(csv, strict=False)
     meas = gon.measure_session(truth.folder, frames, truth.sensor)
     res = gon.calibrate(truth.sensor, frames, meas)
     flags = {r["file"]: (r["flag"], r["reason"]) for r in res.rejected}
@@ -419,7 +420,7 @@ def test_result_has_the_contracts_document_parts(solved):
 
 
 def test_lake_residuals_follow_the_residuals_schema(solved):
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     res, _ = solved["h3d", True]
     t = res.lake_residuals()
@@ -485,8 +486,8 @@ def test_the_effective_focal_length_is_the_true_one_and_f_alone_is_not(solved, s
     """The scenarios' true cameras have no linear term (k0 = 0); the method puts a scale into k0
     and f. f / (1 + k0) -- what the certificate states beside f -- is the true focal length
     within its uncertainty; f alone is many sigma off where the lens distorts (issue 30)."""
+    from fieldcal.analysis.uncertainty import Calibration
     from fieldcal.products.focal_length import effective_focal
-    from fieldcal.products.uncertainty import Calibration
 
     truth = sessions[name][0].camera
     res, _ = solved[name, False]

@@ -87,10 +87,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from fieldcal.contract.fingerprint import code_version, is_fingerprint
+from fieldcal.contract.schemas import arrow_schema, validate_json
 from fieldcal.errors import InputError, LakeError
 from fieldcal.model.camera import PARAM_NAMES, Sensor, correction
-from fieldcal.session.fingerprint import code_version, is_fingerprint
-from fieldcal.session.schemas import arrow_schema, validate_json
 
 __all__ = [
     "Lake", "Committed", "new_version", "version_time", "observations_key",
@@ -150,7 +150,7 @@ def new_version(fingerprint: str, when: dt.datetime | None = None) -> str:
     Parameters
     ----------
     fingerprint : str
-        ``"sha256:<64 hex>"`` of the inputs (:func:`fieldcal.session.fingerprint.fingerprint`).
+        ``"sha256:<64 hex>"`` of the inputs (:func:`fieldcal.contract.fingerprint.fingerprint`).
     when : datetime, optional
         The commit time (default: now); naive times are taken as UTC.
     """

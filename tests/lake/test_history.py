@@ -8,11 +8,11 @@ import json
 import pyarrow as pa
 import pytest
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError
 from fieldcal.lake import history
 from fieldcal.lake.parts import conform_residuals
 from fieldcal.lake.store import Lake, new_version
-from fieldcal.session.schemas import arrow_schema
 from tests.lake.test_lake import field_document, field_measurements, goniometer_document, residual_table
 
 UTC = dt.UTC

@@ -22,19 +22,20 @@ import pytest
 import zarr
 
 import fieldcal
-from fieldcal.errors import InputError, LakeError
-from fieldcal.lake import history
-from fieldcal.lake.store import Lake, new_version, observations_key, version_time
-from fieldcal.lake.tables import Tables
-from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, PARAM_NAMES
-from fieldcal.model.rotations import R_world_to_camera_from_opk
-from fieldcal.session.fingerprint import (
+from fieldcal.analysis.correction import correction_arrays
+from fieldcal.contract.fingerprint import (
     canonical_json,
     code_version,
     fingerprint,
     is_fingerprint,
     sha256_file,
 )
+from fieldcal.errors import InputError, LakeError
+from fieldcal.lake import history
+from fieldcal.lake.store import Lake, new_version, observations_key, version_time
+from fieldcal.lake.tables import Tables
+from fieldcal.model.camera import FIELD_PARAMS, GONIOMETER_PARAMS, PARAM_NAMES
+from fieldcal.model.rotations import R_world_to_camera_from_opk
 
 VERSION_RE = re.compile(r"^\d{8}T\d{6}Z-[0-9a-f]{8}-[0-9a-f]{4}$")
 
@@ -122,7 +123,7 @@ def residual_table(n=20, *, seed=0, n_rejected=2):
 
 def field_measurements(image="images/IMG_0000.tif", n=3, *, seed=0):
     """A field image's measured targets (schemas/measurements.arrow.json), n rows."""
-    from fieldcal.session.schemas import arrow_schema
+    from fieldcal.contract.schemas import arrow_schema
 
     rng = np.random.default_rng(seed)
     rows = [{"image": image, "blob": i, "kind": "disc", "code": None,
@@ -135,7 +136,7 @@ def field_measurements(image="images/IMG_0000.tif", n=3, *, seed=0):
 
 
 def spot_measurement(file="images/F000.tif", u_px=400.0):
-    """A goniometer frame's spot (fieldcal.goniometer.method.MEASUREMENT_SCHEMA), one row."""
+    """A goniometer frame's spot (fieldcal.contract.goniometer_schema.MEASUREMENT_SCHEMA), one row."""
     from fieldcal.goniometer.method import measurements_table
 
     return measurements_table([{"file": file, "u_px": u_px, "v_px": 300.0, "peak_dn": 900.0,
@@ -245,11 +246,24 @@ def test_field_commit_round_trip(tmp_path):
     assert list(g["exterior/center_m"].attrs["images"]) == [im["file"] for im in doc["images"]]
 
 
+def test_the_lake_stores_the_correction_field_it_is_given_and_computes_none(tmp_path):
+    """Issue 25, goal 1: the lake stores what it is given; the grid comes from the solve step."""
+    lake = Lake(tmp_path)
+    g = lake.open_zarr(lake.commit(field_document(), {}, residual_table()))
+    assert not {"correction_field", "grid_u_px", "grid_v_px"} & set(g.array_keys())
+    doc = field_document(seed=3)
+    given = correction_arrays(doc)
+    g = lake.open_zarr(lake.commit(doc, given, residual_table()))
+    for name, arr in given.items():
+        np.testing.assert_array_equal(g[name][:], arr)
+
+
 def test_correction_field_follows_the_contract_formula(tmp_path):
-    """The derived correction field against CONTRACT section 2 written out independently."""
+    """The correction field the solve step hands in (analysis.correction), as stored, against
+    CONTRACT section 2 written out independently."""
     lake = Lake(tmp_path)
     doc = field_document()
-    g = lake.open_zarr(lake.commit(doc, {}, residual_table()))
+    g = lake.open_zarr(lake.commit(doc, correction_arrays(doc), residual_table()))
     field, gu, gv = g["correction_field"][:], g["grid_u_px"][:], g["grid_v_px"][:]
     assert field.shape == (gv.size, gu.size, 2) and gu[0] == 0 and gu[-1] == 819 and gv[-1] == 627
     p = doc["parameters"]

@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from fieldcal.analysis.correction import correction_arrays
 from fieldcal.errors import InputError, LakeError
 from fieldcal.lake import history
 from fieldcal.lake.check import check
@@ -154,11 +155,12 @@ def test_a_missing_or_damaged_zarr_chunk_is_an_error_naming_it(tmp_path):
     (zarr_dir / "sigma" / "c" / "0").unlink()
     with pytest.raises(LakeError, match=rf"chunk .*{v}\.zarr/sigma/c/0 is missing"):
         lake.open_zarr(v)
-    from fieldcal.products.uncertainty import Calibration
+    from fieldcal.analysis.uncertainty import Calibration
 
     with pytest.raises(LakeError, match="sigma/c/0 is missing"):
         Calibration.from_lake(lake, v)
-    v2 = lake.commit(field_document(seed=3), {}, residual_table())
+    doc2 = field_document(seed=3)
+    v2 = lake.commit(doc2, correction_arrays(doc2), residual_table())
     chunk = tmp_path / "calibrations" / "cam-a" / "s1" / f"{v2}.zarr" / "correction_field" / "c" / "0" / "0" / "0"
     data = bytearray(chunk.read_bytes())
     data[-1] ^= 0xFF

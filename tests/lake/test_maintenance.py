@@ -8,11 +8,11 @@ import time
 
 import pytest
 
+from fieldcal.contract.fingerprint import code_version
 from fieldcal.errors import LakeError
 from fieldcal.lake import history
 from fieldcal.lake.dictionary import data_dictionary
 from fieldcal.lake.store import Lake
-from fieldcal.session.fingerprint import code_version
 from tests.lake.test_lake import field_document, field_measurements, residual_table
 
 

@@ -14,6 +14,7 @@ import pytest
 import tifffile
 from scipy import ndimage
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError
 from fieldcal.measure.coded import (
     detect_aruco,
@@ -22,7 +23,6 @@ from fieldcal.measure.coded import (
     to_uint8,
 )
 from fieldcal.measure.targets import measure_image
-from fieldcal.session.schemas import arrow_schema
 
 CELLS = {}
 

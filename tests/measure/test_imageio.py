@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.errors import ImageError, InputError
 from fieldcal.measure.imageio import (
     ImageFile,
@@ -19,7 +20,6 @@ from fieldcal.measure.imageio import (
     set_decode_threads,
     stat_stamp,
 )
-from fieldcal.session.fingerprint import sha256_file
 
 RNG = np.random.default_rng(0)
 IMG16 = RNG.integers(0, 65535, (120, 160), dtype=np.uint16)

@@ -16,12 +16,12 @@ import tifffile
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import ImageError, InputError
 from fieldcal.measure.disc_windows import hat_sums, squared_centroid
 from fieldcal.measure.discs import DEFAULT_METHOD, METHODS, detect_targets
 from fieldcal.measure.imageio import read_file
 from fieldcal.measure.targets import measure_image
-from fieldcal.session.schemas import arrow_schema
 from tests.measure.peers import opencv_blob_centres
 
 BG, FIG = 40000.0, 4000.0

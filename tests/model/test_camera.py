@@ -93,3 +93,23 @@ def test_bad_sensor_and_parameters_are_refused():
         Sensor(10, 10, -1.0)
     with pytest.raises(InputError, match="unknown camera parameter"):
         cam.params_from_dict({"f": 1.0})
+
+
+def test_principal_point_in_pixels_and_back_is_the_convention_written_out():
+    """docs/conventions.md section 1: u0 = (W-1)/2 + xp/d, v0 = (H-1)/2 - yp/d, bit for bit
+    (issue 25, goal 6: one function instead of the formula in each module), and its inverse."""
+    s = Sensor(820, 628, 5.3)
+    params = np.zeros(13)
+    params[[cam.F, cam.XP, cam.YP]] = 24.1, 0.0731, -0.0412
+    c = Camera(s, params)
+    u0, v0 = c.principal_point_px
+    assert u0 == (820 - 1) / 2 + 0.0731 / 5.3e-3 and v0 == (628 - 1) / 2 - (-0.0412) / 5.3e-3
+    assert u0 > 409.5 and v0 > 313.5                        # x right / u right; y up / v down
+    xp, yp = cam.principal_point_mm(s, u0, v0)
+    assert abs(xp - 0.0731) < 1e-15 and abs(yp + 0.0412) < 1e-15
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0, 800, (5, 2))
+    back = cam.principal_point_px(s, *cam.principal_point_mm(s, uv[:, 0], uv[:, 1]).T)
+    np.testing.assert_allclose(back, uv, rtol=0, atol=1e-12)
+    from fieldcal.model.opencv_frames import opencv_camera_matrix
+    np.testing.assert_array_equal(opencv_camera_matrix(c)[:2, 2], [u0, v0])

@@ -5,11 +5,11 @@ import re
 import numpy as np
 import pytest
 
+from fieldcal.analysis.uncertainty import Calibration, radial_curve
 from fieldcal.errors import InputError
 from fieldcal.model.camera import INDEX
 from fieldcal.products import content
 from fieldcal.products.certificate import DEFAULT_CONFIG, acceptance, load_config, write_certificate
-from fieldcal.products.uncertainty import Calibration, radial_curve
 from flows.cli import main
 from tests.products.test_report import check_html, reports_lake
 

@@ -9,6 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import InputError
 from fieldcal.model.camera import PARAM_NAMES, Camera, Sensor
 from fieldcal.products.export import (
@@ -21,7 +22,6 @@ from fieldcal.products.export import (
     opencv_jacobian,
     opencv_project,
 )
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import IXU150_TABLE1, WIDE_ANGLE
 from fieldcal.synthetic.goniometer import make_scenario
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.model.camera import INDEX, PARAM_NAMES, Sensor
 from fieldcal.products import focal_length as fl
-from fieldcal.products.uncertainty import Calibration
 
 SENSOR = Sensor(6000, 4000, 3.9)
 

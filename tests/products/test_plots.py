@@ -7,10 +7,10 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from fieldcal.analysis.uncertainty import Calibration, radial_curve, uncertainty_map
 from fieldcal.errors import InputError
 from fieldcal.model.camera import PARAM_NAMES, Camera, Sensor
 from fieldcal.products import plots
-from fieldcal.products.uncertainty import Calibration, radial_curve, uncertainty_map
 from fieldcal.synthetic.field import IXU150_TABLE1
 
 SENSOR = Sensor(820, 628, 53.0)

@@ -22,6 +22,7 @@ import pyarrow as pa
 import pytest
 
 from fieldcal import pipeline
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import InputError
 from fieldcal.lake.store import Lake
 from fieldcal.model.camera import INDEX, PARAM_NAMES, Camera, Sensor, correction
@@ -36,7 +37,6 @@ from fieldcal.products.report import (
     parameter_tolerance,
     write_report,
 )
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import IXU150_TABLE1, add_blunders, paper_field
 from fieldcal.synthetic.goniometer import write_session
 from fieldcal.synthetic.session_writer import write_field_session

@@ -7,9 +7,9 @@ compared, when, and what readers pick.
 
 import pytest
 
+from fieldcal.analysis.compare import judge
 from fieldcal.lake.store import Lake
 from fieldcal.products import report, status
-from fieldcal.products.compare import judge
 from tests.lake.test_lake import field_document, residual_table
 
 

@@ -8,8 +8,8 @@ import json
 
 import pytest
 
+from fieldcal.contract.schemas import validate_json
 from fieldcal.lake.store import Lake
-from fieldcal.session.schemas import validate_json
 from fieldcal.synthetic.rig import two_head_rig, write_rig_session
 from flows import cli
 

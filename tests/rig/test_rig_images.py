@@ -95,5 +95,5 @@ def test_a_rig_session_of_images_with_an_unsurveyed_target_is_refused(session, t
     first = rows[1].split(",")
     rows[1] = ",".join([first[0], "", "", ""] + first[4:])        # its coordinates not surveyed
     (folder / "targets.csv").write_text("\n".join(rows) + "\n")
-    with pytest.raises(InputError, match=rf"1 unsurveyed target\(s\) \({first[0]}\): a rig session needs"):
+    with pytest.raises(InputError, match=rf"1 unsurveyed target\(s\) \({first[0]}\): a rig session of images needs"):
         rig_run.prepare_rig(folder)

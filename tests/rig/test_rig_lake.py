@@ -1,6 +1,6 @@
-"""A rig version in the lake (fieldcal.lake.store.Lake.commit_rig): every head's catalog row in
-one transaction, then the rig's row; a crash between the two is finished by a rerun, which
-solves nothing twice and adds no catalog row."""
+"""A rig version in the lake (fieldcal.lake.store.Lake.commit_rig): the heads' parts, the rig's
+row, then every head's catalog row in one transaction (the commit point); a failure before it
+leaves nothing committed (tests/rig/test_rig_atomic.py: a kill, no reader sees it, a rerun completes it)."""
 
 from __future__ import annotations
 
@@ -19,24 +19,24 @@ def outcome(tmp_path_factory):
     return folder, prepared, solve_rig(prepared)
 
 
-def test_a_crash_before_the_rig_row_is_finished_by_a_rerun(tmp_path, outcome, monkeypatch):
+def test_a_failed_rig_row_leaves_nothing_committed_and_a_rerun_commits_one_version(tmp_path, outcome, monkeypatch):
     folder, prepared, out = outcome
     lake = Lake(tmp_path / "lake")
     real = lake.tables.append
 
     def failing(name, table, info=None, **kwargs):
         if name == "rigs":
-            raise LakeError("simulated crash before the rig row")
+            raise LakeError("simulated failure of the rig row")
         return real(name, table, info, **kwargs)
 
     monkeypatch.setattr(lake.tables, "append", failing)
-    with pytest.raises(LakeError, match="simulated crash"):
+    with pytest.raises(LakeError, match="simulated failure"):
         lake.commit_rig(out.heads, out.rig_document)
-    heads = lake.catalog()["version"].to_pylist()
-    assert len(heads) == 2 and lake.rig_catalog().num_rows == 0       # the heads together, no rig yet
+    assert lake.catalog().num_rows == 0 and lake.rig_catalog().num_rows == 0       # neither heads nor rig
+    assert not list((tmp_path / "lake" / "calibrations").rglob("*.json"))         # the parts were removed
     monkeypatch.setattr(lake.tables, "append", real)
     version, head_versions, _ = run_rig(folder, lake, prepared=prepared)
-    assert sorted(head_versions) == sorted(heads) and lake.catalog().num_rows == 2
+    assert sorted(head_versions) == sorted(lake.catalog()["version"].to_pylist()) and lake.catalog().num_rows == 2
     assert lake.rig_catalog()["version"].to_pylist() == [version]
     assert [h["version"] for h in lake.load_rig_document(version)["heads"]] == head_versions
 

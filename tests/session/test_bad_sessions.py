@@ -395,7 +395,7 @@ def test_frames_rows_with_bad_values_are_kept_with_their_line_for_the_report(tem
 
 def test_a_frame_name_with_a_line_break_stays_on_one_line_in_the_message(tmp_path):
     """Found by reading: read_frames_csv(strict=True) printed the raw file name."""
-    from fieldcal.goniometer.method import read_frames_csv
+    from fieldcal.session.frames import read_frames_csv
 
     p = tmp_path / "frames.csv"
     p.write_text('file,axis,angle_deg\n"images/a\nb.tif",z,1\n')

@@ -36,12 +36,12 @@ from hypothesis import HealthCheck, currently_in_test_context, event, given, set
 from hypothesis import strategies as st
 
 from fieldcal import pipeline
+from fieldcal.contract.names import is_valid, normal_file_name
 from fieldcal.errors import InputError
-from fieldcal.field.data import FieldImage, TargetField
-from fieldcal.goniometer.method import read_frames_csv
 from fieldcal.model.camera import Sensor
+from fieldcal.session.data import FieldImage, TargetField
+from fieldcal.session.frames import read_frames_csv
 from fieldcal.session.loader import read_marks_csv, read_observations_csv, read_targets_csv
-from fieldcal.session.names import is_valid, normal_file_name
 from fieldcal.session.tables import read_csv_table
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -2,7 +2,7 @@
 
 The definitions live once, in ``schemas/session.schema.json`` ``$defs`` (``id``, ``label``,
 ``file``, ``glob``), and serve both the manifest and the CSV tables
-(:mod:`fieldcal.session.names`). Hostile values (control characters, a trailing newline that
+(:mod:`fieldcal.contract.names`). Hostile values (control characters, a trailing newline that
 a ``$`` would let through, glob metacharacters, path separators, invisible and bidirectional
 characters, very long values) are refused with one line naming the file and the row or the
 JSON pointer.
@@ -18,10 +18,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal import pipeline
+from fieldcal.contract import names
+from fieldcal.contract.schemas import json_schema, schema_dir, validate_json
 from fieldcal.errors import InputError
-from fieldcal.session import names
 from fieldcal.session.loader import load_session
-from fieldcal.session.schemas import json_schema, schema_dir, validate_json
 from fieldcal.session.tables import read_targets_csv
 from tests.field.test_bad_geometry import CONVERGENT, wall, write_obs_session
 

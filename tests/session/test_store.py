@@ -11,8 +11,8 @@ import pickle
 import pytest
 
 from fieldcal import batch, pipeline
+from fieldcal.contract.fingerprint import sha256_file
 from fieldcal.errors import ImageError, InputError
-from fieldcal.session.fingerprint import sha256_file
 from fieldcal.session.store import SessionStore, glob_names
 from fieldcal.synthetic.field import wide_field
 from fieldcal.synthetic.goniometer import write_session

@@ -11,6 +11,7 @@ import tifffile
 from fieldcal.errors import InputError
 from fieldcal.goniometer import method as gon
 from fieldcal.model.camera import Camera, project
+from fieldcal.session.frames import read_frames_csv
 from fieldcal.session.loader import load_session
 from fieldcal.synthetic.goniometer import (
     FAULTS,
@@ -119,7 +120,7 @@ def test_write_session_files_follow_the_contract(tmp_path):
     assert "field" not in man
     sess = load_session(tmp_path / "s1")              # the project's manifest validation
     assert sess.method == "goniometer" and len(sess.images) == truth.frames.num_rows
-    frames = gon.read_frames_csv(tmp_path / "s1" / "frames.csv")
+    frames = read_frames_csv(tmp_path / "s1" / "frames.csv")
     assert frames.num_rows == 2 * (45 + 35) == truth.frames.num_rows
     assert frames["problem"].null_count == frames.num_rows
     first = tmp_path / "s1" / frames["file"][0].as_py()

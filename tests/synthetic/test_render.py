@@ -17,9 +17,9 @@ import pytest
 from scipy import ndimage
 
 from fieldcal.errors import InputError
-from fieldcal.field.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.measure.imageio import probe_image, read_image
 from fieldcal.model.camera import Camera, Sensor
+from fieldcal.session.data import FieldData, FieldImage, FieldObservations, TargetField
 from fieldcal.session.loader import (
     field_data_from_observations,
     load_session,

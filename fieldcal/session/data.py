@@ -1,6 +1,6 @@
-"""The field method's data: surveyed targets, images and identified image observations.
+"""A field session's input types: surveyed targets, images and identified image observations.
 
-Plain containers over numpy arrays, shared by the session loader, the synthetic
+Plain containers over numpy arrays, made by the session loader and shared by the synthetic
 generator, identification and the adjustment. Pixel coordinates follow docs/conventions.md
 section 1; world coordinates are metres; target sigmas millimetres.
 """
@@ -12,9 +12,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pyarrow as pa
 
+from fieldcal.contract.schemas import arrow_schema
 from fieldcal.errors import InputError
 from fieldcal.model.camera import Sensor
-from fieldcal.session.schemas import arrow_schema
 
 __all__ = ["TargetField", "FieldImage", "FieldObservations", "FieldData", "ScaleBars", "normal_problem"]
 

@@ -4,7 +4,7 @@ Repeat sessions of an unchanged camera (new image noise, new survey noise, new a
 for the goniometer a new alignment of the camera on the arm) must be called changed at
 about the nominal rate, and a change of a few propagated sigmas in f, in the principal
 point or in the distortion at the edge of the field must be found as often as the
-test's power says (fieldcal.products.change).
+test's power says (fieldcal.analysis.change).
 
 Each method: 20 independent pairs of sessions (40 solves, cached for the module). The
 field method on observation sessions of the paper's camera (one attitude per station: 6
@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from fieldcal.analysis.change import chi_square_test, edge_radius_mm, holm
+from fieldcal.analysis.compare import combined_covariance, compare_calibrations
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.field.adjustment import AdjustmentOptions, adjust_field
 from fieldcal.goniometer import calibrate as gonio_calibrate
 from fieldcal.model.camera import INDEX, PARAM_NAMES, Camera, params_to_dict
-from fieldcal.products.change import chi_square_test, edge_radius_mm, holm
-from fieldcal.products.compare import combined_covariance, compare_calibrations
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import paper_field
 from tests.goniometer.simulate import simulated_session
 
@@ -214,7 +214,8 @@ def test_repeat_goniometer_sessions_scatter_as_their_sigmas_say(pairs):
 def test_the_issues_three_synthetic_sessions_of_one_camera_agree(tmp_path):
     """``fieldcal synth --method goniometer`` seeds 1, 2, 3 (the same camera, rendered frames):
     called changed with chi2 464-6425 on 9 dof before; no pair is significant now."""
-    from fieldcal.goniometer import measure_session, read_frames_csv
+    from fieldcal.goniometer import measure_session
+    from fieldcal.session.frames import read_frames_csv
     from fieldcal.synthetic.goniometer import write_session
 
     cals = []

@@ -4,10 +4,7 @@ Monte Carlo, distortion-curve sigmas against closed forms, and the lake's covari
 import numpy as np
 import pytest
 
-from fieldcal.errors import InputError
-from fieldcal.model.camera import INDEX, PARAM_NAMES, Camera, Sensor, project, unproject
-from fieldcal.model.rotations import R_from_rotvec
-from fieldcal.products.uncertainty import (
+from fieldcal.analysis.uncertainty import (
     Calibration,
     decentering_curve,
     interior_covariance,
@@ -20,6 +17,9 @@ from fieldcal.products.uncertainty import (
     summarise_2x2,
     uncertainty_map,
 )
+from fieldcal.errors import InputError
+from fieldcal.model.camera import INDEX, PARAM_NAMES, Camera, Sensor, project, unproject
+from fieldcal.model.rotations import R_from_rotvec
 from fieldcal.synthetic.field import IXU150_TABLE1, WIDE_ANGLE
 from tests.products.test_report import reports_lake
 

@@ -27,8 +27,8 @@ import functools
 import posixpath
 import re
 
+from fieldcal.contract.schemas import json_schema, shown
 from fieldcal.errors import InputError
-from fieldcal.session.schemas import json_schema, shown
 
 __all__ = ["KINDS", "is_valid", "first_invalid", "check_name", "normal_file_name"]
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from fieldcal.analysis.compare import Comparison, compare_calibrations, ray_difference_px
+from fieldcal.analysis.uncertainty import Calibration
 from fieldcal.errors import InputError
 from fieldcal.model.camera import INDEX, PARAM_NAMES, Camera, Sensor
-from fieldcal.products.compare import Comparison, compare_calibrations, ray_difference_px
-from fieldcal.products.uncertainty import Calibration
 from fieldcal.synthetic.field import IXU150_TABLE1
 from tests.products.test_report import DRIFT, reports_lake
 

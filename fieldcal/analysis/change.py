@@ -2,7 +2,7 @@ r"""Has the camera changed? One test per quantity the two calibrations observe, 
 
 A change of one camera property -- the principal distance, the principal point, the
 distortion at the edge of the field -- is a change in one or two numbers. An omnibus
-chi-square over the whole correction field (:mod:`fieldcal.products.compare`) has as
+chi-square over the whole correction field (:mod:`fieldcal.analysis.compare`) has as
 many degrees of freedom as the model has parameters and spends its power on all of them:
 a change of 3.7 sigma in ``f`` alone gave p = 0.008 on 9 degrees of freedom. This module
 tests each quantity on its own and combines the tests with Holm's step-down correction,
@@ -25,7 +25,7 @@ degrees of freedom when the camera did not change (a z-test for ``k = 1``).
   half diagonal for the field method, the end of the wider sweep for the goniometer, the
   smaller of the two calibrations' radii).
 - the correction field over the region both observe (the omnibus map test of
-  :func:`fieldcal.products.compare.compare_calibrations`): every other change (decentering,
+  :func:`fieldcal.analysis.compare.compare_calibrations`): every other change (decentering,
   affinity, a change the covariance does not allow for).
 
 What a method does not observe is left out, and the comparison says so
@@ -194,7 +194,7 @@ def _value(params, key: str, r_mm: float) -> np.ndarray:
 def observed_quantities(a, b) -> tuple[list[str], list[str]]:
     """``(keys, left_out)``: the parameter quantities compared and, in words, what is not.
 
-    ``map`` is always compared (by :mod:`fieldcal.products.compare`); ``keys`` lists the
+    ``map`` is always compared (by :mod:`fieldcal.analysis.compare`); ``keys`` lists the
     others (module docstring).
     """
     methods = {a.method, b.method}
@@ -228,7 +228,7 @@ def quantity_tests(a, b, names, cov, keys) -> list[QuantityTest]:
 
     Parameters
     ----------
-    a, b : fieldcal.products.uncertainty.Calibration
+    a, b : fieldcal.analysis.uncertainty.Calibration
     names : sequence of str
         The union of their estimated parameters
         (:data:`fieldcal.model.camera.PARAM_NAMES` order).

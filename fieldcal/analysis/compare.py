@@ -12,14 +12,14 @@ common rotation of B's rays onto A's (Wahba's problem, solved by SVD) is removed
 
 Is the change real? (:func:`compare_calibrations`)
 --------------------------------------------------
-The verdict is a family of tests (:mod:`fieldcal.products.change`): one per quantity both
+The verdict is a family of tests (:mod:`fieldcal.analysis.change`): one per quantity both
 calibrations observe (``f``, the principal point, the radial distortion at the edge of
 the field) and the *map test* below over the correction field where both observe,
 combined by Holm's procedure at the level ``alpha``.
 
 The map test. Stack the difference map over the tested points as ``d``. To first order
 ``d = J (theta_A - theta_B)`` with the landing Jacobian ``J`` (2n, p) of
-:func:`fieldcal.products.uncertainty.landing_jacobian` (a ray fixed in the camera frame:
+:func:`fieldcal.analysis.uncertainty.landing_jacobian` (a ray fixed in the camera frame:
 where it lands moves with the parameters), evaluated once, at A, over the union of the
 parameters either calibration estimated. If both measured the same camera with
 independent errors, ``d ~ N(0, C)`` with
@@ -46,7 +46,7 @@ any measurement's accuracy. A part of ``d`` outside the kept directions
 is reported as ``outside_px`` and makes the change significant when it exceeds
 ``outside_tol_px``. With ``remove_rotation`` both ``d`` and ``M`` are first projected onto
 the fields that no common rotation explains
-(:func:`fieldcal.products.uncertainty.remove_rotation_part`).
+(:func:`fieldcal.analysis.uncertainty.remove_rotation_part`).
 
 The verdict combines the tests (significant at level ``alpha``) with the size of the
 change against a tolerance in the image plane (``tolerance_um``): a camera is *flagged*
@@ -74,15 +74,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
-from fieldcal.errors import InputError
-from fieldcal.model.camera import PARAM_NAMES, Camera, project, unproject
-from fieldcal.products.change import QuantityTest, holm, observed_quantities, quantity_tests
-from fieldcal.products.uncertainty import (
+from fieldcal.analysis.change import QuantityTest, holm, observed_quantities, quantity_tests
+from fieldcal.analysis.uncertainty import (
     Calibration,
     landing_jacobian,
     rotation_jacobian,
     summarise_2x2,
 )
+from fieldcal.errors import InputError
+from fieldcal.model.camera import PARAM_NAMES, Camera, project, unproject
 
 __all__ = ["ray_difference_px", "best_rotation", "Comparison", "compare_calibrations", "judge", "check_level",
            "check_grid", "MAX_GRID",
@@ -171,7 +171,7 @@ class Comparison:
         Largest and RMS change where tested [px] (``|d|`` per point over the sensor; the
         along-axis component at the goniometer's spots, rotation removed, for ``axes``).
     tests : tuple of QuantityTest
-        One per quantity (:mod:`fieldcal.products.change`), the map test last.
+        One per quantity (:mod:`fieldcal.analysis.change`), the map test last.
     left_out : tuple of str
         What the comparison does not test, and why.
     """
