@@ -7,7 +7,9 @@ calibration (:func:`calibrate_from_measurements`):
 0. **A thin survey** (fewer than 6 surveyed targets, :func:`fieldcal.field.thin_start.is_thin`) with
    marks.csv: the identification by projection cannot work; every image is resected from its
    marked control points and the network grown by automatic referencing instead
-   (:func:`fieldcal.field.thin_start.start_from_marks`; the steps below are not taken).
+   (:func:`fieldcal.field.thin_start.start_from_marks`; the steps below are not taken). Without
+   marks, a session of coded targets starts from the markers instead
+   (:func:`fieldcal.field.thin_start.start_from_codes`: relative orientation, no survey needed).
 1. **First identification, nominal camera.** Every image is identified
    (:func:`fieldcal.field.identify.identify_images`, all images at once) with the camera the
    session describes: the nominal focal length (``lens.nominal_focal_mm``), principal point at
@@ -95,10 +97,16 @@ from fieldcal.field.eccentricity import correction_px
 from fieldcal.field.identify import IdentifyOptions, identify_images, measured_points
 from fieldcal.field.identify_session import REASON_AMBIGUOUS, REASON_NO_START, PriorOptions, identify_remaining
 from fieldcal.field.intersection import intersect_targets
-from fieldcal.field.normals import eccentricity_bound_px, measured_shape_vectors, normals_summary, resolve_normals
+from fieldcal.field.normals import (
+    eccentricity_bound_px,
+    measured_shape_vectors,
+    normals_summary,
+    plane_tolerance_m,
+    resolve_normals,
+)
 from fieldcal.field.referencing import ReferencingOptions, reference_discs, track_ids
 from fieldcal.field.sensitivity import eccentricity_bias_bounds, with_bias_bounds
-from fieldcal.field.thin_start import is_thin, start_from_marks
+from fieldcal.field.thin_start import is_thin, start_from_codes, start_from_marks
 from fieldcal.model.camera import INDEX, Camera
 from fieldcal.robust import robust_sigma
 from fieldcal.session.data import FieldData, FieldObservations, TargetField
@@ -326,8 +334,8 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
         raise InputError("not a field-method session", session.manifest_where)
     run = _Run(session, measurements, options or AdjustmentOptions(), progress or (lambda _line: None),
                identify or IdentifyOptions(), priors or PriorOptions())
-    if is_thin(run.targets) and run.marks:
-        return _thin(run, referencing)
+    if is_thin(run.targets) and (run.marks or (run.coded and np.any(run.all_targets.codes >= 0))):
+        return _thin(run, referencing, coded=not run.marks)
     first, keep1, marker1, res1 = _first_pass(run)
     state = _Oriented(run, res1, keep1, first)
     starts = {i: "seeds" for i in keep1}
@@ -369,19 +377,27 @@ def calibrate_from_measurements(session: Session, measurements: Mapping[str, pa.
     return data, result, report
 
 
-def _thin(run: _Run, referencing: ReferencingOptions | None):
+def _thin(run: _Run, referencing: ReferencingOptions | None, coded: bool = False):
     """0: a survey too thin to identify targets by projection (:func:`fieldcal.field.thin_start.is_thin`):
-    the images are resected from their marked control points and the network grown by automatic
-    referencing (:func:`fieldcal.field.thin_start.start_from_marks`); scale_bars.csv joins."""
+    the images are resected from their marked control points (or, without marks, oriented from
+    their coded targets: ``coded``) and the network grown by automatic referencing
+    (:func:`fieldcal.field.thin_start.start_from_marks`, :func:`~fieldcal.field.thin_start.start_from_codes`);
+    scale_bars.csv joins."""
     sess = run.session
     bars = None if sess.scale_bars_path is None else (lambda targets: scale_bars_among(sess, targets))
-    st = start_from_marks(sess, run.measurements, run.targets, run.marks, run.options, run.working_options,
-                          run.nominal, referencing=referencing, scale_bars=bars, say=run.say, progress=run.progress)
+    common = {"referencing": referencing, "scale_bars": bars, "say": run.say, "progress": run.progress}
+    if coded:
+        st = start_from_codes(sess, run.measurements, run.all_targets, run.options, run.working_options,
+                              run.nominal, **common)
+    else:
+        st = start_from_marks(sess, run.measurements, run.targets, run.marks, run.options, run.working_options,
+                              run.nominal, **common)
     data = st.data
     data.meta.update(referenced_targets=st.n_tracks, marker_sigma_factor=1.0, identifications={},
                      eccentricity=st.eccentricity, target_normals=None)
     data.meta["identification"] = summary = identification_summary(st.report)
-    run.say(f"images used: {summary['used']} of {summary['images']} (started from the marked control points)")
+    start = "their coded targets" if coded else "the marked control points"
+    run.say(f"images used: {summary['used']} of {summary['images']} (started from {start})")
     return data, st.result, st.report
 
 
@@ -624,9 +640,14 @@ def _surveyed_only(targets, say):
         return targets, targets, keep
     if say is not None:
         coded = int(np.sum(~keep & (targets.codes >= 0)))
-        say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv: the images are oriented from the "
-            f"surveyed ones; the {coded} coded one(s) join by their code, the plain ones through automatic "
-            "referencing (when on: fieldcal run turns it on for them)")
+        if keep.sum() < MIN_POINTS_PER_IMAGE:
+            say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv and {int(keep.sum())} surveyed: too few to "
+                "identify targets by projection; the images are oriented from marks.csv's control points or the "
+                f"{coded} coded target(s), the plain ones join through automatic referencing")
+        else:
+            say(f"{int((~keep).sum())} unsurveyed target(s) of targets.csv: the images are oriented from the "
+                f"surveyed ones; the {coded} coded one(s) join by their code, the plain ones through automatic "
+                "referencing (when on: fieldcal run turns it on for them)")
     normals = None if targets.normals is None else targets.normals[keep]
     sub = replace(targets, ids=targets.ids[keep], xyz_m=targets.xyz_m[keep], sigma_mm=targets.sigma_mm[keep],
                   codes=targets.codes[keep], normals=normals)
@@ -806,10 +827,6 @@ LEAVE_OUT_FRACTION = 0.05
 """Disc centres whose normal is not determined are left out of the final adjustment when they
 are at most this fraction of the disc centres; otherwise they stay, and the largest bias they
 can cause widens the parameters' sigmas (:mod:`fieldcal.field.sensitivity`)."""
-ECC_TOL_FACTOR = 3.0
-"""A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets."""
-ECC_TOL_MIN_M = 0.001
-"""... and at least this [m] (the targets' flatness on their support)."""
 
 
 def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_normals, eccentricity, estimate=True):
@@ -829,7 +846,7 @@ def _eccentricity(run: _Run, second, keep2, cam, adjusted, sigma_m, target_norma
     if not (eccentricity and diameter_mm):
         why = "not asked" if not eccentricity else "no field.target_diameter_mm in the session"
         return None, None, ecc_max, {"max_px": None, "normals": "none", "applied": False, "reason": why}, None
-    tol = max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(np.atleast_1d(sigma_m))))
+    tol = plane_tolerance_m(sigma_m)
     if target_normals is not None:          # given for every row of targets.csv: the surveyed ones
         N = np.asarray(target_normals, float)
         if N.ndim == 2 and len(N) == len(run.surveyed) != len(run.targets):

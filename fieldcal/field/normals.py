@@ -39,11 +39,25 @@ from fieldcal.field.geometry import is_coplanar, plane_frame
 from fieldcal.model.camera import Camera
 from fieldcal.session.data import TargetField
 
-__all__ = ["SOURCES", "TargetNormals", "resolve_normals", "estimate_normals", "local_planes", "choose_by_shapes",
-           "shape_vectors", "measured_shape_vectors", "eccentricity_bound_px", "normals_summary", "hemisphere"]
+__all__ = ["SOURCES", "ECC_TOL_FACTOR", "ECC_TOL_MIN_M", "plane_tolerance_m", "TargetNormals", "resolve_normals",
+           "estimate_normals", "local_planes", "choose_by_shapes", "shape_vectors", "measured_shape_vectors",
+           "eccentricity_bound_px", "normals_summary", "hemisphere"]
 
 SOURCES = ("given", "planar fit", "estimated", "none")
 """How a target's normal was obtained (module docstring)."""
+ECC_TOL_FACTOR = 3.0
+"""A neighbour belongs to a target's local plane within this many sigmas of the adjusted targets
+(:func:`plane_tolerance_m`) ..."""
+ECC_TOL_MIN_M = 0.001
+"""... and at least this [m] (the targets' flatness on their support)."""
+
+
+def plane_tolerance_m(sigma_m) -> float:
+    """``tol_m`` of :func:`resolve_normals` for adjusted targets of sigmas ``sigma_m`` [m]:
+    :data:`ECC_TOL_FACTOR` times their median, at least :data:`ECC_TOL_MIN_M` (NaN sigmas ignored)."""
+    s = np.asarray(sigma_m, float).ravel()
+    s = s[np.isfinite(s)]
+    return max(ECC_TOL_MIN_M, ECC_TOL_FACTOR * float(np.median(s))) if len(s) else ECC_TOL_MIN_M
 
 AMBIGUOUS_DEG = 15.0
 """A competing local plane tilted by more than this with as much support makes a normal undetermined."""
@@ -103,13 +117,17 @@ def resolve_normals(targets: TargetField, normals=None, *, xyz_m=None, estimate:
     X = np.asarray(targets.xyz_m if xyz_m is None else xyz_m, float)
     if known.all() or n < 3:
         return TargetNormals(N, source.astype(str))
-    if is_coplanar(X):
-        _, B = plane_frame(X)
-        N[~known] = B[:, 2]
-        source[~known] = "planar fit"
+    placed = np.isfinite(X).all(axis=1)              # a target the adjustment could not place has no normal
+    if placed.sum() < 3:
+        return TargetNormals(N, source.astype(str))
+    if is_coplanar(X[placed]):
+        _, B = plane_frame(X[placed])
+        N[~known & placed] = B[:, 2]
+        source[~known & placed] = "planar fit"
     elif estimate:
         if shapes is None:
-            est = estimate_normals(X, tol_m=tol_m)
+            est = np.full((n, 3), np.nan)
+            est[placed] = estimate_normals(X[placed], tol_m=tol_m)
         else:
             camera, views, radius_m = shapes
             cand, sup = local_planes(X, tol_m=tol_m)
